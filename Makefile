@@ -32,6 +32,7 @@ test: install
 
 bench: install
 	$(BIN)/python bench/rasterizer.py
+	$(BIN)/python bench/body.py
 
 clean:
 	rm -rf $(VENV) out

@@ -1,0 +1,141 @@
+"""Body-model speed: forward and forward+backward at batch 1 and 150 (a whole clip), on CPU.
+
+    .venv/bin/python bench/body.py [--threads 2] [--repeats 5] [--backends anny smplx]
+
+"forward" is ``model(params)`` plus ``model.keypoints(out)``; "forward+backward" adds the
+backward pass of a loss on vertices and keypoints to every parameter (pose, root, translation,
+shape, expression), as in fitting. SMPL-X runs only when ``$EVA_SMPLX_DIR`` points at real
+files. Writes ``bench/results/body.json`` and ``body.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from eva_engine.body import load_body_model
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def time_call(fn, repeats: int, warmup: int = 1) -> dict:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return {"median_ms": 1e3 * statistics.median(times), "min_ms": 1e3 * min(times), "repeats": repeats}
+
+
+def bench_model(model, batch: int, repeats: int) -> dict:
+    g = torch.Generator().manual_seed(0)
+    params = model.default_params(batch)
+    params.joints.copy_(torch.randn(params.joints.shape, generator=g) * 0.3)
+    params.root_orient.copy_(torch.randn(params.root_orient.shape, generator=g))
+
+    def forward():
+        with torch.no_grad():
+            out = model(params)
+            model.keypoints(out)
+
+    def forward_backward():
+        p = params.map(lambda t: t.detach().requires_grad_(True))
+        out = model(p)
+        loss = out.vertices.square().mean() + model.keypoints(out).square().mean()
+        loss.backward()
+
+    return {
+        "forward": time_call(forward, repeats),
+        "forward_backward": time_call(forward_backward, repeats),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 150])
+    parser.add_argument("--backends", nargs="+", default=["anny", "smplx"])
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    results: dict = {}
+    for name in args.backends:
+        if name == "smplx" and not os.environ.get("EVA_SMPLX_DIR"):
+            print("smplx: skipped ($EVA_SMPLX_DIR not set; SMPL-X files are licensed)")
+            continue
+        start = time.perf_counter()
+        model = load_body_model(name)
+        load_s = time.perf_counter() - start
+        results[name] = {"load_s": load_s, "vertices": model.num_vertices, "joints": model.num_joints}
+        for batch in args.batches:
+            repeats = args.repeats if batch < 32 else max(2, args.repeats // 2)
+            results[name][f"batch_{batch}"] = r = bench_model(model, batch, repeats)
+            print(
+                f"{name} B={batch}: forward {r['forward']['median_ms']:.1f} ms, "
+                f"forward+backward {r['forward_backward']['median_ms']:.1f} ms"
+            )
+
+    record = {
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "command": " ".join([Path(sys.executable).name, *sys.argv]),
+        "machine": {
+            "cpu": cpu_name(),
+            "logical_cpus": os.cpu_count(),
+            "torch_threads": torch.get_num_threads(),
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "torch": torch.__version__,
+        },
+        "note": "CPU shared with other jobs when recorded; timings are noisy.",
+        "results": results,
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "body.json").write_text(json.dumps(record, indent=2) + "\n")
+    lines = [
+        "# Body model benchmark",
+        "",
+        f"- date: {record['date']}",
+        f"- command: `{record['command']}`",
+        f"- machine: {record['machine']['cpu']}, {record['machine']['logical_cpus']} logical CPUs, "
+        f"torch {record['machine']['torch']} with {record['machine']['torch_threads']} threads, "
+        f"{record['machine']['platform']}",
+        f"- note: {record['note']}",
+        "",
+        "| backend | batch | forward (ms) | forward+backward (ms) |",
+        "|---|---:|---:|---:|",
+    ]
+    for name, r in results.items():
+        for batch in args.batches:
+            fwd, fwd_bwd = (r[f"batch_{batch}"][k]["median_ms"] for k in ("forward", "forward_backward"))
+            lines.append(f"| {name} | {batch} | {fwd:.1f} | {fwd_bwd:.1f} |")
+    lines += ["", "Medians over the repeats (min in body.json); model load times in body.json."]
+    (args.out / "body.md").write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()

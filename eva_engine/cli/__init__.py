@@ -1,0 +1,10 @@
+"""``eva``: the single command-line entry point.
+
+Each module below registers its commands on :data:`app`; imports stay light at module level so
+``eva --help`` starts fast (heavy engine modules are imported inside the commands).
+"""
+
+from eva_engine.cli import demo, setup  # noqa: F401  (registers commands)
+from eva_engine.cli.app import app
+
+__all__ = ["app"]

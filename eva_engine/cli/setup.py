@@ -1,0 +1,39 @@
+"""``eva setup``: one-time install steps (body-model cache, offline LPIPS weights)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import typer
+from rich.console import Console
+
+from eva_engine.cli.app import app
+
+
+@app.command()
+def setup(
+    force: bool = typer.Option(False, "--force", help="Rebuild the Anny cache even if it is current."),
+    cache_dir: Path = typer.Option(None, help="Anny cache folder (default: <data dir>/cache/anny)."),
+) -> None:
+    """Build the Anny body-model cache (once, ~1 min) and check the offline LPIPS weights."""
+    from eva_engine.body import load_body_model, prepare_anny_cache
+    from eva_engine.metrics import LPIPSWeightsError, prepare_lpips
+
+    console = Console(stderr=True)
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    started = time.perf_counter()
+    with console.status("Anny body-model cache (first build takes about a minute)..."):
+        path = prepare_anny_cache(cache_dir, force=force)
+        model = load_body_model("anny", cache_dir=path, build_cache=False)
+    console.print(
+        f"[green]ok[/] Anny cache {path}: {model.num_vertices} vertices, {model.num_joints} joints, "
+        f"{len(model.expression_names)} expressions ({time.perf_counter() - started:.0f} s)"
+    )
+    try:
+        weights = prepare_lpips()
+    except LPIPSWeightsError as err:
+        console.print(f"[red]error[/] LPIPS weights: {err}")
+        raise typer.Exit(1) from err
+    console.print(f"[green]ok[/] LPIPS weights {weights}")

@@ -1,0 +1,40 @@
+"""Differentiable 3D Gaussian rasterizer in pure torch (CPU first, any device).
+
+The functional core follows gsplat's conventions so a CUDA backend can be swapped in and compared:
+``rasterize`` (project -> bin into tiles -> composite) returns a ``RenderOutput``. The stages are
+public too: ``project_gaussians`` (EWA projection, autograd), ``bin_gaussians`` (no gradients),
+``composite`` (tiled alpha compositing with a hand-written backward) and ``composite_autograd``
+(the plain-autograd reference). Spherical-harmonics colours: ``eval_sh``. Cameras: ``intrinsics``,
+``look_at``, ``orbit_camera``.
+"""
+
+from eva_engine.render.camera import intrinsics, look_at, orbit_camera
+from eva_engine.render.composite import CompositeConfig, composite, composite_autograd, tiles_to_image
+from eva_engine.render.projection import Projection, project_gaussians, quat_to_rotmat
+from eva_engine.render.rasterize import RasterConfig, RenderOutput, rasterize
+from eva_engine.render.sh import camera_center, eval_sh, num_sh_bases, rgb_to_sh, sh_basis, view_dirs
+from eva_engine.render.tiles import TileBins, bin_gaussians
+
+__all__ = [
+    "CompositeConfig",
+    "Projection",
+    "RasterConfig",
+    "RenderOutput",
+    "TileBins",
+    "bin_gaussians",
+    "camera_center",
+    "composite",
+    "composite_autograd",
+    "eval_sh",
+    "intrinsics",
+    "look_at",
+    "orbit_camera",
+    "num_sh_bases",
+    "project_gaussians",
+    "quat_to_rotmat",
+    "rasterize",
+    "rgb_to_sh",
+    "sh_basis",
+    "tiles_to_image",
+    "view_dirs",
+]

@@ -1,0 +1,95 @@
+"""Real spherical harmonics colours, degree 0-3, with the 3DGS constants and conventions."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (
+    1.0925484305920792,
+    -1.0925484305920792,
+    0.31539156525252005,
+    -1.0925484305920792,
+    0.5462742152960396,
+)
+SH_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
+MAX_SH_DEGREE = 3
+
+
+def num_sh_bases(degree: int) -> int:
+    """Coefficients per colour channel for an SH degree: (degree + 1)^2."""
+    return (degree + 1) ** 2
+
+
+def sh_basis(degree: int, dirs: Tensor) -> Tensor:
+    """[N, 3] unit directions -> [N, (degree + 1)^2] real SH basis values (3DGS order and signs)."""
+    if not 0 <= degree <= MAX_SH_DEGREE:
+        raise ValueError(f"SH degree must be in 0..{MAX_SH_DEGREE}, got {degree}")
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        out += [
+            SH_C2[0] * xy,
+            SH_C2[1] * yz,
+            SH_C2[2] * (2.0 * zz - xx - yy),
+            SH_C2[3] * xz,
+            SH_C2[4] * (xx - yy),
+        ]
+    if degree >= 3:
+        out += [
+            SH_C3[0] * y * (3 * xx - yy),
+            SH_C3[1] * xy * z,
+            SH_C3[2] * y * (4 * zz - xx - yy),
+            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+            SH_C3[4] * x * (4 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy),
+            SH_C3[6] * x * (xx - 3 * yy),
+        ]
+    return torch.stack(out, dim=-1)
+
+
+def eval_sh(degree: int, sh_coeffs: Tensor, dirs: Tensor) -> Tensor:
+    """View-dependent colour as 3DGS renders it: max(sum_k Y_k(dir) c_k + 0.5, 0).
+
+    sh_coeffs: [N, K, 3] with K >= (degree + 1)^2 (extra coefficients are ignored);
+    dirs: [N, 3] viewing directions (camera -> Gaussian), any length (normalised here; a zero
+    direction only affects degree >= 1 terms, which it zeroes). Returns [N, 3].
+    The +0.5 offset makes an all-zero coefficient set mid-grey (``rgb_to_sh`` inverts the DC
+    term); the clamp keeps colours non-negative, as in 3DGS.
+    """
+    k = num_sh_bases(degree)
+    if sh_coeffs.shape[-2] < k:
+        raise ValueError(f"SH degree {degree} needs {k} coefficients, got {sh_coeffs.shape[-2]}")
+    norm = dirs.norm(dim=-1, keepdim=True)
+    unit = dirs / torch.where(norm > 0, norm, torch.ones_like(norm))
+    basis = sh_basis(degree, unit)
+    rgb = (basis[..., None] * sh_coeffs[..., :k, :]).sum(dim=-2)
+    return torch.clamp_min(rgb + 0.5, 0.0)
+
+
+def rgb_to_sh(rgb: Tensor) -> Tensor:
+    """[..., 3] colours -> DC coefficients [..., 3] such that degree-0 ``eval_sh`` returns them."""
+    return (rgb - 0.5) / SH_C0
+
+
+def camera_center(viewmat: Tensor) -> Tensor:
+    """[4, 4] world->camera -> [3] camera centre in world coordinates (-R^T t)."""
+    return -viewmat[:3, :3].T @ viewmat[:3, 3]
+
+
+def view_dirs(means: Tensor, viewmat: Tensor) -> Tensor:
+    """[N, 3] world means -> [N, 3] unnormalised directions from the camera centre to them."""
+    return means - camera_center(viewmat).to(means)

@@ -1,0 +1,53 @@
+"""Camera helpers: the project's conventions (Y up, subject faces +Z; OpenCV camera axes)."""
+
+import math
+
+import pytest
+import torch
+
+from eva_engine.render import intrinsics, look_at, orbit_camera
+
+
+def _to_camera(viewmat, p):
+    return viewmat[:3, :3] @ torch.as_tensor(p, dtype=torch.float32) + viewmat[:3, 3]
+
+
+def test_intrinsics_centre_and_fov():
+    K = intrinsics(200, 100, 90.0)
+    assert K[0, 2] == 100 and K[1, 2] == 50
+    assert K[0, 0] == pytest.approx(50.0) and K[1, 1] == pytest.approx(50.0)
+    with pytest.raises(ValueError, match="fov"):
+        intrinsics(10, 10, 180.0)
+    with pytest.raises(ValueError, match="size"):
+        intrinsics(0, 10, 40.0)
+
+
+def test_look_at_axes_follow_opencv():
+    view = look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0))
+    assert torch.allclose(view[:3, :3] @ view[:3, :3].T, torch.eye(3), atol=1e-6)
+    assert torch.linalg.det(view[:3, :3]) == pytest.approx(1.0, abs=1e-6)
+    assert torch.allclose(_to_camera(view, (0, 0, 0)), torch.tensor([0.0, 0.0, 3.0]), atol=1e-6)
+    # Seen from the front, the subject's left (+X) is image right, world up is image up (-y).
+    assert _to_camera(view, (1, 0, 0))[0] > 0
+    assert _to_camera(view, (0, 1, 0))[1] < 0
+    with pytest.raises(ValueError, match="coincide"):
+        look_at((1, 2, 3), (1, 2, 3))
+    with pytest.raises(ValueError, match="parallel"):
+        look_at((0, 3, 0), (0, 0, 0))
+
+
+@pytest.mark.parametrize("yaw, expected", [(0.0, (0, 0, 2)), (90.0, (2, 0, 0)), (180.0, (0, 0, -2))])
+def test_orbit_camera_positions(yaw, expected):
+    view = orbit_camera(yaw, 0.0, 2.0, target=(0.0, 0.0, 0.0))
+    centre = -view[:3, :3].T @ view[:3, 3]
+    assert torch.allclose(centre, torch.tensor(expected, dtype=torch.float32), atol=1e-5)
+    assert torch.allclose(_to_camera(view, (0, 0, 0)), torch.tensor([0.0, 0.0, 2.0]), atol=1e-5)
+
+
+def test_orbit_camera_pitch_and_bad_values():
+    view = orbit_camera(0.0, 30.0, 2.0)
+    centre = -view[:3, :3].T @ view[:3, 3]
+    assert centre[1] == pytest.approx(2.0 * math.sin(math.radians(30)), abs=1e-5)
+    for kwargs in ({"pitch_deg": 90.0}, {"distance": 0.0}, {"distance": float("nan")}):
+        with pytest.raises(ValueError):
+            orbit_camera(**kwargs)
