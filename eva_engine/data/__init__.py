@@ -1,0 +1,34 @@
+"""Data in and out of the engine: video frames, the dataset layout and its loader, the synthetic
+benchmark (rendered Anny, ``eva synth``), parameter noise for ablations, and readers for
+public datasets. The on-disk layout is documented in ``docs/dataset-format.md``."""
+
+from __future__ import annotations
+
+from eva_engine.data.dataset import (
+    Dataset,
+    DatasetError,
+    DatasetMeta,
+    DatasetWriter,
+    Frame,
+    ParamNames,
+    load_dataset,
+)
+from eva_engine.data.perturb import PerturbConfig, perturb
+from eva_engine.data.video import VideoClip, VideoError, VideoReadOptions, read_video, write_video
+
+__all__ = [
+    "Dataset",
+    "DatasetError",
+    "DatasetMeta",
+    "DatasetWriter",
+    "Frame",
+    "ParamNames",
+    "PerturbConfig",
+    "VideoClip",
+    "VideoError",
+    "VideoReadOptions",
+    "load_dataset",
+    "perturb",
+    "read_video",
+    "write_video",
+]
