@@ -223,6 +223,30 @@ def test_keypoints_layout(model):
     assert torch.allclose(kp2 - kp, torch.tensor([0.5, -1.0, 2.0]).expand_as(kp), atol=1e-5)
 
 
+def test_posed_keypoints_equal_keypoints_of_the_posed_mesh(model):
+    params = random_params(model, batch=3, seed=5)
+    kp, joints = model.posed_keypoints(params)
+    out = model(params)
+    assert torch.allclose(kp, model.keypoints(out), atol=5e-5)
+    assert torch.allclose(joints, out.joints, atol=1e-6)
+    # Gradients reach every parameter through the fast path too.
+    params = params.map(lambda t: t.clone().requires_grad_(True))
+    model.posed_keypoints(params)[0].square().sum().backward()
+    for name, t in params.tensors().items():
+        assert t.grad is not None and torch.isfinite(t.grad).all(), name
+        if name != "expression" or model.name == "anny":
+            assert t.grad.abs().sum() > 0, name
+
+
+def test_shape_shared_by_expanding_one_row(model):
+    params = random_params(model, batch=4, seed=6)
+    shared = params.shape[:1].expand(4, -1)
+    expanded = BodyParams(params.root_orient, params.transl, params.joints, params.expression, shared)
+    copied = BodyParams(params.root_orient, params.transl, params.joints, params.expression, shared.clone())
+    assert torch.allclose(model(expanded).vertices, model(copied).vertices, atol=1e-6)
+    assert torch.allclose(model.posed_keypoints(expanded)[0], model.posed_keypoints(copied)[0], atol=1e-5)
+
+
 def test_keypoints_sides_and_order_at_rest(model):
     kp = model.keypoints(model(model.default_params(1)))[0]
     k = {n: kp[i] for i, n in enumerate(KEYPOINT_NAMES)}

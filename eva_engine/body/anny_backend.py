@@ -106,6 +106,8 @@ class AnnyBody(BodyModel):
     """Anny behind :class:`BodyModel` (see the module docstring)."""
 
     name = "anny"
+    expression_bounds = (0.0, 1.0)  # ARKit blendshape weights
+    shape_bounds = (0.0, 1.0)  # phenotypes (Anny clamps outside)
 
     def __init__(self, config: AnnyConfig | None = None) -> None:
         super().__init__()
@@ -149,15 +151,26 @@ class AnnyBody(BodyModel):
         self.segment_labels = labels  # [V] index into SEGMENT_LABELS (CPU; for tools and tests)
 
         self.keypoint_regressor = self._build_keypoints(model, labels, any_label)
+        self._kp_space: tuple[torch.Tensor, ...] | None = None
         self.keypoint_names = list(KEYPOINT_NAMES)
 
     # -- BodyModel ---------------------------------------------------------------------------
     def _blendshape_coeffs(self, params: BodyParams) -> torch.Tensor:
+        """[B, C] Anny blendshape coefficients: phenotype weights, then the facial actions.
+
+        A shape shared by the whole batch (batch 1 or an ``expand``ed row, as in fitting a clip)
+        is turned into phenotype weights once: that interpolation dominates the cost otherwise.
+        """
         b = params.batch_size
-        local_changes = params.shape.new_zeros(b, 0)
-        return self.anny._get_phenotype_blendshape_coefficients(
-            params.shape.to(self.dtype), local_changes, params.expression.to(self.dtype)
-        )
+        shape = params.shape.to(self.dtype)
+        expression = params.expression.to(self.dtype)
+        if b > 1 and (shape.shape[0] == 1 or shape.stride(0) == 0):
+            one = self.anny._get_phenotype_blendshape_coefficients(
+                shape[:1], shape.new_zeros(1, 0), expression.new_zeros(1, expression.shape[1])
+            )
+            phenotype = one[:, : one.shape[1] - expression.shape[1]]
+            return torch.cat([phenotype.expand(b, -1), expression], dim=1)
+        return self.anny._get_phenotype_blendshape_coefficients(shape, shape.new_zeros(b, 0), expression)
 
     def _rest(self, params: BodyParams) -> tuple[torch.Tensor, torch.Tensor]:
         """Rest vertices [B, V, 3] and rest bone heads [B, J, 3], world frame."""
@@ -184,6 +197,56 @@ class AnnyBody(BodyModel):
 
     def keypoints(self, output: BodyOutput) -> torch.Tensor:
         return self.keypoint_regressor(output.vertices, output.joints)
+
+    def posed_keypoints(self, params: BodyParams) -> tuple[torch.Tensor, torch.Tensor]:
+        """Exact keypoints without posing the mesh ("keypoint-space LBS").
+
+        keypoint_k = sum_v W_kv sum_j w_vj T_j [rest_v; 1] = sum_j T_j [P_kj; A_kj] with
+        A = W_v w [K, J] and P_kj = sum_v W_kv w_vj rest_v; rest_v is linear in the blendshape
+        coefficients c, so P = P0 + sum_c c PB_c. Only the (keypoint, joint) pairs with weight
+        (a few hundred of K x J) are kept, so a 150-frame clip costs O(B * pairs * C) instead of
+        posing 13,718 vertices per frame. Built on first use.
+        """
+        if self._kp_space is None:
+            self._kp_space = self._build_keypoint_space()
+        pair_k, pair_j, area, p0, pb = self._kp_space
+        coeffs = self._blendshape_coeffs(params)
+        heads = self.anny.template_bone_heads[None] + torch.einsum(
+            "cjd,bc->bjd", self.anny.bone_heads_blendshapes, coeffs
+        )
+        heads = heads @ self.anny_to_world.T
+        rotvecs = torch.cat([params.root_orient[:, None], params.joints], dim=1).to(self.dtype)
+        transforms, joints = self.tree.forward_kinematics(
+            axis_angle_to_matrix(rotvecs), heads, params.transl.to(self.dtype)
+        )
+        b, n = coeffs.shape[0], pair_k.shape[0]
+        p = p0 + (coeffs @ pb).view(b, n, 3)  # [B, pairs, 3]
+        t = transforms[:, pair_j]  # [B, pairs, 4, 4]
+        per_pair = (t[..., :3, :3] @ p[..., None]).squeeze(-1) + area[:, None] * t[..., :3, 3]
+        kp = per_pair.new_zeros(b, len(self.keypoint_names), 3).index_add_(1, pair_k, per_pair)
+        kp = kp + torch.einsum("kj,bjd->bkd", self.keypoint_regressor.joint_weights, joints)
+        return kp, joints
+
+    def _build_keypoint_space(self):
+        """(pair_k [N], pair_j [N], A [N], P0 [N, 3], PB [C, N * 3]) over the N weighted pairs."""
+        reg = self.keypoint_regressor
+        k, v = len(reg.names), self.num_vertices
+        w_v = torch.zeros(k, v, dtype=torch.float64, device=self.device)
+        w_v.index_put_((reg.vertex_rows, reg.vertex_cols), reg.vertex_weights.double(), accumulate=True)
+        used = torch.nonzero(w_v.abs().sum(0) > 0).squeeze(1)
+        w_v = w_v[:, used]  # [K, U]
+        skin = self.skinning_weights[used].double()  # [U, J]
+        c = self.anny_to_world.double()
+        template = self.anny.template_vertices[used].double() @ c.T  # [U, 3]
+        shapes = self.anny.blendshapes[:, used].double() @ c.T  # [C, U, 3]
+        area = w_v @ skin  # [K, J]
+        pair_k, pair_j = torch.nonzero(area.abs() > 0, as_tuple=True)
+        # P_kj over the kept pairs: sum_u W_ku w_uj x_u, as one sparse-free gather per pair.
+        coef = w_v[pair_k] * skin[:, pair_j].T  # [N, U]
+        p0 = coef @ template  # [N, 3]
+        pb = torch.einsum("nu,cud->cnd", coef, shapes).reshape(shapes.shape[0], -1)
+        dt = self.dtype
+        return pair_k, pair_j, area[pair_k, pair_j].to(dt), p0.to(dt), pb.to(dt).contiguous()
 
     # -- Anny interop ------------------------------------------------------------------------
     def anny_inputs(self, params: BodyParams) -> dict:

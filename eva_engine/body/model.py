@@ -50,6 +50,10 @@ class BodyModel(torch.nn.Module, abc.ABC):
     """
 
     name: str
+    expression_bounds: tuple[float, float] | None = None
+    """Valid range of every expression coefficient (None: unbounded, as SMPL-X's PCA space)."""
+    shape_bounds: tuple[float, float] | None = None
+    """Valid range of every shape coefficient (None: unbounded)."""
     faces: torch.Tensor
     parents: torch.Tensor
     skinning_weights: torch.Tensor
@@ -75,6 +79,13 @@ class BodyModel(torch.nn.Module, abc.ABC):
     def keypoints(self, output: BodyOutput) -> torch.Tensor:
         """Keypoints [B, K, 3] in the layout of ``keypoint_names`` (see ``body.keypoints``)."""
 
+    def posed_keypoints(self, params: BodyParams) -> tuple[torch.Tensor, torch.Tensor]:
+        """Keypoints [B, K, 3] and posed joints [B, J, 3] for ``params``, the same values as
+        ``keypoints(forward(params))``. Fitting calls this hundreds of times on whole clips;
+        backends override it with a path that skips posing the full mesh."""
+        out = self.forward(params)
+        return self.keypoints(out), out.joints
+
     # -- derived facts ---------------------------------------------------------------------
     @property
     def num_vertices(self) -> int:
@@ -96,6 +107,16 @@ class BodyModel(torch.nn.Module, abc.ABC):
     @property
     def device(self) -> torch.device:
         return self.skinning_weights.device
+
+    @property
+    def joint_part_ids(self) -> torch.Tensor:
+        """[J] int64 part of each joint (into :data:`PART_NAMES`): the part of the vertices it
+        moves most (skinning-weight mass); joints that move no vertex count as body."""
+        mass = torch.zeros(self.num_joints, len(PART_NAMES), dtype=self.skinning_weights.dtype)
+        mass.index_add_(1, self.part_ids.cpu(), self.skinning_weights.detach().cpu().T)
+        ids = mass.argmax(dim=1)
+        ids[mass.sum(dim=1) == 0] = PART_NAMES.index("body")
+        return ids.to(self.device)
 
     def part_vertex_ids(self, part: str) -> torch.Tensor:
         """Indices [N] of the vertices of one part of :data:`PART_NAMES`."""

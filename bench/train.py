@@ -1,0 +1,142 @@
+"""Benchmark of avatar training (issue 5): time per iteration and where it goes (data,
+skinning, rasterize, losses, backward, optimizer, densify), total training time, Gaussian count,
+and the full / hand / face metrics on the novel-pose frames.
+
+    .venv/bin/python bench/train.py                               # synthetic bench (512 px), paper preset
+    .venv/bin/python bench/train.py --size tiny --preset tiny     # seconds, a smoke run
+    .venv/bin/python bench/train.py --dataset PATH --preset fast  # any eva-dataset
+
+The dataset is generated once under ``data/synthetic/<preset>-<size>-seed<seed>`` (eva synth's
+layout) and reused. Writes ``bench/results/train.json`` (machine-readable, one entry per run
+keyed by dataset and preset) and ``bench/results/train.md``. Target (2 CPU cores, 512 px): the
+2,000-iteration default run in <= 10 minutes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+
+import torch
+
+RESULTS = Path(__file__).resolve().parent / "results"
+TARGET_SECONDS = 600.0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--dataset", type=Path, help="an existing eva-dataset (default: generate the synthetic one)"
+    )
+    ap.add_argument("--synthetic", default="controlled", help="synthetic preset (controlled has parameters)")
+    ap.add_argument("--size", default="bench", help="synthetic size: tiny or bench")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--preset", default="default", help="training preset: tiny, fast, default")
+    ap.add_argument("--iterations", type=int, help="override the preset's iteration count")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--out", type=Path, help="also save the avatar here")
+    args = ap.parse_args()
+
+    from eva_engine.avatar import save_avatar
+    from eva_engine.data import load_dataset
+    from eva_engine.eval import evaluate_avatar, metrics_table
+    from eva_engine.paths import data_dir
+    from eva_engine.train import preset, train_avatar
+
+    torch.set_num_threads(args.threads)
+    path = args.dataset
+    if path is None:
+        from eva_engine.data.synthetic import generate
+
+        path = data_dir() / "synthetic" / f"{args.synthetic}-{args.size}-seed{args.seed}"
+        if not (path / "meta.json").is_file():
+            print(f"generating {path} ...", file=sys.stderr)
+            generate(args.synthetic, args.size, args.seed, path)
+    ds = load_dataset(path)
+    overrides = {"threads": args.threads, "device": args.device}
+    if args.iterations:
+        overrides["iterations"] = args.iterations
+    config = preset(args.preset, **overrides)
+
+    def report(p) -> None:
+        if p.stage != "train" or p.iteration % 100 == 0:
+            print(f"{p.stage} {p.iteration}/{p.total} loss {p.loss:.4f} GS {p.num_gaussians} "
+                  f"{p.elapsed:.0f}s eta {p.eta:.0f}s", file=sys.stderr, flush=True)  # fmt: skip
+
+    result = train_avatar(ds, config, progress=report)
+    ev = evaluate_avatar(result.avatar, ds, train_seconds=result.train_seconds)
+    if args.out:
+        save_avatar(
+            result.avatar, args.out, {"train_config": config.to_dict(), "train_seconds": result.train_seconds}
+        )
+    n = config.iterations
+    entry = {
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "command": "python bench/train.py " + " ".join(sys.argv[1:]),
+        "machine": machine(),
+        "dataset": str(path),
+        "image_size": list(ds.image_size),
+        "train_frames": len(ds.splits["train"]),
+        "preset": args.preset,
+        "iterations": n,
+        "train_seconds": result.train_seconds,
+        "seconds_per_iteration": result.train_seconds / n,
+        "ms_per_iteration_by_stage": {k: 1000 * v / n for k, v in result.timings.items()},
+        "num_gaussians": len(result.avatar.gaussians),
+        "refinements": result.refinements,
+        "final_loss": result.losses[-1],
+        "eval": {k: v for k, v in ev.to_dict().items() if k != "per_frame"},
+    }
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    json_path = RESULTS / "train.json"
+    runs = json.loads(json_path.read_text()) if json_path.is_file() else {}
+    runs[f"{Path(path).name}/{args.preset}"] = entry
+    json_path.write_text(json.dumps(runs, indent=2))
+    (RESULTS / "train.md").write_text(markdown(runs, metrics_table))
+    print(markdown({f"{Path(path).name}/{args.preset}": entry}, metrics_table))
+
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    return (f"{cpu}, {os.cpu_count()} logical CPUs, torch {torch.__version__} with {torch.get_num_threads()} "
+            f"threads, Python {platform.python_version()}, load average {os.getloadavg()}")  # fmt: skip
+
+
+def markdown(runs: dict, metrics_table) -> str:
+    from eva_engine.eval import EvalResult, RegionMetrics
+
+    lines = ["# Avatar training benchmark", ""]
+    for key, e in runs.items():
+        stages = " | ".join(f"{k} {v:.1f}" for k, v in e["ms_per_iteration_by_stage"].items())
+        ok = "met" if e["iterations"] >= 2000 and e["train_seconds"] <= TARGET_SECONDS else "n/a or NOT met"
+        lines += [
+            f"## {key}",
+            "",
+            f"- date: {e['date']}; command: `{e['command']}`",
+            f"- machine: {e['machine']}",
+            f"- data: {e['dataset']} ({e['image_size'][1]}x{e['image_size'][0]}, "
+            f"{e['train_frames']} training frames)",
+            f"- {e['iterations']} iterations in {e['train_seconds']:.1f} s "
+            f"({1000 * e['seconds_per_iteration']:.1f} ms/iteration); target 2,000 in <= 10 min: {ok}",
+            f"- ms per iteration by stage: {stages}",
+            f"- Gaussians at the end: {e['num_gaussians']:,}",
+            "",
+        ]
+        ev = e["eval"]
+        res = EvalResult(
+            split=ev["split"], num_frames=ev["num_frames"], num_gaussians=ev["num_gaussians"],
+            render_fps=ev["render_fps"], train_seconds=ev["train_seconds"],
+            regions={k: RegionMetrics(**v) for k, v in ev["regions"].items()},
+        )  # fmt: skip
+        lines += [metrics_table({e["preset"]: res}), ""]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,72 @@
+"""Measuring a fit against ground truth: MPJPE of body and hand joints, and exact targets.
+
+MPJPE is the mean 3D distance (mm) between fitted and true keypoints after removing the root:
+body points relative to the hip centre, each hand's points relative to its wrist, so a global
+depth error (unobservable up to scale from one camera) does not swamp the articulation error.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from eva_engine.align.camera import project, to_camera
+from eva_engine.align.fit import LEFT_HIP, POSE_BODY, RIGHT_HIP, FitTargets
+from eva_engine.body import KEYPOINT_GROUPS, BodyModel, BodyParams
+
+
+def targets_from_params(
+    model: BodyModel,
+    params: BodyParams,
+    K: Tensor,
+    viewmat: Tensor,
+    image_size: tuple[int, int] | None = None,
+) -> FitTargets:
+    """What a perfect detector would report for a known clip: projected keypoints (confidence 1,
+    0 outside ``image_size`` = (H, W) if given), hand depths and metric pose world landmarks."""
+    with torch.no_grad():
+        kp, _ = model.posed_keypoints(params)
+        f = kp.shape[0]
+        view = viewmat.expand(f, 4, 4) if viewmat.ndim == 2 else viewmat
+        Ks = K.expand(f, 3, 3) if K.ndim == 2 else K
+        cam = to_camera(kp, view)
+        uv = project(cam, Ks)
+        conf = torch.ones_like(uv[..., 0])
+        if image_size is not None:
+            h, w = image_size
+            inside = (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
+            conf = inside.float()
+        depth = []
+        for group in ("left_hand", "right_hand"):
+            sl = KEYPOINT_GROUPS[group]
+            z = cam[:, sl, 2]
+            depth.append((z - z[:, :1]) * Ks[:, 0, 0, None] / z[:, :1])
+        body = kp[:, :33]
+        hip = 0.5 * (body[:, LEFT_HIP] + body[:, RIGHT_HIP])
+        world = (body - hip[:, None]) @ view[:, :3, :3].transpose(1, 2)
+        pose_world = torch.cat([world, torch.ones_like(world[..., :1])], dim=-1)
+        return FitTargets(torch.cat([uv, conf[..., None]], -1), K, viewmat, torch.cat(depth, 1), pose_world)
+
+
+def mpjpe(model: BodyModel, params: BodyParams, truth: BodyParams) -> dict[str, float]:
+    """Root-relative mean per-joint position error in mm: ``body`` (MediaPipe's body joints,
+    hip-centred) and ``hands`` (both hands' 21 points, each wrist-centred)."""
+    with torch.no_grad():
+        a, _ = model.posed_keypoints(params)
+        b, _ = model.posed_keypoints(truth)
+
+        def body(kp: Tensor) -> Tensor:
+            hip = 0.5 * (kp[:, LEFT_HIP] + kp[:, RIGHT_HIP])
+            return kp[:, list(POSE_BODY)] - hip[:, None]
+
+        def hands(kp: Tensor) -> Tensor:
+            parts = [
+                kp[:, KEYPOINT_GROUPS[g]] - kp[:, KEYPOINT_GROUPS[g].start][:, None]
+                for g in ("left_hand", "right_hand")
+            ]
+            return torch.cat(parts, dim=1)
+
+        return {
+            "body": float((body(a) - body(b)).norm(dim=-1).mean() * 1000),
+            "hands": float((hands(a) - hands(b)).norm(dim=-1).mean() * 1000),
+        }

@@ -1,0 +1,454 @@
+"""Fitting the body model to a clip's detections: EVA §3.2 (eq. 9-12) on free components.
+
+Objective over all frames at once (batched body model, shape shared by the clip):
+
+    L = L_2D + lambda_bp L_bp + lambda_hp L_hp + priors
+
+- ``L_2D``: Geman-McClure reprojection error of the model keypoints (``body.KEYPOINT_NAMES``:
+  MediaPipe's 33 pose + 2 x 21 hand + 16 face points) against the detections, weighted by a
+  per-group weight gamma (pose / hand / face, set per stage) and the detection confidence omega.
+  Residuals are measured in units of the person's height in the image, so one sigma serves
+  every resolution.
+- ``L_bp`` (body prior): VPoser is licensed, so its role is played by (a) the robust 3D term
+  against MediaPipe's metric pose world landmarks (EVA's J^3D_b guidance), (b) anatomical range
+  limits per joint part (a hinge on the rotation angle), (c) a pull toward the initial estimate
+  (the official code's stage 1 term), and (d) temporal smoothness across frames.
+- ``L_hp`` (hand prior): psi_z, the robust term on relative finger depth only, against
+  MediaPipe's hand landmark depth (relative to the wrist, converted to metres at the model's
+  wrist depth) -- EVA uses HaMeR's 3D hands the same way.
+- Face: the expression coefficients are fitted through the 16 face points, with a small
+  sparsity prior and the body model's valid range.
+
+Optimiser: ``torch.optim.LBFGS`` with strong-Wolfe line search, three stages as in the paper's
+appendix (body init; hands with the hand prior; fine-tune with hands and face emphasised).
+Missing detections have confidence 0 and drop out; a frame with nothing detected keeps its
+initial estimate, moved only by the smoothness term.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from eva_engine.align.camera import MIN_DEPTH, project, to_camera
+from eva_engine.align.robust import weighted_gm, z_only_gm
+from eva_engine.body import KEYPOINT_GROUPS, PART_NAMES, BodyModel, BodyParams
+from eva_engine.body.kinematics import axis_angle_to_matrix
+
+# Pose landmarks that are body joints (shoulders .. foot index); the others are face points
+# and hand points that the face and hand groups measure better.
+POSE_BODY = (11, 12, 13, 14, 15, 16, 23, 24, 25, 26, 27, 28, 29, 30, 31, 32)
+POSE_FACE = tuple(range(11))
+POSE_HAND = (17, 18, 19, 20, 21, 22)
+LEFT_HIP, RIGHT_HIP = 23, 24
+# Rotation-angle limits (radians) of one joint, per part: generous ranges that rule out
+# impossible twists (a finger bent 150 degrees, a head turned backwards) but no real pose.
+JOINT_LIMITS = {"body": 2.4, "hand": 1.75, "face": 0.9}
+PARAM_GROUPS = ("root", "transl", "body", "hand", "face", "expression", "shape")
+
+Progress = Callable[[str, int, float], None]
+
+
+@dataclass
+class FitTargets:
+    """What the fit is matched to, for F frames.
+
+    keypoints:  [F, K, 3] detections (x px, y px, confidence); non-finite entries are dropped.
+    K:          [F, 3, 3] or [3, 3] intrinsics; viewmat: [F, 4, 4] or [4, 4] world->camera.
+    hand_depth: [F, 42] MediaPipe hand-landmark depth relative to the wrist, in pixels, or None.
+    pose_world: [F, 33, 4] MediaPipe metric pose world landmarks + visibility, or None.
+    """
+
+    keypoints: Tensor
+    K: Tensor
+    viewmat: Tensor
+    hand_depth: Tensor | None = None
+    pose_world: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        kp = torch.as_tensor(self.keypoints, dtype=torch.float32)
+        if kp.ndim != 3 or kp.shape[-1] != 3:
+            raise ValueError(f"keypoints must be [F, K, 3], got {tuple(kp.shape)}")
+        f = kp.shape[0]
+        ok = torch.isfinite(kp).all(-1) & (kp[..., 2] > 0)
+        conf = torch.where(ok, kp[..., 2].clamp(0.0, 1.0), torch.zeros_like(kp[..., 2]))
+        xy = torch.where(ok[..., None], kp[..., :2], torch.zeros_like(kp[..., :2]))
+        self.keypoints = torch.cat([xy, conf[..., None]], dim=-1)
+        self.K = torch.as_tensor(self.K, dtype=torch.float32)
+        self.viewmat = torch.as_tensor(self.viewmat, dtype=torch.float32)
+        if self.K.shape not in ((3, 3), (f, 3, 3)) or self.viewmat.shape not in ((4, 4), (f, 4, 4)):
+            raise ValueError(
+                f"K must be [3, 3] or [{f}, 3, 3] and viewmat [4, 4] or [{f}, 4, 4], got "
+                f"{tuple(self.K.shape)} and {tuple(self.viewmat.shape)}"
+            )
+        if self.hand_depth is not None:
+            hd = torch.as_tensor(self.hand_depth, dtype=torch.float32)
+            if hd.shape != (f, 42):
+                raise ValueError(f"hand_depth must be [{f}, 42], got {tuple(hd.shape)}")
+            self.hand_depth = torch.nan_to_num(hd, nan=0.0, posinf=0.0, neginf=0.0)
+        if self.pose_world is not None:
+            pw = torch.as_tensor(self.pose_world, dtype=torch.float32)
+            if pw.shape != (f, 33, 4):
+                raise ValueError(f"pose_world must be [{f}, 33, 4], got {tuple(pw.shape)}")
+            bad = ~torch.isfinite(pw).all(-1)
+            pw = torch.where(bad[..., None], torch.zeros_like(pw), pw)
+            self.pose_world = pw
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.keypoints.shape[0])
+
+    def frame_K(self) -> Tensor:
+        """[F, 3, 3]."""
+        return self.K.expand(self.num_frames, 3, 3) if self.K.ndim == 2 else self.K
+
+    def frame_viewmat(self) -> Tensor:
+        """[F, 4, 4]."""
+        return self.viewmat.expand(self.num_frames, 4, 4) if self.viewmat.ndim == 2 else self.viewmat
+
+    def person_scale(self) -> Tensor:
+        """[F] person size in pixels, the unit of the 2D residuals: the diagonal of the confident
+        pose points' box (the clip's median where a frame has too few), kept between 5% and 100%
+        of the image diagonal (a close-up's off-image legs must not shrink the residuals)."""
+        kp = self.keypoints[:, KEYPOINT_GROUPS["pose"]]
+        ok = kp[..., 2] > 0.3
+        big = torch.tensor(1e9)
+        lo = torch.where(ok[..., None], kp[..., :2], big).amin(1)
+        hi = torch.where(ok[..., None], kp[..., :2], -big).amax(1)
+        diag = (hi - lo).norm(dim=-1)
+        valid = ok.sum(1) >= 4
+        image_diag = 2.0 * self.frame_K()[:, :2, 2].norm(dim=-1)  # principal point ~ image centre
+        fallback = diag[valid].median() if valid.any() else image_diag
+        return torch.minimum(torch.maximum(torch.where(valid, diag, fallback), 0.05 * image_diag), image_diag)
+
+
+@dataclass(frozen=True)
+class FitStage:
+    """One L-BFGS stage: which parameter groups move and the weight of every term."""
+
+    name: str
+    iterations: int
+    optimize: tuple[str, ...]
+    w_pose: float = 1.0
+    w_hand: float = 0.0
+    w_face: float = 0.0
+    body_3d: float = 0.0
+    hand_z: float = 0.0
+    init_pull: float = 0.0
+    smooth: float = 0.1
+    limits: float = 1.0
+    expression_reg: float = 0.0
+    shape_reg: float = 1e-3
+
+    def __post_init__(self) -> None:
+        unknown = set(self.optimize) - set(PARAM_GROUPS)
+        if unknown:
+            raise ValueError(f"unknown parameter groups {sorted(unknown)}; valid: {PARAM_GROUPS}")
+        if self.iterations < 0:
+            raise ValueError("iterations must be >= 0")
+
+
+def default_stages() -> tuple[FitStage, ...]:
+    """The paper's three stages (appendix): body init, hands, fine-tune on hands and face."""
+    return (
+        FitStage("body", 60, ("root", "transl", "body", "shape"), w_face=0.3, body_3d=1.0, init_pull=0.05),
+        FitStage("hands", 40, ("hand",), w_hand=1.0, hand_z=1.0, smooth=0.05),
+        FitStage(
+            "refine",
+            60,
+            PARAM_GROUPS,
+            w_hand=2.0,
+            w_face=2.0,
+            body_3d=0.3,
+            hand_z=0.5,
+            init_pull=0.01,
+            expression_reg=1e-3,
+        ),  # fmt: skip
+    )
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Fitting settings. Sigmas are the Geman-McClure scales: 2D in person heights, 3D and z in
+    metres."""
+
+    stages: tuple[FitStage, ...] = field(default_factory=default_stages)
+    ik_iterations: int = 40
+    sigma_2d: float = 0.1
+    sigma_3d: float = 0.1
+    sigma_z: float = 0.03
+    history_size: int = 20
+
+
+@dataclass
+class FitResult:
+    """params: the fitted clip; stage_losses: (first, last) objective per stage; seconds."""
+
+    params: BodyParams
+    stage_losses: dict[str, tuple[float, float]]
+    seconds: float
+
+
+class _Problem:
+    """The objective over one clip; parameters split into groups so a stage can move a subset."""
+
+    def __init__(self, model: BodyModel, targets: FitTargets, config: FitConfig, init: BodyParams):
+        self.model, self.targets, self.config = model, targets, config
+        self.init = init.map(lambda t: t.detach().clone())
+        part = model.joint_part_ids[1:].cpu()  # pose joints exclude the root
+        self.joint_index = {p: torch.nonzero(part == i).squeeze(1) for i, p in enumerate(PART_NAMES)}
+        self.values: dict[str, Tensor] = {
+            "root": init.root_orient,
+            "transl": init.transl,
+            **{p: init.joints[:, idx] for p, idx in self.joint_index.items()},
+            "expression": init.expression,
+            "shape": init.shape[:1],
+        }
+        self.values = {k: v.detach().clone() for k, v in self.values.items()}
+        self.K = targets.frame_K()
+        self.viewmat = targets.frame_viewmat()
+        self.scale = targets.person_scale()
+        kp = targets.keypoints
+        self.conf = kp[..., 2]
+        self.group_mask = {
+            "pose": _mask(kp.shape[1], POSE_BODY),
+            "pose_face": _mask(kp.shape[1], POSE_FACE),
+            "pose_hand": _mask(kp.shape[1], POSE_HAND),
+            "hand": _mask(
+                kp.shape[1], range(KEYPOINT_GROUPS["left_hand"].start, KEYPOINT_GROUPS["right_hand"].stop)
+            ),
+            "face": _mask(kp.shape[1], range(KEYPOINT_GROUPS["face"].start, KEYPOINT_GROUPS["face"].stop)),
+        }
+        limits = torch.tensor([JOINT_LIMITS[p] for p in PART_NAMES])
+        self.joint_limit = limits[part]  # [P]
+
+    def params(self) -> BodyParams:
+        v = self.values
+        f = self.targets.num_frames
+        joints = self.init.joints.new_zeros(f, self.init.joints.shape[1], 3)
+        for p, idx in self.joint_index.items():
+            joints = joints.index_copy(1, idx, v[p])
+        return BodyParams(v["root"], v["transl"], joints, v["expression"], v["shape"].expand(f, -1))
+
+    def loss(self, stage: FitStage) -> Tensor:
+        cfg, t = self.config, self.targets
+        params = self.params()
+        kp, _ = self.model.posed_keypoints(params)
+        cam = to_camera(kp, self.viewmat)
+        uv = project(cam, self.K)
+        residual = (uv - t.keypoints[..., :2]) / self.scale[:, None, None]
+        # Each group is a robust mean over its own points, so the 16 face points weigh as much as
+        # the body's joints when gamma says so. Until hands / face get their own weight, the
+        # pose model's coarse hand and face points stand in for them.
+        groups = (
+            (stage.w_pose, self.group_mask["pose"]),
+            (0.3 * stage.w_pose * (stage.w_face == 0), self.group_mask["pose_face"]),
+            (0.3 * stage.w_pose * (stage.w_hand == 0), self.group_mask["pose_hand"]),
+            (stage.w_hand, self.group_mask["hand"]),
+            (stage.w_face, self.group_mask["face"]),
+        )
+        total = residual.new_zeros(())
+        for gamma, mask in groups:
+            if gamma > 0:
+                total = total + gamma * weighted_gm(residual, mask * self.conf, cfg.sigma_2d)
+
+        if stage.body_3d > 0 and t.pose_world is not None:
+            body = kp[:, : KEYPOINT_GROUPS["pose"].stop]
+            hip = 0.5 * (body[:, LEFT_HIP] + body[:, RIGHT_HIP])
+            rel = (body - hip[:, None]) @ self.viewmat[:, :3, :3].transpose(1, 2)
+            w = t.pose_world[..., 3].clamp(0, 1) * self.group_mask["pose"][:33] * (self.conf[:, :33] > 0)
+            total = total + stage.body_3d * weighted_gm(rel - t.pose_world[..., :3], w, cfg.sigma_3d)
+
+        if stage.hand_z > 0 and t.hand_depth is not None:
+            for g, offset in (("left_hand", 0), ("right_hand", 21)):
+                sl = KEYPOINT_GROUPS[g]
+                hand = cam[:, sl]
+                wrist_z = hand[:, :1, 2].detach().clamp_min(MIN_DEPTH)
+                target_z = t.hand_depth[:, offset : offset + 21] * wrist_z / self.K[:, 0, 0, None]
+                target = torch.cat([hand[..., :2].detach(), target_z[..., None]], dim=-1)
+                total = total + stage.hand_z * z_only_gm(hand, target, self.conf[:, sl], cfg.sigma_z)
+
+        rotvecs = params.joints
+        angle = rotvecs.norm(dim=-1).clamp_min(1e-12)  # [F, P]
+        total = total + stage.limits * (angle - self.joint_limit).clamp_min(0).square().mean()
+        if stage.init_pull > 0:
+            total = total + stage.init_pull * (rotvecs - self.init.joints).square().mean()
+        if stage.smooth > 0 and t.num_frames > 1:
+            smooth = (rotvecs[1:] - rotvecs[:-1]).square().mean()
+            smooth = smooth + _rotation_distance(params.root_orient[1:], params.root_orient[:-1]).mean()
+            smooth = smooth + 10.0 * (params.transl[1:] - params.transl[:-1]).square().mean()
+            total = total + stage.smooth * smooth
+        total = total + stage.expression_reg * params.expression.square().mean()
+        total = total + _box(params.expression, self.model.expression_bounds)
+        total = total + stage.shape_reg * (self.values["shape"] - self.init.shape[:1]).square().mean()
+        total = total + _box(self.values["shape"], self.model.shape_bounds)
+        # In units of the 2D sigma: a residual of one sigma costs ~1, so L-BFGS's step and
+        # curvature estimates start at a sensible scale whatever the image size.
+        return total / cfg.sigma_2d**2
+
+    def run_stage(self, stage: FitStage, progress: Progress | None) -> tuple[float, float]:
+        moving = [g for g in stage.optimize if self.values[g].numel() > 0]
+        for g in self.values:
+            self.values[g].requires_grad_(g in moving)
+        with torch.no_grad():
+            first = float(self.loss(stage))
+        if not moving or stage.iterations == 0:
+            return first, first
+        opt = torch.optim.LBFGS(
+            [self.values[g] for g in moving],
+            lr=1.0,
+            max_iter=stage.iterations,
+            history_size=self.config.history_size,
+            line_search_fn="strong_wolfe",
+            tolerance_grad=1e-9,
+            tolerance_change=0.0,  # run the stage's iterations: small losses are not converged ones
+        )
+        calls = [0]
+
+        def closure():
+            opt.zero_grad(set_to_none=False)
+            loss = self.loss(stage)
+            loss.backward()
+            calls[0] += 1
+            if progress is not None:
+                progress(stage.name, calls[0], float(loss))
+            return loss
+
+        opt.step(closure)
+        for g in moving:
+            self.values[g].requires_grad_(False)
+        with torch.no_grad():
+            last = float(self.loss(stage))
+        return first, last
+
+
+def _mask(n: int, indices) -> Tensor:
+    m = torch.zeros(n)
+    m[list(indices)] = 1.0
+    return m
+
+
+def _box(x: Tensor, bounds: tuple[float, float] | None) -> Tensor:
+    if bounds is None:
+        return x.new_zeros(())
+    lo, hi = bounds
+    return 10.0 * ((lo - x).clamp_min(0).square().sum() + (x - hi).clamp_min(0).square().sum())
+
+
+def _rotation_distance(a: Tensor, b: Tensor) -> Tensor:
+    """[N] squared Frobenius distance between the rotations of axis-angles a, b [N, 3]."""
+    return (axis_angle_to_matrix(a) - axis_angle_to_matrix(b)).square().sum((-1, -2))
+
+
+def facing_camera_root(viewmat: Tensor) -> Tensor:
+    """[F, 3] root axis-angle (a turn about +Y) that makes a subject facing +Z face the camera."""
+    forward = viewmat[..., 2, :3]  # camera z axis in world coordinates
+    yaw = torch.atan2(-forward[..., 0], -forward[..., 2])
+    return torch.stack([torch.zeros_like(yaw), yaw, torch.zeros_like(yaw)], dim=-1)
+
+
+def solve_translation(model: BodyModel, params: BodyParams, targets: FitTargets, default_depth: float = 3.0):
+    """[F, 3] world translations that best align the posed body's pose keypoints with the 2D
+    detections (weighted linear least squares per frame, the rotation held fixed).
+
+    With camera-frame points Y = R X + t_v and unknown u = R t: x_n (Y_z + u_z) = Y_x + u_x and
+    likewise for y, linear in u. Frames with fewer than 3 confident points take the clip's median.
+    """
+    with torch.no_grad():
+        zero = dataclasses.replace(params, transl=torch.zeros_like(params.transl))
+        kp, _ = model.posed_keypoints(zero)
+        view, K = targets.frame_viewmat(), targets.frame_K()
+        Y = to_camera(kp[:, :33], view)  # [F, 33, 3]
+        det = targets.keypoints[:, :33]
+        w = det[..., 2] * _mask(33, POSE_BODY + POSE_FACE)
+        xn = (det[..., 0] - K[:, None, 0, 2]) / K[:, None, 0, 0]
+        yn = (det[..., 1] - K[:, None, 1, 2]) / K[:, None, 1, 1]
+        zeros, ones = torch.zeros_like(xn), torch.ones_like(xn)
+        rows = torch.cat(
+            [torch.stack([ones, zeros, -xn], -1), torch.stack([zeros, ones, -yn], -1)], dim=1
+        )  # [F, 66, 3]
+        rhs = torch.cat([xn * Y[..., 2] - Y[..., 0], yn * Y[..., 2] - Y[..., 1]], dim=1)  # [F, 66]
+        sw = torch.cat([w, w], dim=1).sqrt()
+        A = rows * sw[..., None]
+        b = rhs * sw
+        ata = A.transpose(1, 2) @ A + 1e-6 * torch.eye(3)
+        u = torch.linalg.solve(ata, (A.transpose(1, 2) @ b[..., None]))[..., 0]  # [F, 3]
+        enough = (w > 0.3).sum(1) >= 3
+        centre_z = Y[..., 2].mean(1)
+        fallback = torch.tensor([0.0, 0.0, default_depth]) - Y.mean(1)
+        u = torch.where(enough[:, None], u, u[enough].median(0).values if enough.any() else fallback)
+        # Keep the body in front of the camera.
+        u[:, 2] = torch.maximum(u[:, 2], 0.5 - centre_z)
+        return (u[:, None, :] @ view[:, :3, :3])[:, 0]  # t = R^T u
+
+
+def initial_estimate(model: BodyModel, targets: FitTargets, config: FitConfig | None = None) -> BodyParams:
+    """The starting point from detections alone: body pose by inverse kinematics on MediaPipe's
+    metric world landmarks (L-BFGS on the robust 3D term, root and body joints), the root
+    facing the camera where nothing better is known, then translation by least squares."""
+    config = config or FitConfig()
+    f = targets.num_frames
+    params = model.default_params(f)
+    params.root_orient.copy_(facing_camera_root(targets.frame_viewmat()))
+    if targets.pose_world is not None and config.ik_iterations > 0:
+        ik = FitStage("ik", config.ik_iterations, ("root", "body"), w_pose=0.0, body_3d=1.0, smooth=0.01)
+        problem = _Problem(model, targets, config, params)
+        problem.run_stage(ik, None)
+        params = problem.params().map(lambda t: t.detach().clone())
+    params.transl.copy_(solve_translation(model, params, targets))
+    return params
+
+
+def fit_sequence(
+    model: BodyModel,
+    targets: FitTargets,
+    init: BodyParams | None = None,
+    config: FitConfig | None = None,
+    progress: Progress | None = None,
+) -> FitResult:
+    """Fit ``model`` to a clip. ``init``: a starting estimate (e.g. a previous fit, or an
+    estimator's output); by default :func:`initial_estimate`. Returns the fitted parameters with
+    expression and shape inside the model's valid ranges."""
+    config = config or FitConfig()
+    started = time.perf_counter()
+    if init is None:
+        init = initial_estimate(model, targets, config)
+    if init.batch_size != targets.num_frames:
+        raise ValueError(f"init has {init.batch_size} frames, targets {targets.num_frames}")
+    problem = _Problem(model, targets, config, init)
+    losses = {}
+    for stage in config.stages:
+        losses[stage.name] = problem.run_stage(stage, progress)
+    params = problem.params().map(lambda t: t.detach().clone())
+    for name, bounds in (("expression", model.expression_bounds), ("shape", model.shape_bounds)):
+        if bounds is not None:
+            getattr(params, name).clamp_(*bounds)
+    if not all(torch.isfinite(t).all() for t in params.tensors().values()):
+        raise FloatingPointError("fitting produced non-finite parameters")  # a bug, never data
+    return FitResult(params=params, stage_losses=losses, seconds=time.perf_counter() - started)
+
+
+def reprojection_error(model: BodyModel, params: BodyParams, targets: FitTargets) -> dict[str, float]:
+    """Median 2D distance in pixels between model keypoints and confident detections, per group
+    (body = the pose body joints, left/right hand, face); NaN where nothing was detected."""
+    with torch.no_grad():
+        kp, _ = model.posed_keypoints(params)
+        uv = project(to_camera(kp, targets.frame_viewmat()), targets.frame_K())
+        dist = (uv - targets.keypoints[..., :2]).norm(dim=-1)
+        ok = targets.keypoints[..., 2] > 0.5
+        groups = {
+            "body": torch.tensor(POSE_BODY),
+            "hands": torch.arange(KEYPOINT_GROUPS["left_hand"].start, KEYPOINT_GROUPS["right_hand"].stop),
+            "face": torch.arange(KEYPOINT_GROUPS["face"].start, KEYPOINT_GROUPS["face"].stop),
+        }
+        out = {}
+        for name, idx in groups.items():
+            d = dist[:, idx][ok[:, idx]]
+            out[name] = float(d.median()) if d.numel() else math.nan
+        return out

@@ -1,0 +1,53 @@
+"""The Gaussian avatar (EVA §3.1): canonical 3D Gaussians on a body model, skinned by LBS with
+learned weight offsets and a pose-refinement MLP, rendered by ``eva_engine.render.rasterize``.
+
+    from eva_engine.avatar import Camera, load_avatar
+    avatar = load_avatar("data/avatars/alice")
+    image = avatar.render(avatar.body.params_from_pose({...}), Camera(K, viewmat, 512, 512))
+"""
+
+from eva_engine.avatar.camera import Camera
+from eva_engine.avatar.config import AvatarConfig
+from eva_engine.avatar.gaussians import PER_GAUSSIAN_BUFFERS, SPLAT_NAMES, CanonicalGaussians
+from eva_engine.avatar.io import (
+    AvatarFileError,
+    load_avatar,
+    read_avatar_info,
+    read_ply,
+    save_avatar,
+    write_ply,
+)
+from eva_engine.avatar.model import Avatar, PosedGaussians, template_vertices
+from eva_engine.avatar.networks import (
+    LBSWeightOffsets,
+    PoseRefiner,
+    blend_skinning_weights,
+    joint_parts,
+    positional_encoding,
+)
+from eva_engine.avatar.skinning import orthonormalize, quat_multiply, skin_gaussians
+
+__all__ = [
+    "PER_GAUSSIAN_BUFFERS",
+    "SPLAT_NAMES",
+    "Avatar",
+    "AvatarConfig",
+    "AvatarFileError",
+    "Camera",
+    "CanonicalGaussians",
+    "LBSWeightOffsets",
+    "PoseRefiner",
+    "PosedGaussians",
+    "blend_skinning_weights",
+    "joint_parts",
+    "load_avatar",
+    "orthonormalize",
+    "positional_encoding",
+    "quat_multiply",
+    "read_avatar_info",
+    "read_ply",
+    "save_avatar",
+    "skin_gaussians",
+    "template_vertices",
+    "write_ply",
+]

@@ -1,0 +1,55 @@
+"""``AvatarConfig``: what the avatar model is (not how it is trained)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+
+@dataclass(frozen=True)
+class AvatarConfig:
+    """Architecture of a Gaussian avatar (EVA §3.1).
+
+    sh_degree: highest spherical-harmonics degree stored (training starts at 0 and raises it).
+    init_opacity: opacity of the initial Gaussians (3DGS: 0.1).
+    init_max_gaussians: seed at most this many surface vertices (a seeded random subset), None
+        for one Gaussian per surface vertex of the body model.
+    weight_offsets: learn LBS-weight offsets w' (off: plain nearest-vertex skinning weights).
+    pose_refine: learn the pose-refinement MLPs (off: the input pose as given).
+    pe_frequencies: positional-encoding octaves of the canonical centres for the weight MLP.
+    mlp_width, mlp_depth: hidden width and hidden-layer count of both MLPs.
+    mlp_out_init: half-range of the uniform init of both MLPs' last layers (bias 0), so they
+        start as (almost exactly) the identity: EVA's official code uses 1e-5.
+    lbs_eps: epsilon in w = softmax(log(w_body + eps) + w') (paper: 1e-8).
+    """
+
+    sh_degree: int = 3
+    init_opacity: float = 0.1
+    init_max_gaussians: int | None = None
+    weight_offsets: bool = True
+    pose_refine: bool = True
+    pe_frequencies: int = 6
+    mlp_width: int = 128
+    mlp_depth: int = 2
+    mlp_out_init: float = 1e-5
+    lbs_eps: float = 1e-8
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be in 0..3, got {self.sh_degree}")
+        if not 0.0 < self.init_opacity < 1.0:
+            raise ValueError(f"init_opacity must be in (0, 1), got {self.init_opacity}")
+        if self.init_max_gaussians is not None and self.init_max_gaussians < 1:
+            raise ValueError("init_max_gaussians must be positive or None")
+        if self.mlp_depth < 1 or self.mlp_width < 1 or self.pe_frequencies < 0:
+            raise ValueError("mlp_depth, mlp_width must be >= 1 and pe_frequencies >= 0")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> AvatarConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown AvatarConfig field(s) {sorted(unknown)}")
+        return cls(**data)

@@ -1,0 +1,171 @@
+"""``CanonicalGaussians``: the avatar's 3D Gaussians in the canonical (rest) space of its body.
+
+Learnable tensors live in ``splats`` (a ``ParameterDict``, gsplat's layout) so density-control
+strategies can replace them together with their optimizer state:
+
+    means [N, 3] (metres, canonical), scales [N, 3] (log of standard deviations),
+    quats [N, 4] (w, x, y, z, any norm), opacities [N] (logits),
+    sh0 [N, 1, 3] (DC spherical-harmonics term), shN [N, K - 1, 3] (higher degrees, K = (d + 1)^2).
+
+Per-Gaussian tensors that are not learned (``PER_GAUSSIAN_BUFFERS``) follow every clone, split
+and prune too: ``part_ids [N]`` (index into ``PART_NAMES``, inherited by children) and
+``vertex_ids [N]`` (the nearest template vertex, whose skinning weights and expression offsets
+the Gaussian borrows; refreshed as the means move).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from eva_engine.body.model import nearest_vertex_index
+from eva_engine.render.sh import num_sh_bases
+
+PER_GAUSSIAN_BUFFERS = ("part_ids", "vertex_ids")
+SPLAT_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
+
+
+class CanonicalGaussians(nn.Module):
+    """Canonical Gaussians tied to a body template (see the module docstring).
+
+    template_vertices: [V, 3] rest-pose vertices of the subject's body (shape applied, no
+    expression); template_part_ids: [V] part index per vertex.
+    """
+
+    part_ids: Tensor
+    vertex_ids: Tensor
+    template_vertices: Tensor
+    template_part_ids: Tensor
+
+    def __init__(
+        self,
+        splats: dict[str, Tensor],
+        part_ids: Tensor,
+        vertex_ids: Tensor,
+        template_vertices: Tensor,
+        template_part_ids: Tensor,
+    ) -> None:
+        super().__init__()
+        missing = [k for k in SPLAT_NAMES if k not in splats]
+        if missing:
+            raise ValueError(f"splats lack {missing}")
+        n = splats["means"].shape[0]
+        for k in SPLAT_NAMES:
+            if splats[k].shape[0] != n:
+                raise ValueError(f"splats[{k!r}] has {splats[k].shape[0]} rows, expected {n}")
+        if part_ids.shape != (n,) or vertex_ids.shape != (n,):
+            raise ValueError(f"part_ids and vertex_ids must be [{n}]")
+        self.splats = nn.ParameterDict({k: nn.Parameter(splats[k].detach().clone()) for k in SPLAT_NAMES})
+        self.register_buffer("part_ids", part_ids.to(torch.int64).clone())
+        self.register_buffer("vertex_ids", vertex_ids.to(torch.int64).clone())
+        self.register_buffer("template_vertices", template_vertices.detach().clone())
+        self.register_buffer("template_part_ids", template_part_ids.to(torch.int64).clone())
+
+    # -- construction ------------------------------------------------------------------------
+    @classmethod
+    def from_template(
+        cls,
+        template_vertices: Tensor,
+        template_part_ids: Tensor,
+        seed_mask: Tensor | None = None,
+        sh_degree: int = 3,
+        init_opacity: float = 0.1,
+        max_gaussians: int | None = None,
+        generator: torch.Generator | None = None,
+    ) -> CanonicalGaussians:
+        """One Gaussian per template vertex (those in ``seed_mask [V]``; at most ``max_gaussians``
+        of them, a random subset drawn with ``generator``), isotropic with the 3DGS initial scale
+        (mean distance to the 3 nearest seeds), identity rotation, mid-grey colour."""
+        v = template_vertices.shape[0]
+        ids = torch.arange(v) if seed_mask is None else torch.nonzero(seed_mask.cpu()).squeeze(1)
+        if max_gaussians is not None and ids.numel() > max_gaussians:
+            perm = torch.randperm(ids.numel(), generator=generator)[:max_gaussians]
+            ids = ids[perm.sort().values]
+        ids = ids.to(template_vertices.device)
+        means = template_vertices[ids].detach().clone()
+        scale = _mean_neighbour_distance(means, 3).clamp(1e-4, 0.05)
+        n = means.shape[0]
+        k = num_sh_bases(sh_degree)
+        splats = {
+            "means": means,
+            "scales": torch.log(scale)[:, None].expand(n, 3).clone(),
+            "quats": means.new_tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).clone(),
+            "opacities": means.new_full((n,), math.log(init_opacity / (1.0 - init_opacity))),
+            "sh0": means.new_zeros(n, 1, 3),  # rgb_to_sh(0.5) == 0: mid-grey
+            "shN": means.new_zeros(n, k - 1, 3),
+        }
+        return cls(splats, template_part_ids[ids], ids, template_vertices, template_part_ids)
+
+    # -- views -------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return int(self.splats["means"].shape[0])
+
+    @property
+    def means(self) -> Tensor:
+        return self.splats["means"]
+
+    @property
+    def sh_degree(self) -> int:
+        """Highest SH degree stored."""
+        return int(math.isqrt(self.splats["shN"].shape[1] + 1)) - 1
+
+    def scales(self) -> Tensor:
+        """[N, 3] standard deviations (exp of the log-scales)."""
+        return torch.exp(self.splats["scales"])
+
+    def opacities(self) -> Tensor:
+        """[N] opacities in (0, 1)."""
+        return torch.sigmoid(self.splats["opacities"])
+
+    def sh(self) -> Tensor:
+        """[N, K, 3] all SH coefficients."""
+        return torch.cat([self.splats["sh0"], self.splats["shN"]], dim=1)
+
+    def buffers_per_gaussian(self) -> dict[str, Tensor]:
+        return {name: getattr(self, name) for name in PER_GAUSSIAN_BUFFERS}
+
+    def set_buffer(self, name: str, value: Tensor) -> None:
+        """Replace one per-Gaussian buffer (its row count follows the splats)."""
+        if name not in PER_GAUSSIAN_BUFFERS:
+            raise KeyError(f"{name!r} is not a per-Gaussian buffer ({PER_GAUSSIAN_BUFFERS})")
+        setattr(self, name, value)
+
+    # -- template relations ------------------------------------------------------------------
+    @torch.no_grad()
+    def refresh_vertex_ids(self) -> None:
+        """Re-attach every Gaussian to its nearest template vertex (after the means moved)."""
+        self.vertex_ids = nearest_vertex_index(self.means.detach(), self.template_vertices)
+
+    @torch.no_grad()
+    def template_distance(self, same_part: bool = False) -> Tensor:
+        """[N] canonical distance of each mean to the nearest template vertex (of any part, or
+        with ``same_part`` of the Gaussian's own part)."""
+        means = self.means.detach()
+        if not same_part:
+            idx = nearest_vertex_index(means, self.template_vertices)
+            return (means - self.template_vertices[idx]).norm(dim=-1)
+        out = means.new_full((means.shape[0],), float("inf"))
+        for part in self.part_ids.unique().tolist():
+            sel = self.part_ids == part
+            verts = self.template_vertices[self.template_part_ids == part]
+            if verts.shape[0] == 0:
+                continue
+            idx = nearest_vertex_index(means[sel], verts)
+            out[sel] = (means[sel] - verts[idx]).norm(dim=-1)
+        return out
+
+
+def _mean_neighbour_distance(points: Tensor, k: int, chunk: int = 2048) -> Tensor:
+    """[N] mean distance of each of ``points [N, 3]`` to its ``k`` nearest other points (0.01 m
+    when there are no others)."""
+    n = points.shape[0]
+    if n < 2:
+        return points.new_full((n,), 0.01)
+    k = min(k, n - 1)
+    out = []
+    for p in points.split(chunk):
+        d = torch.cdist(p, points).topk(k + 1, dim=1, largest=False).values
+        out.append(d[:, 1:].mean(dim=1))
+    return torch.cat(out)

@@ -1,0 +1,205 @@
+"""``Avatar``: canonical Gaussians + body model + the two MLPs -> posed, rendered images.
+
+The avatar belongs to one subject: its canonical space is the body model's rest pose with the
+subject's ``shape`` and no expression. Posing a frame (``pose``):
+
+1. pose refinement (``PoseRefiner``) of the input joint rotations;
+2. the body model gives the rest -> posed joint transforms for the refined pose, with the
+   avatar's shape (the ``shape`` of the input params is ignored: the avatar is one person);
+3. expression (and any shape blendshape) offsets: each Gaussian moves with its nearest template
+   vertex, ``canonical(params)[v] - template[v]`` (Anny's jaw and eyelids move through
+   blendshapes, not bones);
+4. skinning with w = softmax(log(w_body[v] + eps) + f_w(gamma(p_c))) (``skin_gaussians``);
+5. colours from SH evaluated for the view direction rotated back into canonical space.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from eva_engine.avatar.camera import Camera
+from eva_engine.avatar.config import AvatarConfig
+from eva_engine.avatar.gaussians import CanonicalGaussians
+from eva_engine.avatar.networks import LBSWeightOffsets, PoseRefiner, blend_skinning_weights, joint_parts
+from eva_engine.avatar.skinning import skin_gaussians
+from eva_engine.body.model import BodyModel
+from eva_engine.body.params import BodyParams
+from eva_engine.render import RasterConfig, RenderOutput, eval_sh, rasterize
+
+
+@dataclass
+class PosedGaussians:
+    """Gaussians of one frame in world space (N Gaussians, K SH coefficients).
+
+    means: [N, 3]; quats: [N, 4]; scales: [N, 3] (linear); opacities: [N]; sh: [N, K, 3];
+    rotations: [N, 3, 3] canonical -> world rotation of each Gaussian; params: the refined
+    body parameters used.
+    """
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    sh: Tensor
+    rotations: Tensor
+    params: BodyParams
+
+
+class Avatar(nn.Module):
+    """A drivable Gaussian avatar (see the module docstring).
+
+    body: the body model (its name and the avatar's ``shape [S]`` are its identity);
+    gaussians: canonical Gaussians over ``body.canonical(shape)``.
+    """
+
+    shape: Tensor
+
+    def __init__(
+        self, body: BodyModel, gaussians: CanonicalGaussians, shape: Tensor, config: AvatarConfig
+    ) -> None:
+        super().__init__()
+        self.config = config
+        self.body = body
+        self.gaussians = gaussians
+        self.register_buffer("shape", shape.detach().to(body.dtype).reshape(-1).clone())
+        self.weight_offsets = (
+            LBSWeightOffsets(
+                body.num_joints,
+                config.pe_frequencies,
+                config.mlp_width,
+                config.mlp_depth,
+                config.mlp_out_init,
+            )  # fmt: skip
+            if config.weight_offsets
+            else None
+        )
+        parts = joint_parts(body.skinning_weights, body.part_ids)[1:]  # pose joints: all but the root
+        self.pose_refiner = (
+            PoseRefiner(parts, config.mlp_width, config.mlp_depth, config.mlp_out_init)
+            if config.pose_refine
+            else None
+        )
+        self.active_sh_degree = gaussians.sh_degree
+
+    # -- construction ------------------------------------------------------------------------
+    @classmethod
+    def create(
+        cls, body: BodyModel, shape: Tensor, config: AvatarConfig | None = None, seed: int = 0
+    ) -> Avatar:
+        """A fresh avatar seeded on the surface vertices of ``body.canonical(shape)``."""
+        config = config or AvatarConfig()
+        template = template_vertices(body, shape)
+        g = torch.Generator().manual_seed(seed)
+        gaussians = CanonicalGaussians.from_template(
+            template,
+            body.part_ids,
+            seed_mask=getattr(body, "surface_vertex_mask", None),
+            sh_degree=config.sh_degree,
+            init_opacity=config.init_opacity,
+            max_gaussians=config.init_max_gaussians,
+            generator=g,
+        )
+        return cls(body, gaussians, shape, config)
+
+    def mlp_parameters(self) -> list[nn.Parameter]:
+        mods = [m for m in (self.weight_offsets, self.pose_refiner) if m is not None]
+        return [p for m in mods for p in m.parameters()]
+
+    # -- posing ------------------------------------------------------------------------------
+    def subject_params(self, params: BodyParams) -> BodyParams:
+        """``params`` with the avatar's shape (batch preserved) on the avatar's device/dtype."""
+        params = params.to(device=self.shape.device, dtype=self.shape.dtype)
+        return BodyParams(
+            root_orient=params.root_orient,
+            transl=params.transl,
+            joints=params.joints,
+            expression=params.expression,
+            shape=self.shape.expand(params.batch_size, -1),
+        )
+
+    def refine_pose(self, params: BodyParams) -> BodyParams:
+        params = self.subject_params(params)
+        if self.pose_refiner is None:
+            return params
+        return BodyParams(
+            root_orient=params.root_orient,
+            transl=params.transl,
+            joints=self.pose_refiner(params.joints),
+            expression=params.expression,
+            shape=params.shape,
+        )
+
+    def skinning_weights(self) -> Tensor:
+        """[N, J] per-Gaussian LBS weights (body-model weights of the nearest vertex + offsets)."""
+        g = self.gaussians
+        base = self.body.skinning_weights[g.vertex_ids]
+        offsets = self.weight_offsets(g.means) if self.weight_offsets is not None else None
+        return blend_skinning_weights(base, offsets, self.config.lbs_eps)
+
+    def pose(self, params: BodyParams) -> PosedGaussians:
+        """Pose the Gaussians for one frame: ``params`` with batch 1."""
+        if params.batch_size != 1:
+            raise ValueError(f"pose one frame at a time, got a batch of {params.batch_size}")
+        g = self.gaussians
+        refined = self.refine_pose(params)
+        transforms = self.body(refined).transforms[0]  # [J, 4, 4]
+        rest = self.body.canonical(refined)[0]  # [V, 3] with this frame's expression
+        offsets = (rest - g.template_vertices)[g.vertex_ids]
+        weights = self.skinning_weights()
+        means, quats, rot = skin_gaussians(g.means + offsets, g.splats["quats"], weights, transforms)
+        return PosedGaussians(means, quats, g.scales(), g.opacities(), g.sh(), rot, refined)
+
+    # -- rendering ---------------------------------------------------------------------------
+    def forward(
+        self,
+        params: BodyParams,
+        camera: Camera,
+        background: Tensor | None = None,
+        sh_degree: int | None = None,
+        raster: RasterConfig | None = None,
+    ) -> RenderOutput:
+        """Render one frame, differentiably: image [H, W, 3], alpha, depth, means2d, radii.
+
+        background: [3] colour, None for black; sh_degree: SH degree to evaluate (default the
+        active one, raised during training).
+        """
+        return self.rasterize_posed(self.pose(params), camera, background, sh_degree, raster)
+
+    def rasterize_posed(
+        self,
+        posed: PosedGaussians,
+        camera: Camera,
+        background: Tensor | None = None,
+        sh_degree: int | None = None,
+        raster: RasterConfig | None = None,
+    ) -> RenderOutput:
+        """Rasterize already posed Gaussians (``forward`` = ``pose`` + this)."""
+        camera = camera.to(posed.means.device, posed.means.dtype)
+        degree = self.active_sh_degree if sh_degree is None else min(sh_degree, self.gaussians.sh_degree)
+        dirs = posed.means - camera.center  # world view directions, into canonical space:
+        dirs = (posed.rotations.transpose(-1, -2) @ dirs.unsqueeze(-1)).squeeze(-1)
+        colors = eval_sh(degree, posed.sh, dirs)
+        if background is not None:
+            background = background.to(colors)
+        return rasterize(
+            posed.means, posed.quats, posed.scales, posed.opacities, colors,
+            camera.viewmat, camera.K, camera.width, camera.height, background=background, config=raster,
+        )  # fmt: skip
+
+    @torch.no_grad()
+    def render(self, params: BodyParams, camera: Camera, background: Tensor | None = None) -> Tensor:
+        """The service's call: image [H, W, 3] in [0, 1] for one pose (batch-1 ``params``)."""
+        if background is None:
+            background = torch.ones(3)
+        return self(params, camera, background).image.clamp(0.0, 1.0)
+
+
+def template_vertices(body: BodyModel, shape: Tensor) -> Tensor:
+    """[V, 3] rest vertices of ``body`` with ``shape [S]`` and zero expression."""
+    params = body.default_params(1)
+    params.shape = shape.to(params.shape).reshape(1, -1)
+    with torch.no_grad():
+        return body.canonical(params)[0]

@@ -1,0 +1,109 @@
+"""The two small MLPs of EVA §3.1 and their positional encoding.
+
+- ``LBSWeightOffsets``: gamma(p_c) -> per-joint offsets w' [N, J]; the skinning weights are
+  w = softmax(log(w_body + eps) + w') (``blend_skinning_weights``).
+- ``PoseRefiner``: theta = theta_in (x) f(theta_in). We follow EVA's official code (GauHuman's
+  ``BodyPoseRefiner``, one network per part): for each part (body, hands, face) an MLP maps the
+  part's input joint rotations (axis-angle, flattened) to a small per-joint rotation delta, and
+  the refined rotation of joint j is R(theta_j) R(delta_j) (rotation composition, the "(x)").
+  The root orientation and translation are not refined.
+
+Both last layers start uniform in +-``out_init`` (1e-5) with zero bias, so at initialisation the
+skinning is the body model's and the pose is the input pose (to ~1e-5).
+"""
+
+from __future__ import annotations
+
+import math
+
+import roma
+import torch
+from torch import Tensor, nn
+
+from eva_engine.body.model import PART_NAMES
+
+
+def positional_encoding(x: Tensor, frequencies: int) -> Tensor:
+    """NeRF's gamma: [..., D] -> [..., D (1 + 2 L)] = (x, sin(2^k pi x), cos(2^k pi x)), k < L."""
+    if frequencies == 0:
+        return x
+    scales = (2.0 ** torch.arange(frequencies, device=x.device, dtype=x.dtype)) * math.pi
+    xb = x[..., None, :] * scales[:, None]  # [..., L, D]
+    enc = torch.cat([torch.sin(xb), torch.cos(xb)], dim=-1).flatten(-2)
+    return torch.cat([x, enc], dim=-1)
+
+
+def make_mlp(d_in: int, d_out: int, width: int, depth: int, out_init: float) -> nn.Sequential:
+    """``depth`` hidden ReLU layers of ``width``; last layer uniform(+-out_init), bias 0."""
+    layers: list[nn.Module] = []
+    d = d_in
+    for _ in range(depth):
+        layers += [nn.Linear(d, width), nn.ReLU()]
+        d = width
+    last = nn.Linear(d, d_out)
+    nn.init.uniform_(last.weight, -out_init, out_init)
+    nn.init.zeros_(last.bias)
+    layers.append(last)
+    return nn.Sequential(*layers)
+
+
+class LBSWeightOffsets(nn.Module):
+    """f_w: canonical centres [N, 3] -> LBS weight offsets [N, J] (EVA eq. for w_k)."""
+
+    def __init__(self, num_joints: int, frequencies: int, width: int, depth: int, out_init: float) -> None:
+        super().__init__()
+        self.frequencies = frequencies
+        self.mlp = make_mlp(3 * (1 + 2 * frequencies), num_joints, width, depth, out_init)
+
+    def forward(self, means: Tensor) -> Tensor:
+        return self.mlp(positional_encoding(means, self.frequencies))
+
+
+def blend_skinning_weights(base: Tensor, offsets: Tensor | None, eps: float = 1e-8) -> Tensor:
+    """w = softmax(log(base + eps) + offsets). base: [N, J] rows summing to 1; offsets: [N, J] or
+    None (then w = base renormalised with eps, i.e. the body model's weights)."""
+    logits = torch.log(base + eps)
+    if offsets is not None:
+        logits = logits + offsets
+    return torch.softmax(logits, dim=-1)
+
+
+def joint_parts(skinning_weights: Tensor, part_ids: Tensor) -> Tensor:
+    """Part of each joint [J]: the part whose vertices carry most of the joint's skinning weight
+    (a joint that skins nothing counts as body). skinning_weights: [V, J]; part_ids: [V]."""
+    per_part = skinning_weights.new_zeros(len(PART_NAMES), skinning_weights.shape[1])
+    per_part.index_add_(0, part_ids, skinning_weights)
+    return per_part.argmax(dim=0)
+
+
+class PoseRefiner(nn.Module):
+    """Per-part pose correction (see the module docstring).
+
+    joint_part_ids: [P] part index of each pose joint (``model.pose_joint_names`` order).
+    forward: joints [B, P, 3] axis-angle -> refined joints [B, P, 3].
+    """
+
+    joint_part_ids: Tensor
+
+    def __init__(self, joint_part_ids: Tensor, width: int, depth: int, out_init: float) -> None:
+        super().__init__()
+        self.register_buffer("joint_part_ids", joint_part_ids.to(torch.int64).clone())
+        self.mlps = nn.ModuleDict()
+        for i, part in enumerate(PART_NAMES):
+            n = int((self.joint_part_ids == i).sum())
+            if n:
+                self.mlps[part] = make_mlp(3 * n, 3 * n, width, depth, out_init)
+
+    def deltas(self, joints: Tensor) -> Tensor:
+        """[B, P, 3] predicted rotation deltas (axis-angle)."""
+        out = torch.zeros_like(joints)
+        for i, part in enumerate(PART_NAMES):
+            if part not in self.mlps:
+                continue
+            idx = torch.nonzero(self.joint_part_ids == i).squeeze(1)
+            x = joints[:, idx]
+            out[:, idx] = self.mlps[part](x.flatten(1)).view_as(x)
+        return out
+
+    def forward(self, joints: Tensor) -> Tensor:
+        return roma.rotvec_composition([joints, self.deltas(joints)])

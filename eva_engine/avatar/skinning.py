@@ -1,0 +1,69 @@
+"""Posing canonical Gaussians by linear blend skinning (EVA §3.1): the functional core.
+
+For Gaussian i with weights w_i [J] and rest->posed joint transforms G_k = [R_k | b_k]:
+    A_i = sum_k w_ik [R_k | b_k]        (3x4, the blended transform)
+    p_i^f = A_i[:, :3] p_i^c + A_i[:, 3]
+    Sigma_i^f = R_i Sigma_i^c R_i^T      with R_i the rotation nearest A_i[:, :3]
+The blended 3x3 part of LBS is not a rotation (it shrinks where weights mix distant rotations),
+so the covariance is rotated by its Gram-Schmidt orthonormalisation (smooth, finite gradients
+even for a degenerate blend) and the quaternions are composed with it: q^f = q(R_i) q^c.
+"""
+
+from __future__ import annotations
+
+import roma
+import torch
+from torch import Tensor
+
+
+def blend_transforms(weights: Tensor, transforms: Tensor) -> Tensor:
+    """weights: [N, J]; transforms: [J, 4, 4] -> blended [N, 3, 4]."""
+    j = transforms.shape[0]
+    return (weights @ transforms[:, :3, :].reshape(j, 12)).view(-1, 3, 4)
+
+
+def orthonormalize(m: Tensor, eps: float = 1e-8) -> Tensor:
+    """[N, 3, 3] -> [N, 3, 3] rotations by Gram-Schmidt on the first two columns (eps keeps a
+    degenerate column finite)."""
+    a1, a2 = m[..., :, 0], m[..., :, 1]
+    r1 = a1 / (a1.norm(dim=-1, keepdim=True) + eps)
+    a2 = a2 - (r1 * a2).sum(-1, keepdim=True) * r1
+    r2 = a2 / (a2.norm(dim=-1, keepdim=True) + eps)
+    r3 = torch.cross(r1, r2, dim=-1)
+    return torch.stack([r1, r2, r3], dim=-1)
+
+
+def quat_multiply(q1: Tensor, q2: Tensor) -> Tensor:
+    """Hamilton product of [..., 4] (w, x, y, z) quaternions (norms multiply)."""
+    w1, x1, y1, z1 = q1.unbind(-1)
+    w2, x2, y2, z2 = q2.unbind(-1)
+    return torch.stack(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ],
+        dim=-1,
+    )
+
+
+def rotmat_to_quat_wxyz(r: Tensor) -> Tensor:
+    """[..., 3, 3] rotations -> [..., 4] unit quaternions (w, x, y, z)."""
+    return roma.quat_xyzw_to_wxyz(roma.rotmat_to_unitquat(r))
+
+
+def skin_gaussians(
+    means: Tensor, quats: Tensor, weights: Tensor, transforms: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Pose canonical Gaussians.
+
+    means: [N, 3]; quats: [N, 4] (w, x, y, z, any norm: it is kept, so a zero quaternion stays
+    zero, which the rasterizer reads as identity); weights: [N, J]; transforms: [J, 4, 4].
+    Returns posed means [N, 3], posed quats [N, 4] and the per-Gaussian rotations [N, 3, 3]
+    (canonical -> posed; e.g. to bring view directions into canonical space for SH colours).
+    """
+    a = blend_transforms(weights, transforms)
+    posed = (a[:, :, :3] @ means.unsqueeze(-1)).squeeze(-1) + a[:, :, 3]
+    rot = orthonormalize(a[:, :, :3])
+    return posed, quat_multiply(rotmat_to_quat_wxyz(rot), quats), rot

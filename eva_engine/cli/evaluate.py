@@ -1,0 +1,49 @@
+"""``eva eval``: evaluate an avatar on a dataset's novel-pose frames (paper Table 1 metrics)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+from rich.console import Console
+
+from eva_engine.cli.app import app
+
+
+@app.command("eval")
+def evaluate(
+    avatar_dir: Path = typer.Argument(..., help="Avatar directory written by `eva train`."),
+    dataset: Path = typer.Argument(..., help="Dataset folder with the test frames."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the metrics as JSON here."),
+    split: str = typer.Option("test_pose", help="Split to evaluate: test_pose or test_view."),
+    name: str | None = typer.Option(None, help="Row name in the table (default: the avatar folder)."),
+) -> None:
+    """PSNR / SSIM / LPIPS on full image, hands and face; Gaussian count, training time, FPS."""
+    from eva_engine.avatar import AvatarFileError, load_avatar, read_avatar_info
+    from eva_engine.data import DatasetError, load_dataset
+    from eva_engine.eval import evaluate_avatar, metrics_table
+
+    console = Console(stderr=True)
+    try:
+        info = read_avatar_info(avatar_dir)
+        avatar = load_avatar(avatar_dir)
+    except AvatarFileError as err:
+        console.print(f"[red]error:[/] {err}")
+        raise typer.Exit(2) from err
+    if not dataset.is_dir():
+        console.print(f"[red]error:[/] no dataset folder at {dataset}")
+        raise typer.Exit(2)
+    try:
+        ds = load_dataset(dataset)
+        result = evaluate_avatar(avatar, ds, split=split, train_seconds=info.get("train_seconds"))
+    except (DatasetError, ValueError) as err:
+        console.print(f"[red]error:[/] {err}")
+        raise typer.Exit(2) from err
+    table = metrics_table({name or avatar_dir.name: result})
+    typer.echo(table)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        doc = {"avatar": str(avatar_dir), "dataset": str(dataset), **result.to_dict(), "table": table}
+        json_out.write_text(json.dumps(doc, indent=2))
+        console.print(f"[green]wrote[/] {json_out}")

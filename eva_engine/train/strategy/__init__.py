@@ -1,0 +1,7 @@
+"""Adaptive density control as swappable strategies with explicit state (gsplat's design)."""
+
+from eva_engine.train.strategy import ops
+from eva_engine.train.strategy.base import Strategy
+from eva_engine.train.strategy.default import DefaultStrategy
+
+__all__ = ["DefaultStrategy", "Strategy", "ops"]

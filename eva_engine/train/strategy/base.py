@@ -1,0 +1,45 @@
+"""The density-control interface (gsplat-style: a config dataclass with explicit state).
+
+A trainer holds ``strategy`` and ``state = strategy.initialize_state()`` and calls, per step,
+``strategy.step_post_backward(gaussians, optimizers, state, step, render)`` after the backward
+pass and optimizer step (``render.means2d.grad`` then holds the screen-space gradient). The
+strategy may add, split or remove Gaussians; it does so only through ``strategy.ops``, which
+keep splats, optimizer state, per-Gaussian buffers and every per-Gaussian tensor of ``state``
+aligned. All mutable data lives in ``state``; the strategy object itself is configuration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from eva_engine.avatar.gaussians import CanonicalGaussians
+from eva_engine.render import RenderOutput
+from eva_engine.train.strategy.ops import Optimizers
+
+
+@dataclass
+class Strategy:
+    """Base class: no density control at all (a fixed set of Gaussians)."""
+
+    def initialize_state(self) -> dict:
+        return {}
+
+    def check_sanity(self, gaussians: CanonicalGaussians, optimizers: Optimizers) -> None:
+        """Every optimizer named after a splat must optimise exactly that tensor."""
+        for name, opt in optimizers.items():
+            if name not in gaussians.splats:
+                raise ValueError(f"optimizer {name!r} has no matching splat")
+            params = opt.param_groups[0]["params"]
+            if len(opt.param_groups) != 1 or len(params) != 1 or params[0] is not gaussians.splats[name]:
+                raise ValueError(f"optimizer {name!r} must hold exactly splats[{name!r}]")
+
+    def step_post_backward(
+        self,
+        gaussians: CanonicalGaussians,
+        optimizers: Optimizers,
+        state: dict,
+        step: int,
+        render: RenderOutput,
+    ) -> dict[str, int]:
+        """Update statistics and maybe refine; returns counts of what changed (may be empty)."""
+        return {}

@@ -1,0 +1,151 @@
+"""``DefaultStrategy``: 3DGS adaptive density control, plus pruning by distance to the body
+template (GauHuman / EVA). The "3DGS + body" baseline of the paper.
+
+Every step: the screen-space gradient norm of each visible Gaussian's centre, in 3DGS units
+(dL/dmeans2d in pixels scaled by (W/2, H/2), i.e. per normalised device coordinate), is
+accumulated in ``state["grad2d"]`` with a visibility count ``state["count"]``. Every
+``refine_every`` steps in [refine_start_iter, refine_stop_iter): Gaussians whose mean gradient
+exceeds their threshold (``densify_thresholds``; here the constant ``grow_grad2d``) are cloned
+when small (max scale <= ``grow_scale3d``) or split when large; then Gaussians with opacity below
+``prune_opa``, scale above ``prune_scale3d``, or canonical distance to the template above
+``prune_distance_thresholds`` are removed, and the accumulators reset (``end_window``).
+
+Subclasses change the policy through the three hooks (``densify_thresholds``,
+``prune_distance_thresholds``, ``end_window``) and extra per-Gaussian entries in ``state``, which
+the ops keep aligned; e.g. issue 6's context-aware strategy keeps the previous window's gradient
+sums and sets per-part thresholds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from eva_engine.avatar.gaussians import CanonicalGaussians
+from eva_engine.render import RenderOutput
+from eva_engine.train.strategy import ops
+from eva_engine.train.strategy.base import Strategy
+from eva_engine.train.strategy.ops import Optimizers
+
+
+@dataclass
+class DefaultStrategy(Strategy):
+    """3DGS density control (see the module docstring). Lengths are metres of canonical space.
+
+    grow_grad2d: densification threshold on the mean NDC gradient norm (3DGS: 2e-4).
+    grow_scale3d: clone below / split above this max scale (3DGS: 0.01 of the scene extent; a
+        human is ~1 m).
+    prune_opa: remove below this opacity (3DGS: 0.005).
+    prune_scale3d: remove above this max scale (3DGS: 0.1 of the extent).
+    prune_template_dist: remove Gaussians farther than this from every template vertex.
+    refine_start_iter, refine_stop_iter, refine_every: the densification window (EVA: 400, 1000,
+        100).
+    reset_every: opacity reset period (3DGS: 3000; longer than EVA's 2,000 iterations, so off).
+    max_gaussians: optional budget: above it, only the strongest candidates are densified.
+    seed: for the split samples.
+    """
+
+    grow_grad2d: float = 2e-4
+    grow_scale3d: float = 0.01
+    prune_opa: float = 0.005
+    prune_scale3d: float = 0.1
+    prune_template_dist: float = 0.05
+    refine_start_iter: int = 400
+    refine_stop_iter: int = 1000
+    refine_every: int = 100
+    reset_every: int = 3000
+    max_gaussians: int | None = None
+    seed: int = 0
+
+    def initialize_state(self) -> dict:
+        return {
+            "grad2d": None,  # [N] summed gradient norms of the current window
+            "count": None,  # [N] steps each Gaussian was visible in the window
+            "generator": torch.Generator().manual_seed(self.seed),
+        }
+
+    # -- hooks -----------------------------------------------------------------------------
+    def densify_thresholds(self, state: dict, gaussians: CanonicalGaussians) -> Tensor:
+        """[N] (or scalar) gradient threshold per Gaussian."""
+        return torch.tensor(self.grow_grad2d, device=gaussians.means.device)
+
+    def prune_distance_thresholds(self, gaussians: CanonicalGaussians) -> tuple[Tensor, bool]:
+        """([N] or scalar max distance to the template, whether to measure to the same part)."""
+        return torch.tensor(self.prune_template_dist, device=gaussians.means.device), False
+
+    def end_window(self, state: dict) -> None:
+        """Reset the accumulators after a refinement."""
+        state["grad2d"].zero_()
+        state["count"].zero_()
+
+    # -- the step ----------------------------------------------------------------------------
+    @torch.no_grad()
+    def update_state(self, gaussians: CanonicalGaussians, state: dict, render: RenderOutput) -> None:
+        n = len(gaussians)
+        device = gaussians.means.device
+        if state["grad2d"] is None or state["grad2d"].shape[0] != n:
+            state["grad2d"] = torch.zeros(n, device=device)
+            state["count"] = torch.zeros(n, device=device)
+        grad = render.means2d.grad
+        if grad is None:
+            return
+        h, w = render.image.shape[:2]
+        grad = grad * grad.new_tensor([w / 2.0, h / 2.0])
+        visible = render.radii > 0
+        state["grad2d"][visible] += grad[visible].norm(dim=-1)
+        state["count"][visible] += 1
+
+    def step_post_backward(
+        self,
+        gaussians: CanonicalGaussians,
+        optimizers: Optimizers,
+        state: dict,
+        step: int,
+        render: RenderOutput,
+    ) -> dict[str, int]:
+        if step >= self.refine_stop_iter:
+            return {}
+        self.update_state(gaussians, state, render)
+        stats: dict[str, int] = {}
+        if step >= self.refine_start_iter and step % self.refine_every == 0 and step > 0:
+            stats = self.refine(gaussians, optimizers, state)
+        if self.reset_every > 0 and step > 0 and step % self.reset_every == 0:
+            ops.reset_opacity(gaussians, optimizers, state, 2.0 * self.prune_opa)
+        return stats
+
+    @torch.no_grad()
+    def refine(self, gaussians: CanonicalGaussians, optimizers: Optimizers, state: dict) -> dict[str, int]:
+        """Densify then prune (see the module docstring); returns the counts."""
+        grads = state["grad2d"] / state["count"].clamp_min(1)
+        candidates = grads > self.densify_thresholds(state, gaussians)
+        if self.max_gaussians is not None:
+            room = max(self.max_gaussians - len(gaussians), 0)
+            if int(candidates.sum()) > room:
+                order = torch.argsort(torch.where(candidates, grads, -1.0), descending=True)
+                candidates = torch.zeros_like(candidates)
+                candidates[order[:room]] = True
+        small = gaussians.scales().amax(dim=-1) <= self.grow_scale3d
+        is_clone, is_split = candidates & small, candidates & ~small
+        n_clone, n_split = int(is_clone.sum()), int(is_split.sum())
+        if n_clone:
+            ops.duplicate(gaussians, optimizers, state, is_clone)
+            is_split = torch.cat([is_split, is_split.new_zeros(n_clone)])
+        if n_split:
+            ops.split(gaussians, optimizers, state, is_split, generator=state["generator"])
+
+        dist_max, same_part = self.prune_distance_thresholds(gaussians)
+        dist = gaussians.template_distance(same_part=same_part)
+        prune = (
+            (gaussians.opacities() < self.prune_opa)
+            | (gaussians.scales().amax(dim=-1) > self.prune_scale3d)
+            | (dist > dist_max)
+        )
+        prune &= ~torch.all(prune)  # never remove everything
+        n_prune = int(prune.sum())
+        if n_prune:
+            ops.remove(gaussians, optimizers, state, prune)
+        gaussians.refresh_vertex_ids()
+        self.end_window(state)
+        return {"cloned": n_clone, "split": n_split, "pruned": n_prune, "gaussians": len(gaussians)}

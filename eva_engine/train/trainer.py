@@ -1,0 +1,254 @@
+"""``train_avatar``: fit an :class:`~eva_engine.avatar.Avatar` to a dataset's training frames.
+
+One frame per step (a seeded random order, epoch by epoch), as 3DGS does:
+pose (skinning) -> rasterize -> losses -> backward -> Adam steps -> density control. Progress
+goes to an optional callback (:class:`TrainProgress`); per-stage wall time is accumulated in
+``TrainResult.timings`` (what ``bench/train.py`` reports).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from eva_engine.avatar import Avatar, Camera
+from eva_engine.body.model import BodyModel
+from eva_engine.body.params import BodyParams
+from eva_engine.train.config import TrainConfig
+from eva_engine.train.losses import AvatarLoss, composite_target
+
+logger = logging.getLogger(__name__)
+
+STAGES = ("data", "skinning", "rasterize", "losses", "backward", "optimizer", "densify")
+
+
+class TrainingError(RuntimeError):
+    """The data cannot be trained on (no body parameters, no training frames, ...)."""
+
+
+@dataclass
+class TrainProgress:
+    """One progress report: stage ("setup", "train", "done"), iteration (1-based) of total,
+    current loss, Gaussian count, elapsed and estimated remaining seconds."""
+
+    stage: str
+    iteration: int
+    total: int
+    loss: float
+    num_gaussians: int
+    elapsed: float
+    eta: float
+
+
+@dataclass
+class TrainResult:
+    """avatar: the trained model (eval mode); losses: total loss per iteration;
+    train_seconds: wall time of the optimisation loop; timings: seconds per stage (``STAGES``);
+    refinements: the strategy's reports (step and counts)."""
+
+    avatar: Avatar
+    losses: list[float]
+    train_seconds: float
+    timings: dict[str, float]
+    refinements: list[dict] = field(default_factory=list)
+
+
+@dataclass
+class TrainingFrames:
+    """Training frames in memory: images [T, H, W, 3], masks [T, H, W], cameras, params (batch T)."""
+
+    images: Tensor
+    masks: Tensor
+    cameras: list[Camera]
+    params: BodyParams
+
+
+def load_training_frames(dataset, indices: list[int], image_scale: float = 1.0) -> TrainingFrames:
+    """Read (and resample by ``image_scale``) the frames ``indices`` of an ``eva-dataset``."""
+    if dataset.params is None:
+        raise TrainingError(
+            "the dataset has no body parameters (params.safetensors); fit them first (alignment), "
+            "or use a dataset that provides them"
+        )
+    if not indices:
+        raise TrainingError("the dataset has no frames in this split")
+    images, masks, cameras = [], [], []
+    for i in indices:
+        frame = dataset[i]
+        img, mask, k = frame.image.float(), frame.mask.float(), frame.K.float().clone()
+        if image_scale != 1.0:
+            h, w = img.shape[:2]
+            size = (max(1, round(h * image_scale)), max(1, round(w * image_scale)))
+            img = F.interpolate(img.permute(2, 0, 1)[None], size=size, mode="area")[0].permute(1, 2, 0)
+            mask = F.interpolate(mask[None, None], size=size, mode="area")[0, 0]
+            k[0] *= size[1] / w
+            k[1] *= size[0] / h
+        images.append(img)
+        masks.append(mask)
+        cameras.append(Camera(k, frame.viewmat.float(), img.shape[1], img.shape[0]))
+    params = BodyParams.cat([dataset.params[i] for i in indices])
+    return TrainingFrames(torch.stack(images), torch.stack(masks), cameras, params)
+
+
+def dataset_background(dataset, config: TrainConfig) -> Tensor:
+    """[3] the background renders and targets use: the config's, the dataset's, or white."""
+    if config.background is not None:
+        return torch.tensor(config.background, dtype=torch.float32)
+    bg = getattr(dataset.meta, "background", None)
+    return torch.tensor(bg if bg is not None else (1.0, 1.0, 1.0), dtype=torch.float32)
+
+
+def resolve_device(name: str) -> torch.device:
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise TrainingError("CUDA was asked for but is not available; use device='cpu'")
+    return device
+
+
+def make_optimizers(avatar: Avatar, config: TrainConfig) -> dict[str, torch.optim.Optimizer]:
+    """One Adam per splat (3DGS's eps 1e-15): the optimizers a density-control strategy edits."""
+    lrs = config.optim.splat_lrs()
+    return {
+        name: torch.optim.Adam([p], lr=lrs[name], eps=1e-15) for name, p in avatar.gaussians.splats.items()
+    }
+
+
+def make_extra_optimizers(
+    avatar: Avatar, config: TrainConfig, loss: AvatarLoss
+) -> list[torch.optim.Optimizer]:
+    """Adam for the MLPs, and for the loss's own parameters if it has any."""
+    out = []
+    mlp = avatar.mlp_parameters()
+    if mlp:
+        out.append(torch.optim.Adam(mlp, lr=config.optim.mlp_lr))
+    loss_params = [p for p in loss.parameters() if p.requires_grad]
+    if loss_params:
+        out.append(torch.optim.Adam(loss_params, lr=config.optim.loss_lr))
+    return out
+
+
+def means_lr(config: TrainConfig, step: int) -> float:
+    """Exponential decay of the means' learning rate from init to final over the run (3DGS)."""
+    o = config.optim
+    t = min(step / max(config.iterations - 1, 1), 1.0)
+    return math.exp((1 - t) * math.log(o.means_lr) + t * math.log(o.means_lr_final)) * o.spatial_scale
+
+
+def train_avatar(
+    dataset,
+    config: TrainConfig | None = None,
+    body: BodyModel | None = None,
+    progress: Callable[[TrainProgress], None] | None = None,
+) -> TrainResult:
+    """Train an avatar on ``dataset.splits["train"]`` (an ``eva-dataset``, see docs).
+
+    body: the body model the dataset's parameters are for (default: ``meta.body_model``).
+    """
+    config = config or TrainConfig()
+    device = resolve_device(config.device)
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+    t_setup = time.perf_counter()
+    if progress:
+        progress(TrainProgress("setup", 0, config.iterations, float("nan"), 0, 0.0, float("nan")))
+
+    if body is None:
+        from eva_engine.body import load_body_model
+
+        name = getattr(dataset.meta, "body_model", None)
+        if name is None:
+            raise TrainingError("the dataset names no body model (meta.body_model)")
+        body = load_body_model(name)
+    train_ids = list(dataset.splits.get("train", []))
+    frames = load_training_frames(dataset, train_ids, config.image_scale)
+    background = dataset_background(dataset, config).to(device)
+    targets = torch.stack(
+        [
+            composite_target(img, m, background.cpu())
+            for img, m in zip(frames.images, frames.masks, strict=True)
+        ]
+    ).to(device)
+    masks = frames.masks.to(device)
+    params = frames.params.to(device)
+
+    shape = params.shape.mean(dim=0)
+    avatar = Avatar.create(body.to(device), shape, config.avatar, seed=config.seed).to(device)
+    avatar.active_sh_degree = 0
+    loss_fn = AvatarLoss(config.loss).to(device)
+    optimizers = make_optimizers(avatar, config)
+    extra = make_extra_optimizers(avatar, config, loss_fn)
+    strategy = config.strategy
+    strategy.check_sanity(avatar.gaussians, optimizers)
+    state = strategy.initialize_state()
+    logger.info("setup %.1fs: %d frames, %d Gaussians", time.perf_counter() - t_setup, len(train_ids),
+                len(avatar.gaussians))  # fmt: skip
+
+    gen = torch.Generator().manual_seed(config.seed)
+    order: list[int] = []
+    timings = dict.fromkeys(STAGES, 0.0)
+    losses: list[float] = []
+    refinements: list[dict] = []
+    start = time.perf_counter()
+
+    def tick(stage: str, t0: float) -> float:
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        t1 = time.perf_counter()
+        timings[stage] += t1 - t0
+        return t1
+
+    for step in range(config.iterations):
+        t = time.perf_counter()
+        if not order:
+            order = torch.randperm(len(train_ids), generator=gen).tolist()
+        i = order.pop()
+        if step > 0 and step % config.sh_degree_interval == 0:
+            avatar.active_sh_degree = min(avatar.active_sh_degree + 1, avatar.gaussians.sh_degree)
+        for g in optimizers["means"].param_groups:
+            g["lr"] = means_lr(config, step)
+        cam = frames.cameras[i]
+        t = tick("data", t)
+
+        posed = avatar.pose(params[i])
+        t = tick("skinning", t)
+        render = avatar.rasterize_posed(posed, cam, background)
+        t = tick("rasterize", t)
+        terms = loss_fn(render, targets[i], masks[i])
+        t = tick("losses", t)
+        terms["total"].backward()
+        t = tick("backward", t)
+        for opt in (*optimizers.values(), *extra):
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        t = tick("optimizer", t)
+        stats = strategy.step_post_backward(avatar.gaussians, optimizers, state, step, render)
+        if stats:
+            refinements.append({"step": step, **stats})
+        tick("densify", t)
+
+        loss = float(terms["total"].detach())
+        if not math.isfinite(loss):
+            raise TrainingError(f"the loss became {loss} at iteration {step}")
+        losses.append(loss)
+        done = step + 1
+        if progress and (done % config.progress_every == 0 or done == config.iterations):
+            elapsed = time.perf_counter() - start
+            eta = elapsed / done * (config.iterations - done)
+            progress(
+                TrainProgress("train", done, config.iterations, loss, len(avatar.gaussians), elapsed, eta)
+            )
+
+    train_seconds = time.perf_counter() - start
+    avatar.eval()
+    if progress:
+        progress(TrainProgress("done", config.iterations, config.iterations, losses[-1],
+                               len(avatar.gaussians), train_seconds, 0.0))  # fmt: skip
+    return TrainResult(avatar, losses, train_seconds, timings, refinements)

@@ -1,0 +1,157 @@
+"""The avatar model: identity at initialisation, exact LBS of Gaussians on vertices, finite
+gradients for extreme poses and degenerate Gaussians."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from test_avatar_scenes import front_camera, random_params
+
+from eva_engine.avatar import (
+    Avatar,
+    AvatarConfig,
+    Camera,
+    blend_skinning_weights,
+    orthonormalize,
+    positional_encoding,
+    quat_multiply,
+    skin_gaussians,
+)
+
+SMALL = dict(init_max_gaussians=600, mlp_width=16, pe_frequencies=2, sh_degree=1)
+
+
+@pytest.fixture(scope="module")
+def avatars(anny_model):
+    torch.manual_seed(0)
+    full = Avatar.create(anny_model, anny_model.shape_defaults, AvatarConfig(**SMALL), seed=3)
+    plain = Avatar.create(
+        anny_model, anny_model.shape_defaults,
+        AvatarConfig(**SMALL, weight_offsets=False, pose_refine=False), seed=3,
+    )  # fmt: skip
+    return full, plain
+
+
+def test_mlps_start_as_identity(anny_model, avatars):
+    full, plain = avatars
+    assert torch.equal(full.gaussians.means, plain.gaussians.means)
+    params = random_params(anny_model, 1, seed=1)
+    # Pose refinement: the input pose to ~1e-5 rad; weights: the body model's.
+    refined = full.refine_pose(params)
+    torch.testing.assert_close(refined.joints, params.joints, atol=1e-4, rtol=0)
+    base = anny_model.skinning_weights[full.gaussians.vertex_ids]
+    torch.testing.assert_close(full.skinning_weights(), base, atol=1e-4, rtol=0)
+    # First render equals plain LBS.
+    cam = front_camera(48)
+    a = full(params, cam, torch.ones(3)).image
+    b = plain(params, cam, torch.ones(3)).image
+    torch.testing.assert_close(a, b, atol=2e-3, rtol=0)
+    # The MLPs are not dead: their last layers are small but non-zero, so gradients reach them.
+    loss = full(params, cam, torch.ones(3)).image.mean()
+    loss.backward()
+    grads = [p.grad for p in full.mlp_parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert any(g.abs().sum() > 0 for g in grads)
+    full.zero_grad()
+
+
+def test_gaussians_on_vertices_follow_the_body_exactly(anny_model, avatars):
+    _, plain = avatars
+    params = random_params(anny_model, 1, seed=2)
+    params.expression[:, :5] = 0.7  # expression moves the rest vertices (blendshapes)
+    posed = plain.pose(params)
+    verts = anny_model(plain.subject_params(params)).vertices[0]
+    torch.testing.assert_close(posed.means, verts[plain.gaussians.vertex_ids], atol=1e-5, rtol=0)
+    # At the rest pose with no expression the posed Gaussians are the canonical ones.
+    rest = plain.pose(anny_model.default_params(1))
+    torch.testing.assert_close(rest.means, plain.gaussians.means, atol=1e-6, rtol=0)
+    q = plain.gaussians.splats["quats"]
+    torch.testing.assert_close(rest.quats, q, atol=1e-6, rtol=0)
+
+
+def test_skinning_rotates_quaternions_with_a_rigid_transform():
+    torch.manual_seed(0)
+    angle = 0.7
+    rot = torch.tensor(
+        [[math.cos(angle), 0, math.sin(angle)], [0, 1, 0], [-math.sin(angle), 0, math.cos(angle)]]
+    )
+    t = torch.eye(4)
+    t[:3, :3], t[:3, 3] = rot, torch.tensor([0.1, 0.2, 0.3])
+    transforms = torch.stack([t, t])
+    means = torch.randn(5, 3)
+    quats = torch.nn.functional.normalize(torch.randn(5, 4), dim=-1)
+    weights = torch.softmax(torch.randn(5, 2), dim=-1)
+    posed, pq, r = skin_gaussians(means, quats, weights, transforms)
+    torch.testing.assert_close(posed, means @ rot.T + t[:3, 3])
+    torch.testing.assert_close(r, rot.expand(5, 3, 3))
+    from eva_engine.render import quat_to_rotmat
+
+    torch.testing.assert_close(quat_to_rotmat(pq), rot @ quat_to_rotmat(quats), atol=1e-5, rtol=0)
+    # Hamilton product conventions: i * j = k.
+    i, j = torch.tensor([0.0, 1, 0, 0]), torch.tensor([0.0, 0, 1, 0])
+    torch.testing.assert_close(quat_multiply(i, j), torch.tensor([0.0, 0, 0, 1]))
+
+
+def test_blend_weights_and_encoding():
+    base = torch.tensor([[1.0, 0.0, 0.0], [0.25, 0.75, 0.0]])
+    torch.testing.assert_close(blend_skinning_weights(base, None), base, atol=1e-7, rtol=0)
+    w = blend_skinning_weights(base, torch.tensor([[0.0, 0.0, 0.0], [math.log(3.0), 0.0, 0.0]]))
+    torch.testing.assert_close(w[1, :2], torch.tensor([0.5, 0.5]), atol=1e-6, rtol=0)
+    enc = positional_encoding(torch.zeros(4, 3), 3)
+    assert enc.shape == (4, 21) and torch.equal(enc[:, :3], torch.zeros(4, 3))
+
+
+def test_degenerate_blends_stay_finite():
+    m = torch.zeros(3, 3, 3, requires_grad=True)  # all-zero blended matrix (opposite rotations)
+    r = orthonormalize(m)
+    r.sum().backward()
+    assert torch.isfinite(r).all() and torch.isfinite(m.grad).all()
+
+
+def test_extreme_poses_and_degenerate_gaussians_have_finite_gradients(anny_model):
+    torch.manual_seed(0)
+    avatar = Avatar.create(anny_model, anny_model.shape_defaults, AvatarConfig(**SMALL), seed=1)
+    g = avatar.gaussians
+    with torch.no_grad():
+        g.splats["quats"][:10] = 0.0  # zero quaternions
+        g.splats["scales"][10:20] = -30.0  # tiny
+        g.splats["scales"][20:30] = 3.0  # huge
+        g.splats["opacities"][30:40] = 40.0  # saturated
+        g.splats["opacities"][40:50] = -40.0
+    params = anny_model.default_params(1)
+    gen = torch.Generator().manual_seed(0)
+    params.joints = (
+        torch.rand(params.joints.shape, generator=gen) * 2 - 1
+    ) * math.pi  # any rotation, up to pi
+    params.root_orient = torch.tensor([[0.0, math.pi, 0.0]])
+    params.expression[:] = 1.0
+    for cam in (front_camera(32), _behind_camera(32)):
+        out = avatar(params, cam, torch.ones(3))
+        loss = out.image.mean() + out.alpha.mean() + out.depth.mean()
+        loss.backward()
+        assert torch.isfinite(out.image).all()
+        for name, p in [*g.splats.items(), *avatar.named_parameters()]:
+            if p.grad is not None:
+                assert torch.isfinite(p.grad).all(), name
+        avatar.zero_grad()
+
+
+def _behind_camera(size: int) -> Camera:
+    """A camera inside the body looking along -Z: many Gaussians behind it or at its centre."""
+    cam = front_camera(size)
+    cam.viewmat = cam.viewmat.clone()
+    cam.viewmat[2, 3] = 0.0
+    return cam
+
+
+def test_render_api(anny_model, avatars):
+    full, _ = avatars
+    image = full.render(
+        anny_model.params_from_pose({"joints": {"lowerarm01.L": [0, 0, -1.0]}}), front_camera(40)
+    )
+    assert image.shape == (40, 40, 3) and image.min() >= 0 and image.max() <= 1
+    assert not image.requires_grad
+    with pytest.raises(ValueError, match="one frame"):
+        full.pose(anny_model.default_params(2))

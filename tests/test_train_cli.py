@@ -1,0 +1,49 @@
+"""End to end on the synthetic benchmark's tiny preset: ``eva train`` -> avatar directory ->
+``eva eval`` -> JSON with full / hand / face metrics; clear CLI errors (exit code 2)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from eva_engine.cli import app
+from eva_engine.data.synthetic import generate
+
+
+@pytest.fixture(scope="module")
+def dataset(anny_model, tmp_path_factory):
+    return generate("controlled", "tiny", 0, tmp_path_factory.mktemp("synth") / "ds", model=anny_model)
+
+
+def test_train_then_eval(dataset, tmp_path):
+    runner = CliRunner()
+    out = tmp_path / "avatar"
+    res = runner.invoke(
+        app, ["train", str(dataset), "--out", str(out), "--preset", "tiny", "--iterations", "30"]
+    )
+    assert res.exit_code == 0, res.output
+    assert (out / "avatar.ply").is_file() and (out / "avatar.safetensors").is_file()
+    info = json.loads((out / "avatar.json").read_text())
+    assert info["iterations"] == 30 and info["train_config"]["strategy"]["name"] == "DefaultStrategy"
+    assert info["num_gaussians"] > 0 and info["train_seconds"] > 0
+    report = tmp_path / "metrics.json"
+    res = runner.invoke(app, ["eval", str(out), str(dataset), "--json", str(report)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(report.read_text())
+    assert doc["split"] == "test_pose" and doc["num_frames"] == 4
+    assert set(doc["regions"]) == {"full", "hand", "face"}
+    full = doc["regions"]["full"]
+    assert 10 < full["psnr"] < 60 and 0 < full["ssim"] <= 1 and 0 <= full["lpips"] < 1
+    assert "| Method | N-GS |" in doc["table"]
+
+
+def test_cli_errors(tmp_path, dataset):
+    runner = CliRunner()
+    res = runner.invoke(app, ["train", str(tmp_path / "nope"), "--out", str(tmp_path / "a")])
+    assert res.exit_code == 2 and "no dataset" in res.output
+    res = runner.invoke(app, ["eval", str(tmp_path / "nope"), str(dataset)])
+    assert res.exit_code == 2 and "no avatar directory" in res.output
+    res = runner.invoke(app, ["train", str(dataset), "--out", str(tmp_path / "a"), "--preset", "huge"])
+    assert res.exit_code == 2 and "unknown preset" in res.output
