@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from eva_engine.body import PART_NAMES, BodyModel
+from eva_engine.data.mesh_render import vertex_normals
 from eva_engine.render import intrinsics, orbit_camera, rasterize
 
 # Part colours (body, hand, face): distinct, so a wrong part id is visible at a glance.
@@ -44,14 +45,6 @@ class SurfaceGaussians:
     normals: Tensor
 
 
-def vertex_normals(vertices: Tensor, faces: Tensor) -> Tensor:
-    """[V, 3] area-weighted unit vertex normals of a mesh (vertices [V, 3], faces [F, 3])."""
-    v0, v1, v2 = (vertices[faces[:, i]] for i in range(3))
-    face_n = torch.linalg.cross(v1 - v0, v2 - v0)
-    normals = torch.zeros_like(vertices).index_add_(0, faces.reshape(-1), face_n.repeat_interleave(3, 0))
-    return normals / normals.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-
-
 def quat_from_z(directions: Tensor) -> Tensor:
     """[N, 3] unit vectors -> [N, 4] (w, x, y, z) shortest rotations taking +z onto them."""
     z = torch.zeros_like(directions)
@@ -73,7 +66,7 @@ def surface_gaussians(vertices: Tensor, faces: Tensor, thickness: float = 0.15) 
         0, edges.reshape(-1), lengths.repeat_interleave(2), "amax"
     )
     sigma = 0.4 * longest
-    normals = vertex_normals(vertices, faces)
+    normals = torch.from_numpy(vertex_normals(vertices.detach().cpu(), faces.cpu())).to(vertices)
     scales = torch.stack([sigma, sigma, thickness * sigma], dim=-1)
     return SurfaceGaussians(vertices, quat_from_z(normals), scales, normals)
 

@@ -2,7 +2,8 @@
 
 import torch
 
-from eva_engine.demo import PART_COLORS, quat_from_z, render_demo, surface_gaussians, vertex_normals
+from eva_engine.data.mesh_render import vertex_normals
+from eva_engine.demo import PART_COLORS, quat_from_z, render_demo, surface_gaussians
 from eva_engine.render import quat_to_rotmat
 
 
@@ -20,7 +21,7 @@ def test_surfels_on_a_cube_point_outward():
         [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
          [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
     )  # fmt: skip
-    normals = vertex_normals(verts, faces)
+    normals = torch.from_numpy(vertex_normals(verts, faces))
     assert (torch.sum(normals * verts, dim=-1) > 0).all()  # outward on a closed, consistently wound mesh
     g = surface_gaussians(verts, faces)
     # Longest edge at every corner is a face diagonal (2 sqrt 2).

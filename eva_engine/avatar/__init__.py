@@ -6,7 +6,6 @@ learned weight offsets and a pose-refinement MLP, rendered by ``eva_engine.rende
     image = avatar.render(avatar.body.params_from_pose({...}), Camera(K, viewmat, 512, 512))
 """
 
-from eva_engine.avatar.camera import Camera
 from eva_engine.avatar.config import AvatarConfig
 from eva_engine.avatar.gaussians import PER_GAUSSIAN_BUFFERS, SPLAT_NAMES, CanonicalGaussians
 from eva_engine.avatar.io import (
@@ -26,6 +25,7 @@ from eva_engine.avatar.networks import (
     positional_encoding,
 )
 from eva_engine.avatar.skinning import orthonormalize, quat_multiply, skin_gaussians
+from eva_engine.render.camera import Camera
 
 __all__ = [
     "PER_GAUSSIAN_BUFFERS",

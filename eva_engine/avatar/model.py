@@ -20,7 +20,6 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from eva_engine.avatar.camera import Camera
 from eva_engine.avatar.config import AvatarConfig
 from eva_engine.avatar.gaussians import CanonicalGaussians
 from eva_engine.avatar.networks import LBSWeightOffsets, PoseRefiner, blend_skinning_weights, joint_parts
@@ -28,6 +27,7 @@ from eva_engine.avatar.skinning import skin_gaussians
 from eva_engine.body.model import BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.render import RasterConfig, RenderOutput, eval_sh, rasterize
+from eva_engine.render.camera import Camera
 
 
 @dataclass

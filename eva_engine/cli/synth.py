@@ -17,6 +17,7 @@ class SynthPreset(StrEnum):
 
 class SynthSize(StrEnum):
     tiny = "tiny"
+    small = "small"
     bench = "bench"
 
 
@@ -26,7 +27,9 @@ def synth(
         SynthPreset.wild,
         help="controlled: XHumans-like, full body, ground truth given; wild: UPB-like waist-up signer.",
     ),  # fmt: skip
-    size: SynthSize = typer.Option(SynthSize.tiny, help="tiny: 96 px, 12 frames; bench: 512 px, 150 frames."),
+    size: SynthSize = typer.Option(
+        SynthSize.tiny, help="tiny: 96 px, 12 frames; small: 256 px, 12 frames; bench: 512 px, 150 frames."
+    ),
     seed: int = typer.Option(0, min=0, help="Random seed (subject, look and motion)."),
     out: Path | None = typer.Option(
         None, help="Output folder (default: <data dir>/synthetic/<preset>-<size>-seed<seed>)."

@@ -189,27 +189,43 @@ def _load_params(path: Path, n: int) -> tuple[BodyParams, ParamNames]:
     return params, names
 
 
-def _save_keypoints(path: Path, keypoints: torch.Tensor, names: Sequence[str], source: str) -> None:
+def _save_keypoints(
+    path: Path,
+    keypoints: torch.Tensor,
+    names: Sequence[str],
+    source: str,
+    extras: Mapping[str, torch.Tensor] | None = None,
+) -> None:
     from safetensors.torch import save_file
 
     meta = {"names": json.dumps(list(names)), "source": source}
+    tensors = {"keypoints": keypoints}
+    for name, t in (extras or {}).items():
+        if name == "keypoints" or t.shape[0] != keypoints.shape[0]:
+            raise ValueError(f"keypoint extra {name!r} must be a per-frame tensor [N, ...] named otherwise")
+        tensors[name] = t
     save_file(
-        {"keypoints": keypoints.detach().to("cpu", torch.float32).contiguous()}, str(path), metadata=meta
+        {k: t.detach().to("cpu", torch.float32).contiguous() for k, t in tensors.items()},
+        str(path),
+        metadata=meta,
     )
 
 
-def _load_keypoints(path: Path, n: int) -> tuple[torch.Tensor, list[str]]:
+def _load_keypoints(path: Path, n: int) -> tuple[torch.Tensor, list[str], dict[str, torch.Tensor]]:
     from safetensors import safe_open
 
     try:
         with safe_open(str(path), framework="pt") as f:
             names = json.loads((f.metadata() or {})["names"])
             kp = f.get_tensor("keypoints")
+            extras = {k: f.get_tensor(k) for k in f.keys() if k != "keypoints"}
     except Exception as err:
         raise DatasetError(f"cannot read keypoints from {path}: {err}") from err
     if kp.ndim != 3 or kp.shape[0] != n or kp.shape[2] != 3 or kp.shape[1] != len(names):
         raise DatasetError(f"{path} holds keypoints {tuple(kp.shape)}, expected [{n}, {len(names)}, 3]")
-    return kp, names
+    if any(t.shape[0] != n for t in extras.values()):
+        raise DatasetError(f"{path}: per-frame detector outputs do not have {n} rows")
+    return kp, names, extras
 
 
 # -- writer --------------------------------------------------------------------------------------
@@ -327,6 +343,7 @@ class DatasetWriter:
         keypoints: torch.Tensor | None = None,
         keypoint_names: Sequence[str] | None = None,
         keypoints_source: str | None = None,
+        keypoint_extras: Mapping[str, torch.Tensor] | None = None,
         gt_params: BodyParams | None = None,
         gt_keypoints: torch.Tensor | None = None,
         extra: Mapping[str, Any] | None = None,
@@ -334,7 +351,9 @@ class DatasetWriter:
         """Write cameras, parameters, keypoints, splits and meta; move the dataset into place.
 
         params / gt_params: ``BodyParams`` with N rows (``params_names`` required);
-        keypoints / gt_keypoints: [N, K, 3] (``keypoint_names`` required). Returns the root."""
+        keypoints / gt_keypoints: [N, K, 3] (``keypoint_names`` required); keypoint_extras: other
+        per-frame detector outputs stored beside ``keypoints`` (e.g. ``hand_depth [N, 42]``,
+        ``pose_world [N, 33, 4]``). Returns the root."""
         if self._done:
             raise RuntimeError("the dataset is already finished")
         n = self.num_frames
@@ -374,7 +393,9 @@ class DatasetWriter:
         if params is not None:
             _save_params(tmp / "params.safetensors", params, params_names, meta.params_source)
         if keypoints is not None:
-            _save_keypoints(tmp / "keypoints.safetensors", keypoints, keypoint_names, meta.keypoints_source)
+            _save_keypoints(
+                tmp / "keypoints.safetensors", keypoints, keypoint_names, meta.keypoints_source, keypoint_extras
+            )
         if gt_params is not None or gt_keypoints is not None:
             (tmp / "ground_truth").mkdir()
         if gt_params is not None:
@@ -468,14 +489,18 @@ class Dataset:
         self.keypoints: torch.Tensor | None = None
         self.gt_keypoints: torch.Tensor | None = None
         self.keypoint_names: list[str] | None = None
+        self.keypoint_extras: dict[str, torch.Tensor] = {}
+        """Other per-frame detector outputs stored with ``keypoints`` (``hand_depth``, ``pose_world``)."""
         for attr, rel in (
             ("keypoints", "keypoints.safetensors"),
             ("gt_keypoints", "ground_truth/keypoints.safetensors"),
         ):
             if (self.root / rel).exists():
-                k, names = _load_keypoints(self.root / rel, n)
+                k, names, extras = _load_keypoints(self.root / rel, n)
                 setattr(self, attr, k)
                 self.keypoint_names = names
+                if attr == "keypoints":
+                    self.keypoint_extras = extras
 
     # -- sizes -----------------------------------------------------------------------------------
     def __len__(self) -> int:

@@ -21,6 +21,8 @@ import math
 import numpy as np
 import torch
 
+from eva_engine.render.camera import intrinsics, look_at  # noqa: F401  (re-exported for renderer users)
+
 SYSTEM_PACKAGES = "libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri"
 
 _VERTEX_SHADER = """
@@ -174,34 +176,6 @@ def vertex_normals(vertices: np.ndarray | torch.Tensor, faces: np.ndarray | torc
     out = np.tile(np.array([0.0, 0.0, 1.0]), (len(v), 1))
     out[ok] = n[ok] / length[ok]
     return out.astype(np.float32)
-
-
-def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> torch.Tensor:
-    """World->camera ``viewmat [4, 4]`` (OpenCV axes) of a camera at ``eye`` looking at ``target``
-    with world ``up`` pointing up in the image."""
-    eye_, target_, up_ = (np.asarray(x, dtype=np.float64) for x in (eye, target, up))
-    z = target_ - eye_
-    if np.linalg.norm(z) < 1e-12:
-        raise ValueError("eye and target coincide")
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up_)
-    if np.linalg.norm(x) < 1e-9:
-        raise ValueError("the viewing direction is parallel to up")
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    view = np.eye(4)
-    view[:3, :3] = np.stack([x, y, z])
-    view[:3, 3] = -view[:3, :3] @ eye_
-    return torch.from_numpy(view).float()
-
-
-def intrinsics(width: int, height: int, fov_y_deg: float) -> torch.Tensor:
-    """Pinhole ``K [3, 3]`` with square pixels, a vertical field of view, the principal point at
-    the image centre."""
-    if not 0.0 < fov_y_deg < 180.0:
-        raise ValueError(f"fov_y_deg must be in (0, 180), got {fov_y_deg}")
-    f = 0.5 * height / math.tan(math.radians(fov_y_deg) / 2.0)
-    return torch.tensor([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
 
 
 def _create_context():

@@ -70,6 +70,8 @@ PRESETS: dict[str, Preset] = {
 }
 SIZES: dict[str, Size] = {
     "tiny": Size("tiny", 96, 12, 3, supersample=3, texture_size=512),
+    # Large enough for a real detector (MediaPipe needs ~15 px palms), small enough for tests.
+    "small": Size("small", 256, 12, 3, supersample=2, texture_size=1024),
     "bench": Size("bench", 512, 150, 30, supersample=2, texture_size=2048),
 }
 MOTION_SECONDS = 6.0

@@ -4,11 +4,11 @@ The functional core follows gsplat's conventions so a CUDA backend can be swappe
 ``rasterize`` (project -> bin into tiles -> composite) returns a ``RenderOutput``. The stages are
 public too: ``project_gaussians`` (EWA projection, autograd), ``bin_gaussians`` (no gradients),
 ``composite`` (tiled alpha compositing with a hand-written backward) and ``composite_autograd``
-(the plain-autograd reference). Spherical-harmonics colours: ``eval_sh``. Cameras: ``intrinsics``,
+(the plain-autograd reference). Spherical-harmonics colours: ``eval_sh``. Cameras: ``Camera``, ``intrinsics``,
 ``look_at``, ``orbit_camera``.
 """
 
-from eva_engine.render.camera import intrinsics, look_at, orbit_camera
+from eva_engine.render.camera import Camera, intrinsics, look_at, orbit_camera
 from eva_engine.render.composite import CompositeConfig, composite, composite_autograd, tiles_to_image
 from eva_engine.render.projection import Projection, project_gaussians, quat_to_rotmat
 from eva_engine.render.rasterize import RasterConfig, RenderOutput, rasterize
@@ -16,6 +16,7 @@ from eva_engine.render.sh import camera_center, eval_sh, num_sh_bases, rgb_to_sh
 from eva_engine.render.tiles import TileBins, bin_gaussians
 
 __all__ = [
+    "Camera",
     "CompositeConfig",
     "Projection",
     "RasterConfig",

@@ -1,0 +1,53 @@
+"""In-the-wild preprocessing and body-model alignment (EVA §3.2, the plug-and-play module).
+
+    from eva_engine.align import preprocess_video
+    report = preprocess_video("clip.mp4", "data/datasets/clip")   # decode, detect, fit, write
+
+Pieces: ``detect`` (MediaPipe Holistic -> the body models' keypoint layout), ``fit`` (staged
+L-BFGS on the robust objective), ``evaluate`` (MPJPE and exact targets for known clips),
+``preprocess`` (video -> dataset).
+"""
+
+from eva_engine.align.detect import DetectorConfig, DetectorError, FrameDetection, HolisticDetector
+from eva_engine.align.evaluate import mpjpe, targets_from_params
+from eva_engine.align.fit import (
+    FitConfig,
+    FitResult,
+    FitStage,
+    FitTargets,
+    default_stages,
+    fit_sequence,
+    initial_estimate,
+    reprojection_error,
+)
+from eva_engine.align.preprocess import (
+    Detections,
+    PreprocessConfig,
+    PreprocessError,
+    PreprocessReport,
+    detect_frames,
+    preprocess_video,
+)
+
+__all__ = [
+    "Detections",
+    "DetectorConfig",
+    "DetectorError",
+    "FitConfig",
+    "FitResult",
+    "FitStage",
+    "FitTargets",
+    "FrameDetection",
+    "HolisticDetector",
+    "PreprocessConfig",
+    "PreprocessError",
+    "PreprocessReport",
+    "default_stages",
+    "detect_frames",
+    "fit_sequence",
+    "initial_estimate",
+    "mpjpe",
+    "preprocess_video",
+    "reprojection_error",
+    "targets_from_params",
+]

@@ -1,0 +1,224 @@
+"""Video -> dataset: decode, detect (MediaPipe Holistic), align the body model, write.
+
+``preprocess_video`` is the in-the-wild front half of the pipeline (``eva preprocess``); its
+output is an ``eva-dataset`` folder (docs/dataset-format.md) that ``eva train`` reads unchanged:
+frames, person masks (holistic's segmentation), the guessed camera, detected keypoints with
+their extras (hand depth, pose world landmarks) and the fitted body parameters.
+
+Frames where no person is found are dropped and counted; a video with no person in any frame is
+a :class:`PreprocessError`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from eva_engine.align.camera import GUESS_FOV_Y_DEG, guess_camera
+from eva_engine.align.detect import DetectorConfig, FrameDetection, HolisticDetector
+from eva_engine.align.fit import FitConfig, FitTargets, fit_sequence, initial_estimate, reprojection_error
+from eva_engine.body import KEYPOINT_NAMES, BodyModel
+
+Progress = Callable[[str, int, int], None]
+"""progress(stage, done, total): stage is one of "decode", "detect", "align", "write"."""
+
+
+class PreprocessError(ValueError):
+    """The video cannot become a dataset (no person found, unreadable file)."""
+
+
+@dataclass(frozen=True)
+class PreprocessConfig:
+    """How a video becomes a dataset.
+
+    every / max_frames / max_size: frame sampling and the longest image side (pixels);
+    fov_y_deg: the guessed camera's vertical field of view; test_every: every k-th kept frame
+    goes to the ``test_pose`` split (0 = all frames train); fit: align the body model (else the
+    dataset carries only detections); min_mask: person-mask threshold below which a pixel is
+    background.
+    """
+
+    every: int = 1
+    max_frames: int | None = 300
+    max_size: int | None = 512
+    fov_y_deg: float = GUESS_FOV_Y_DEG
+    test_every: int = 0
+    fit: bool = True
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    fitting: FitConfig = field(default_factory=FitConfig)
+
+    def __post_init__(self) -> None:
+        if self.test_every < 0 or self.test_every == 1:
+            raise ValueError("test_every must be 0 (no test frames) or >= 2")
+        if not 1.0 < self.fov_y_deg < 170.0:
+            raise ValueError(f"fov_y_deg must be in (1, 170), got {self.fov_y_deg}")
+
+
+@dataclass
+class Detections:
+    """Stacked detector output for F frames (see ``align.detect`` for the fields)."""
+
+    keypoints: np.ndarray  # [F, K, 3]
+    hand_depth: np.ndarray  # [F, 42]
+    pose_world: np.ndarray  # [F, 33, 4]
+    masks: list[np.ndarray | None]
+    found: list[dict[str, bool]]
+
+    def targets(self, K: torch.Tensor, viewmat: torch.Tensor) -> FitTargets:
+        return FitTargets(
+            torch.from_numpy(self.keypoints),
+            K,
+            viewmat,
+            torch.from_numpy(self.hand_depth),
+            torch.from_numpy(self.pose_world),
+        )
+
+    def rates(self) -> dict[str, float]:
+        """Fraction of frames in which each part was found."""
+        n = max(len(self.found), 1)
+        keys = ("pose", "left_hand", "right_hand", "face")
+        return {k: sum(f.get(k, False) for f in self.found) / n for k in keys}
+
+
+def detect_frames(
+    frames: Iterable[np.ndarray],
+    config: DetectorConfig | None = None,
+    progress: Progress | None = None,
+    total: int = 0,
+) -> Detections:
+    """Run Holistic over RGB uint8 frames [H, W, 3] in order (tracking across them in video mode)."""
+    results: list[FrameDetection] = []
+    with HolisticDetector(config) as detector:
+        for i, frame in enumerate(frames):
+            results.append(detector(frame))
+            if progress is not None:
+                progress("detect", i + 1, total)
+    if not results:
+        return Detections(np.zeros((0, len(KEYPOINT_NAMES), 3), np.float32), np.zeros((0, 42), np.float32),
+                          np.zeros((0, 33, 4), np.float32), [], [])  # fmt: skip
+    return Detections(
+        keypoints=np.stack([r.keypoints for r in results]),
+        hand_depth=np.stack([r.hand_depth for r in results]),
+        pose_world=np.stack([r.pose_world for r in results]),
+        masks=[r.mask for r in results],
+        found=[r.found for r in results],
+    )
+
+
+@dataclass
+class PreprocessReport:
+    """What preprocessing did: frame counts, detection rates, the fit's 2D errors (px)."""
+
+    dataset: str
+    decoded_frames: int
+    kept_frames: int
+    dropped_frames: int
+    detection_rates: dict[str, float]
+    reprojection_initial: dict[str, float]
+    reprojection_fitted: dict[str, float]
+    seconds: dict[str, float]
+
+    def to_json(self) -> dict:
+        clean = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in asdict(self).items()}
+        for key in ("reprojection_initial", "reprojection_fitted"):
+            clean[key] = {k: (None if math.isnan(v) else v) for k, v in getattr(self, key).items()}
+        return clean
+
+
+def preprocess_video(
+    video: str | Path,
+    out_dir: str | Path,
+    config: PreprocessConfig | None = None,
+    model: BodyModel | None = None,
+    progress: Progress | None = None,
+    overwrite: bool = False,
+) -> PreprocessReport:
+    """Turn one video of one person into a dataset at ``out_dir`` (written atomically)."""
+    from eva_engine.body import load_body_model
+    from eva_engine.data import DatasetMeta, DatasetWriter, ParamNames, VideoReadOptions, read_video
+
+    config = config or PreprocessConfig()
+    seconds: dict[str, float] = {}
+    started = time.perf_counter()
+    clip = read_video(video, VideoReadOptions(config.every, config.max_frames, config.max_size))
+    seconds["decode"] = time.perf_counter() - started
+    if progress is not None:
+        progress("decode", len(clip), len(clip))
+
+    started = time.perf_counter()
+    det = detect_frames(iter(clip.frames), config.detector, progress, total=len(clip))
+    seconds["detect"] = time.perf_counter() - started
+    keep = [i for i, f in enumerate(det.found) if f.get("pose", False)]
+    if not keep:
+        raise PreprocessError(f"no person was found in any of the {len(clip)} frames of {video}")
+    h, w = clip.frames.shape[1:3]
+    rates = det.rates()
+    det = Detections(
+        det.keypoints[keep], det.hand_depth[keep], det.pose_world[keep],
+        [det.masks[i] for i in keep], [det.found[i] for i in keep],
+    )  # fmt: skip
+    K, viewmat = guess_camera(w, h, config.fov_y_deg)
+    targets = det.targets(K, viewmat)
+
+    params = None
+    initial = fitted = {"body": math.nan, "hands": math.nan, "face": math.nan}
+    if config.fit:
+        started = time.perf_counter()
+        model = model or load_body_model("anny")
+        if progress is not None:
+            progress("align", 0, len(config.fitting.stages))
+        init = initial_estimate(model, targets, config.fitting)
+        initial = reprojection_error(model, init, targets)
+        result = fit_sequence(model, targets, init=init, config=config.fitting)
+        params = result.params
+        fitted = reprojection_error(model, params, targets)
+        seconds["align"] = time.perf_counter() - started
+        if progress is not None:
+            progress("align", len(config.fitting.stages), len(config.fitting.stages))
+
+    started = time.perf_counter()
+    fps = clip.fps / config.every if clip.fps > 0 else 25.0
+    meta = DatasetMeta(
+        source="video", fps=fps, image_size=(h, w), name=Path(video).stem,
+        body_model=model.name if params is not None else None, camera_source="estimated",
+    )  # fmt: skip
+    n = len(keep)
+    test = list(range(config.test_every - 1, n, config.test_every)) if config.test_every else []
+    train = [i for i in range(n) if i not in set(test)]
+    with DatasetWriter(out_dir, meta, overwrite=overwrite) as writer:
+        for j, i in enumerate(keep):
+            mask = det.masks[j]
+            mask = np.ones((h, w), np.float32) if mask is None else mask
+            writer.add_frame(clip.frames[i], mask, K=K, viewmat=viewmat, time=float(clip.timestamps[i]))
+            if progress is not None:
+                progress("write", j + 1, n)
+        root = writer.finish(
+            {"train": train, "test_pose": test},
+            params=params,
+            params_names=ParamNames.of(model) if params is not None else None,
+            params_source="fitted",
+            keypoints=targets.keypoints,
+            keypoint_names=list(KEYPOINT_NAMES),
+            keypoints_source="mediapipe",
+            keypoint_extras={"hand_depth": targets.hand_depth, "pose_world": targets.pose_world},
+            extra={
+                "video": str(Path(video).name),
+                "detector": {"name": "mediapipe-holistic-0.10.21", **asdict(config.detector)},
+                "frames": {"decoded": len(clip), "kept": n, "dropped": len(clip) - n, "every": config.every},
+                "detection_rates": rates,
+                "camera_guess": {"fov_y_deg": config.fov_y_deg},
+                "reprojection_px": {"initial": _nan_to_none(initial), "fitted": _nan_to_none(fitted)},
+            },
+        )
+    seconds["write"] = time.perf_counter() - started
+    return PreprocessReport(str(root), len(clip), n, len(clip) - n, rates, initial, fitted, seconds)
+
+
+def _nan_to_none(d: dict[str, float]) -> dict[str, float | None]:
+    return {k: (None if math.isnan(v) else v) for k, v in d.items()}

@@ -1,0 +1,58 @@
+"""``eva preprocess``: a video of one person -> a dataset ``eva train`` reads."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+from rich.console import Console
+
+from eva_engine.cli.app import app
+
+
+@app.command()
+def preprocess(
+    video: Path = typer.Argument(..., help="Video file (mp4, mov, webm, avi, ...)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Dataset folder to write."),
+    every: int = typer.Option(1, min=1, help="Keep every k-th frame."),
+    max_frames: int = typer.Option(300, min=1, help="Stop after this many kept frames."),
+    max_size: int = typer.Option(512, min=64, max=4096, help="Longest image side in pixels."),
+    fov: float = typer.Option(55.0, min=5.0, max=150.0, help="Guessed vertical field of view (degrees)."),
+    test_every: int = typer.Option(0, min=0, help="Every k-th frame goes to the test split (0: none)."),
+    fit: bool = typer.Option(True, "--fit/--no-fit", help="Align the body model to the detections."),
+    overwrite: bool = typer.Option(False, help="Replace an existing dataset at --out."),
+) -> None:
+    """Decode, detect body/hands/face (MediaPipe), fit the body model (EVA §3.2), write a dataset."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from eva_engine.align import PreprocessConfig, PreprocessError, preprocess_video
+    from eva_engine.data import VideoError
+
+    console = Console(stderr=True)
+    if test_every == 1:
+        raise typer.BadParameter("use 0 (no test frames) or >= 2", param_hint="--test-every")
+    if out.exists() and not overwrite:
+        console.print(f"[red]error:[/] {out} exists (pass --overwrite to replace a dataset)")
+        raise typer.Exit(2)
+    config = PreprocessConfig(
+        every=every, max_frames=max_frames, max_size=max_size, fov_y_deg=fov, test_every=test_every, fit=fit
+    )
+    columns = (TextColumn("{task.description:>8}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+               TimeElapsedColumn())  # fmt: skip
+    with Progress(*columns, console=console) as bar:
+        tasks: dict[str, int] = {}
+
+        def report(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(stage, total=total or None)
+            bar.update(tasks[stage], completed=done, total=total or None)
+
+        try:
+            result = preprocess_video(video, out, config, progress=report, overwrite=overwrite)
+        except (VideoError, PreprocessError, FileExistsError) as err:
+            console.print(f"[red]error:[/] {err}")
+            raise typer.Exit(2) from err
+    console.print(json.dumps(result.to_json(), indent=1))
+    counts = f"{result.kept_frames} frames ({result.dropped_frames} without a person dropped)"
+    console.print(f"[green]wrote[/] {result.dataset}: {counts}")
