@@ -21,7 +21,6 @@ from eva_engine.avatar.networks import (
     LBSWeightOffsets,
     PoseRefiner,
     blend_skinning_weights,
-    joint_parts,
     positional_encoding,
 )
 from eva_engine.avatar.skinning import orthonormalize, quat_multiply, skin_gaussians
@@ -39,7 +38,6 @@ __all__ = [
     "PoseRefiner",
     "PosedGaussians",
     "blend_skinning_weights",
-    "joint_parts",
     "load_avatar",
     "orthonormalize",
     "positional_encoding",

@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from eva_engine.avatar.config import AvatarConfig
 from eva_engine.avatar.gaussians import CanonicalGaussians
-from eva_engine.avatar.networks import LBSWeightOffsets, PoseRefiner, blend_skinning_weights, joint_parts
+from eva_engine.avatar.networks import LBSWeightOffsets, PoseRefiner, blend_skinning_weights
 from eva_engine.avatar.skinning import skin_gaussians
 from eva_engine.body.model import BodyModel
 from eva_engine.body.params import BodyParams
@@ -76,7 +76,7 @@ class Avatar(nn.Module):
             if config.weight_offsets
             else None
         )
-        parts = joint_parts(body.skinning_weights, body.part_ids)[1:]  # pose joints: all but the root
+        parts = body.joint_part_ids[1:]  # pose joints: all but the root
         self.pose_refiner = (
             PoseRefiner(parts, config.mlp_width, config.mlp_depth, config.mlp_out_init)
             if config.pose_refine

@@ -68,14 +68,6 @@ def blend_skinning_weights(base: Tensor, offsets: Tensor | None, eps: float = 1e
     return torch.softmax(logits, dim=-1)
 
 
-def joint_parts(skinning_weights: Tensor, part_ids: Tensor) -> Tensor:
-    """Part of each joint [J]: the part whose vertices carry most of the joint's skinning weight
-    (a joint that skins nothing counts as body). skinning_weights: [V, J]; part_ids: [V]."""
-    per_part = skinning_weights.new_zeros(len(PART_NAMES), skinning_weights.shape[1])
-    per_part.index_add_(0, part_ids, skinning_weights)
-    return per_part.argmax(dim=0)
-
-
 class PoseRefiner(nn.Module):
     """Per-part pose correction (see the module docstring).
 
