@@ -1,0 +1,40 @@
+"""``eva serve``: run the REST service (FastAPI + uvicorn) on 127.0.0.1 by default."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from eva_engine.cli.app import app
+
+
+@app.command()
+def serve(
+    host: str | None = typer.Option(None, help="Bind address (default 127.0.0.1, or EVA_HOST)."),
+    port: int | None = typer.Option(None, min=1, max=65535, help="Port (default 8000, or EVA_PORT)."),
+    data_dir: Path | None = typer.Option(
+        None, help="Avatars and job files (default EVA_SERVICE_DIR, else the engine's data dir)."
+    ),
+    queue_url: str | None = typer.Option(
+        None, help="redis://host:port/db for Redis (default: SQLite in the data dir, or EVA_QUEUE_URL)."
+    ),
+    api_key: str | None = typer.Option(None, help="Require this X-API-Key header (or EVA_API_KEY)."),
+    max_upload_mb: float | None = typer.Option(None, min=0.001, help="Upload size limit (default 512)."),
+    log_level: str = typer.Option("info", help="uvicorn log level."),
+) -> None:
+    """Serve the API: POST /avatars, GET /jobs/{id}, POST /avatars/{id}/render ... (docs at /docs).
+    Run ``eva worker`` beside it (same data dir and queue) to process the jobs."""
+    import uvicorn
+
+    from jobs.config import JobsConfig
+    from service import ServiceSettings, create_app
+
+    try:
+        jobs = JobsConfig.from_env(data_dir=data_dir, queue_url=queue_url)
+        settings = ServiceSettings.from_env(jobs, host=host, port=port, api_key=api_key,
+                                            max_upload_mb=max_upload_mb)  # fmt: skip
+    except ValueError as err:
+        typer.echo(f"error: {err}", err=True)
+        raise typer.Exit(2) from err
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=log_level)

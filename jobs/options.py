@@ -1,0 +1,40 @@
+"""``JobOptions``: what a user can choose for one avatar job (the form fields of ``POST /avatars``)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class JobOptions(BaseModel):
+    """preset: training preset (``tiny`` for tests, ``fast`` ~minutes on a laptop CPU, ``default``
+    the paper's 2,000 iterations); max_frames: frames of the video used (evenly from the start);
+    max_size: longest image side the frames are resized to; body_model: ``anny`` (embedded) or
+    ``smplx`` (needs the user's own model files); iterations / image_scale: override the preset's;
+    fit_scale: scales the body-model alignment's L-BFGS iterations (1 = the paper's 60/40/60).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    preset: Literal["tiny", "fast", "default"] = "fast"
+    max_frames: int = Field(120, ge=1, le=2000)
+    max_size: int = Field(512, ge=64, le=2048)
+    body_model: Literal["anny", "smplx"] = "anny"
+    iterations: int | None = Field(None, ge=1, le=100_000)
+    image_scale: float | None = Field(None, gt=0.05, le=1.0)
+    fit_scale: float = Field(1.0, gt=0.0, le=4.0)
+
+    def fit_config(self):
+        """The alignment's ``FitConfig`` with ``fit_scale`` applied."""
+        import dataclasses
+
+        from eva_engine.align import FitConfig
+
+        base = FitConfig()
+        if self.fit_scale == 1.0:
+            return base
+        scaled = tuple(dataclasses.replace(s, iterations=max(1, round(s.iterations * self.fit_scale)))
+                       for s in base.stages)  # fmt: skip
+        ik = max(1, round(base.ik_iterations * self.fit_scale))
+        return dataclasses.replace(base, stages=scaled, ik_iterations=ik)

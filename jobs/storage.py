@@ -1,0 +1,62 @@
+"""Avatar and work folders on disk. Ids are checked before they become paths, and a finished
+avatar appears only by an atomic rename of a complete folder (never half-written)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import uuid
+from pathlib import Path
+
+from jobs.config import JobsConfig
+from jobs.store import is_valid_id
+
+FRAMES_NAME = "frames.safetensors"
+
+
+class InvalidIdError(ValueError):
+    """An id that is not 32 lowercase hex characters (e.g. one that tries path traversal)."""
+
+
+def _checked(value: str, what: str) -> str:
+    if not isinstance(value, str) or not is_valid_id(value):
+        raise InvalidIdError(f"invalid {what} id {value!r}: ids are 32 lowercase hex characters")
+    return value
+
+
+class Storage:
+    """Paths under ``JobsConfig.data_dir`` (see ``jobs.config``)."""
+
+    def __init__(self, config: JobsConfig) -> None:
+        self.config = config
+        for folder in (config.avatars_dir, config.work_dir):
+            folder.mkdir(parents=True, exist_ok=True)
+
+    def avatar_dir(self, avatar_id: str) -> Path:
+        return self.config.avatars_dir / _checked(avatar_id, "avatar")
+
+    def work_dir(self, job_id: str) -> Path:
+        return self.config.work_dir / _checked(job_id, "job")
+
+    def avatar_exists(self, avatar_id: str) -> bool:
+        return self.avatar_dir(avatar_id).is_dir()
+
+    def publish(self, src: Path, avatar_id: str) -> Path:
+        """Move the complete folder ``src`` (same file system) to the avatar's place atomically."""
+        dst = self.avatar_dir(avatar_id)
+        if dst.exists():
+            raise FileExistsError(f"avatar {avatar_id} already exists")
+        os.replace(src, dst)
+        return dst
+
+    def delete_avatar(self, avatar_id: str) -> None:
+        """Remove an avatar: renamed away first, so readers never see a partial folder."""
+        path = self.avatar_dir(avatar_id)
+        if not path.exists():
+            return
+        trash = self.config.avatars_dir / f".deleted-{avatar_id}-{uuid.uuid4().hex[:8]}"
+        os.replace(path, trash)
+        shutil.rmtree(trash, ignore_errors=True)
+
+    def remove_work(self, job_id: str) -> None:
+        shutil.rmtree(self.work_dir(job_id), ignore_errors=True)

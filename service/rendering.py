@@ -1,0 +1,183 @@
+"""Loaded avatars and what the render and export endpoints do with them: build the camera,
+render through ``Avatar.render``, encode PNG/JPEG, and write the posed body mesh as GLB."""
+
+from __future__ import annotations
+
+import io
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from eva_engine.avatar import Avatar, load_avatar
+from eva_engine.body import BodyModel, BodyParams, load_body_model
+from eva_engine.render.camera import Camera, intrinsics, orbit_camera
+from eva_engine.render.sh import SH_C0
+from jobs.storage import FRAMES_NAME
+from service.schemas import DEFAULT_DISTANCE, DEFAULT_FOV_Y, DEFAULT_SIZE, CameraSpec, RenderRequest
+
+
+class RenderInputError(ValueError):
+    """A render request that names something the avatar does not have (answered 422)."""
+
+
+@dataclass
+class TrainingFrames:
+    """The training frames' fitted params (batch F), cameras K [F, 3, 3], viewmat [F, 4, 4] and
+    image size (height, width)."""
+
+    params: BodyParams
+    K: torch.Tensor
+    viewmat: torch.Tensor
+    size: tuple[int, int]
+
+    def __len__(self) -> int:
+        return self.params.batch_size
+
+
+@dataclass
+class LoadedAvatar:
+    avatar: Avatar
+    frames: TrainingFrames | None
+    lock: threading.Lock
+
+
+class AvatarCache:
+    """Up to ``capacity`` avatars kept loaded (LRU), and one body model per name (loaded once)."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self._avatars: OrderedDict[tuple[str, float], LoadedAvatar] = OrderedDict()
+        self._bodies: dict[str, BodyModel] = {}
+        self._lock = threading.Lock()
+
+    def body(self, name: str) -> BodyModel:
+        with self._lock:
+            if name not in self._bodies:
+                self._bodies[name] = load_body_model(name)
+            return self._bodies[name]
+
+    def get(self, avatar_id: str, path: Path) -> LoadedAvatar:
+        key = (avatar_id, path.stat().st_mtime)
+        with self._lock:
+            if key in self._avatars:
+                self._avatars.move_to_end(key)
+                return self._avatars[key]
+        from eva_engine.avatar import read_avatar_info
+
+        body = self.body(read_avatar_info(path)["body_model"])
+        loaded = LoadedAvatar(load_avatar(path, body=body).eval(), _read_frames(path), threading.Lock())
+        with self._lock:
+            self._avatars[key] = loaded
+            while len(self._avatars) > self.capacity:
+                self._avatars.popitem(last=False)
+        return loaded
+
+    def forget(self, avatar_id: str) -> None:
+        with self._lock:
+            for key in [k for k in self._avatars if k[0] == avatar_id]:
+                del self._avatars[key]
+
+
+def _read_frames(path: Path) -> TrainingFrames | None:
+    from safetensors.torch import load_file
+
+    from eva_engine.avatar import read_avatar_info
+
+    file = path / FRAMES_NAME
+    if not file.is_file():
+        return None
+    t = load_file(str(file))
+    params = BodyParams(**{k.removeprefix("params."): v for k, v in t.items() if k.startswith("params.")})
+    h, w = read_avatar_info(path).get("frames", {}).get("image_size", (0, 0))
+    return TrainingFrames(params, t["K"], t["viewmat"], (int(h), int(w)))
+
+
+# -- render ----------------------------------------------------------------------------------------
+def resolve_size(req: RenderRequest, frames: TrainingFrames | None) -> tuple[int, int]:
+    """(width, height): as asked, else the training frame's (for ``frame``), else 512."""
+    if req.frame is not None and frames is not None and frames.size[0] > 0:
+        h, w = frames.size
+        if req.width is not None and req.height is None:
+            return req.width, max(16, round(req.width * h / w))
+        if req.height is not None and req.width is None:
+            return max(16, round(req.height * w / h)), req.height
+        return req.width or w, req.height or h
+    return req.width or DEFAULT_SIZE, req.height or DEFAULT_SIZE
+
+
+def frame_params(loaded: LoadedAvatar, index: int) -> BodyParams:
+    frames = loaded.frames
+    if frames is None:
+        raise RenderInputError("this avatar keeps no training frames")
+    if index >= len(frames):
+        raise RenderInputError(f"frame {index} is out of range: the avatar has {len(frames)} training frames")
+    return frames.params[index]
+
+
+def make_camera(req: RenderRequest, width: int, height: int, frames: TrainingFrames | None) -> Camera:
+    spec = req.camera
+    if spec is None and req.frame is not None and frames is not None:
+        # The training frame's own camera, with K scaled to the requested size.
+        h0, w0 = frames.size
+        K = frames.K[req.frame].clone().float()
+        K[0] *= width / w0
+        K[1] *= height / h0
+        return Camera(K, frames.viewmat[req.frame].float(), width, height)
+    spec = spec or CameraSpec()
+    if spec.K is not None and spec.viewmat is not None:
+        return Camera(torch.tensor(spec.K), torch.tensor(spec.viewmat), width, height)
+    view = orbit_camera(
+        spec.yaw or 0.0,
+        spec.pitch or 0.0,
+        spec.distance or DEFAULT_DISTANCE,
+        spec.target or (0.0, 0.0, 0.0),
+    )
+    return Camera(intrinsics(width, height, spec.fov_y or DEFAULT_FOV_Y), view, width, height)
+
+
+def render_image(loaded: LoadedAvatar, params: BodyParams, camera: Camera, background) -> np.ndarray:
+    """[H, W, 3] uint8."""
+    with loaded.lock, torch.no_grad():
+        image = loaded.avatar.render(params, camera, torch.tensor(background, dtype=torch.float32))
+    return (image.cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+
+
+def encode_image(image: np.ndarray, fmt: str) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    if fmt == "png":
+        Image.fromarray(image).save(buf, format="PNG")
+    else:
+        Image.fromarray(image).save(buf, format="JPEG", quality=92)
+    return buf.getvalue()
+
+
+# -- export ----------------------------------------------------------------------------------------
+def posed_mesh_glb(loaded: LoadedAvatar, params: BodyParams) -> bytes:
+    """The avatar's body mesh in ``params``'s pose (the avatar's own shape), coloured per vertex by
+    the mean base colour of the Gaussians attached to it, as binary glTF."""
+    import trimesh
+
+    avatar = loaded.avatar
+    with loaded.lock, torch.no_grad():
+        vertices = avatar.body(avatar.subject_params(params)).vertices[0].cpu().numpy()
+        g = avatar.gaussians
+        rgb = (0.5 + SH_C0 * g.splats["sh0"].reshape(-1, 3)).clamp(0.0, 1.0)
+        n = vertices.shape[0]
+        total = torch.zeros(n, 3).index_add_(0, g.vertex_ids.cpu(), rgb.cpu().float())
+        count = torch.zeros(n).index_add_(0, g.vertex_ids.cpu(), torch.ones(len(rgb)))
+        mean = total / count.clamp_min(1.0)[:, None]
+        colors = torch.where(count[:, None] > 0, mean, torch.full((n, 3), 0.7))
+    faces = avatar.body.faces.cpu().numpy()
+    rgba = np.concatenate([(colors.numpy() * 255 + 0.5).astype(np.uint8), np.full((n, 1), 255, np.uint8)], 1)
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, vertex_colors=rgba, process=False)
+    return mesh.export(file_type="glb")
+
+
+def rest_params(loaded: LoadedAvatar) -> BodyParams:
+    return loaded.avatar.body.default_params(1)

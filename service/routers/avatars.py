@@ -1,0 +1,177 @@
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Response, UploadFile
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse
+
+from eva_engine.avatar import read_avatar_info
+from eva_engine.body import BodyPose
+from jobs.options import JobOptions
+from jobs.store import JobRecord, new_id
+from service import rendering
+from service.deps import ServiceContext, avatar_record, context, ready_avatar
+from service.schemas import AvatarCreated, AvatarInfo, AvatarList, ErrorMessage, RenderRequest
+from service.uploads import probe_video, remove_tree, safe_suffix, save_upload
+
+router = APIRouter(prefix="/avatars", tags=["avatars"])
+NOT_FOUND = {404: {"model": ErrorMessage, "description": "Unknown or malformed avatar id"}}
+NOT_READY = {409: {"model": ErrorMessage, "description": "The avatar's job has not succeeded"}}
+_DEFAULTS = JobOptions()
+
+
+@router.post(
+    "",
+    status_code=202,
+    response_model=AvatarCreated,
+    summary="Upload a video of one person; queue the job that learns their avatar",
+    responses={
+        413: {"model": ErrorMessage, "description": "Upload over the size limit"},
+        422: {"description": "Not a video, no decodable frame, too long, or bad options"},
+    },
+)
+async def create_avatar(
+    video: UploadFile = File(..., description="A video of one person (mp4, webm, mov, ...)."),
+    preset: Literal["tiny", "fast", "default"] = Form(_DEFAULTS.preset),
+    max_frames: int = Form(_DEFAULTS.max_frames, ge=1, le=2000),
+    max_size: int = Form(_DEFAULTS.max_size, ge=64, le=2048),
+    body_model: Literal["anny", "smplx"] = Form(_DEFAULTS.body_model),
+    iterations: int | None = Form(None, ge=1, le=100_000),
+    image_scale: float | None = Form(None, gt=0.05, le=1.0),
+    fit_scale: float = Form(1.0, gt=0.0, le=4.0),
+    ctx: ServiceContext = Depends(context),
+) -> AvatarCreated:
+    options = JobOptions(preset=preset, max_frames=max_frames, max_size=max_size, body_model=body_model,
+                         iterations=iterations, image_scale=image_scale, fit_scale=fit_scale)  # fmt: skip
+    queue, settings = ctx.queue, ctx.settings
+    job_id, avatar_id = new_id(), new_id()
+    work = queue.storage.work_dir(job_id)
+    work.mkdir(parents=True)
+    try:
+        path = work / f"input{safe_suffix(video.filename)}"
+        if await save_upload(video, path, settings.max_upload_bytes) == 0:
+            raise HTTPException(422, "the uploaded video is empty (0 bytes)")
+        await run_in_threadpool(probe_video, path, settings.max_video_seconds)
+        filename = Path(video.filename or "video").name[:200]
+        queue.store.create(options.model_dump(), filename=filename, job_id=job_id, avatar_id=avatar_id)
+    except BaseException:
+        remove_tree(work)
+        raise
+    try:
+        queue.enqueue(job_id)
+    except Exception as err:  # the queue backend is down: nothing stays behind
+        queue.store.delete(job_id)
+        remove_tree(work)
+        raise HTTPException(503, f"the job queue is unavailable: {err}") from err
+    return AvatarCreated(avatar_id=avatar_id, job_id=job_id, job_url=f"/jobs/{job_id}",
+                         avatar_url=f"/avatars/{avatar_id}")  # fmt: skip
+
+
+def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
+    status = {"queued": "pending", "running": "pending", "succeeded": "ready"}.get(job.state, job.state)
+    info = AvatarInfo(avatar_id=job.avatar_id, job_id=job.id, status=status,  # type: ignore[arg-type]
+                      created_at=job.created_at, source_video=job.filename, error=job.error,
+                      preset=job.options.get("preset"), body_model=job.options.get("body_model"))  # fmt: skip
+    if status == "ready" and ctx.queue.storage.avatar_exists(job.avatar_id):
+        doc = read_avatar_info(ctx.queue.storage.avatar_dir(job.avatar_id))
+        frames = doc.get("frames", {})
+        info = info.model_copy(update={
+            "body_model": doc.get("body_model"), "num_gaussians": doc.get("num_gaussians"),
+            "iterations": doc.get("iterations"), "train_seconds": doc.get("train_seconds"),
+            "final_loss": doc.get("final_loss"), "metrics": doc.get("metrics") or {},
+            "num_frames": frames.get("count"),
+            "frame_size": tuple(frames["image_size"]) if frames.get("image_size") else None,
+        })  # fmt: skip
+    return info
+
+
+@router.get("", response_model=AvatarList, summary="All avatars, oldest first")
+def list_avatars(ctx: ServiceContext = Depends(context)) -> AvatarList:
+    return AvatarList(avatars=[_info(job, ctx) for job in ctx.queue.store.list()])
+
+
+@router.get("/{avatar_id}", response_model=AvatarInfo, responses=NOT_FOUND, summary="An avatar's metadata")
+def get_avatar(job: JobRecord = Depends(avatar_record), ctx: ServiceContext = Depends(context)) -> AvatarInfo:
+    return _info(job, ctx)
+
+
+@router.delete(
+    "/{avatar_id}",
+    status_code=204,
+    responses={**NOT_FOUND, 409: {"model": ErrorMessage, "description": "Its job is still running"}},
+    summary="Delete an avatar and its files",
+)
+def delete_avatar(
+    job: JobRecord = Depends(avatar_record), ctx: ServiceContext = Depends(context)
+) -> Response:
+    if not job.finished:
+        raise HTTPException(409, f"avatar {job.avatar_id} is still being made; cancel job {job.id} first")
+    ctx.queue.storage.delete_avatar(job.avatar_id)
+    ctx.queue.store.update(job.id, avatar_deleted=1)
+    ctx.avatars.forget(job.avatar_id)
+    return Response(status_code=204)
+
+
+@router.post(
+    "/{avatar_id}/render",
+    response_class=Response,
+    summary="Render the avatar in a pose, expression and view",
+    description="The body is the request's `pose` (or training frame `frame`), seen through `camera`; "
+    "the answer is the image's bytes (PNG or JPEG).",
+    responses={
+        200: {"content": {"image/png": {}, "image/jpeg": {}}, "description": "The rendered image"},
+        **NOT_FOUND, **NOT_READY,
+        422: {"description": "Unknown keys or names, NaN, wrong lengths, size over the limit"},
+    },
+)  # fmt: skip
+def render_avatar(
+    req: RenderRequest | None = None,
+    job: JobRecord = Depends(ready_avatar),
+    ctx: ServiceContext = Depends(context),
+) -> Response:
+    req = req or RenderRequest()
+    loaded = ctx.avatars.get(job.avatar_id, ctx.queue.storage.avatar_dir(job.avatar_id))
+    width, height = rendering.resolve_size(req, loaded.frames)
+    limit = ctx.settings.max_render_pixels
+    if width > limit or height > limit:
+        raise HTTPException(422, f"render size {width}x{height} is over the limit of {limit} pixels a side")
+    if req.frame is not None:
+        params = rendering.frame_params(loaded, req.frame)
+    else:
+        params = loaded.avatar.body.params_from_pose(req.pose or BodyPose())
+    camera = rendering.make_camera(req, width, height, loaded.frames)
+    image = rendering.render_image(loaded, params, camera, req.background)
+    media = "image/png" if req.format == "png" else "image/jpeg"
+    return Response(rendering.encode_image(image, req.format), media_type=media)
+
+
+@router.get(
+    "/{avatar_id}/export",
+    response_class=Response,
+    summary="Download the avatar: the 3D Gaussians (PLY) or the posed body mesh (GLB)",
+    responses={
+        200: {"content": {"application/octet-stream": {}, "model/gltf-binary": {}}},
+        **NOT_FOUND, **NOT_READY,
+    },
+)  # fmt: skip
+def export_avatar(
+    format: Literal["ply", "glb"] = Query("ply", description="ply: 3DGS splats (rest pose); glb: mesh"),
+    frame: int | None = Query(None, ge=0, description="glb: pose of this training frame (default rest)"),
+    job: JobRecord = Depends(ready_avatar),
+    ctx: ServiceContext = Depends(context),
+) -> Response:
+    folder = ctx.queue.storage.avatar_dir(job.avatar_id)
+    if format == "ply":
+        if frame is not None:
+            raise HTTPException(422, "'frame' applies to format=glb only (the PLY is the rest pose)")
+        from eva_engine.avatar.io import PLY_NAME
+
+        return FileResponse(folder / PLY_NAME, media_type="application/octet-stream",
+                            filename=f"avatar-{job.avatar_id}.ply")  # fmt: skip
+    loaded = ctx.avatars.get(job.avatar_id, folder)
+    params = rendering.frame_params(loaded, frame) if frame is not None else rendering.rest_params(loaded)
+    data = rendering.posed_mesh_glb(loaded, params)
+    disposition = f'attachment; filename="avatar-{job.avatar_id}.glb"'
+    return Response(data, media_type="model/gltf-binary", headers={"Content-Disposition": disposition})

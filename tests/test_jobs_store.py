@@ -1,0 +1,105 @@
+"""Job records, storage ids, recovery of jobs whose worker died, and the pipeline's clean
+failure and cancellation, in-process (huey in SQLite mode, tasks run by ``run_pending``)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import threading
+import time
+
+import pytest
+from test_service_helpers import no_person_video, wait_for
+
+from jobs import InvalidIdError, JobOptions, JobQueue, JobsConfig, JobStore, Storage
+
+HOST = socket.gethostname()
+
+
+@pytest.fixture
+def queue(tmp_path, anny_model) -> JobQueue:
+    q = JobQueue(JobsConfig(data_dir=tmp_path / "data", stale_after_s=30))
+    q.pipeline.add_body_model(anny_model)
+    return q
+
+
+def submit(queue: JobQueue, video, **options) -> str:
+    job = queue.store.create(JobOptions(**options).model_dump(), filename=video.name)
+    work = queue.storage.work_dir(job.id)
+    work.mkdir(parents=True)
+    shutil.copy(video, work / f"input{video.suffix}")
+    queue.enqueue(job.id)
+    return job.id
+
+
+def test_records_persist_and_claims_are_exclusive(tmp_path):
+    store = JobStore(tmp_path / "jobs.db")
+    job = store.create({"preset": "tiny"}, filename="a.mp4")
+    again = JobStore(tmp_path / "jobs.db")  # a restarted process
+    assert again.get(job.id).state == "queued" and again.get(job.id).options == {"preset": "tiny"}
+    assert store.claim(job.id, "w1").state == "running"
+    assert again.claim(job.id, "w2") is None
+    assert store.finish(job.id, "succeeded") and not store.finish(job.id, "failed")
+    assert again.get(job.id).state == "succeeded" and again.get(job.id).progress == 1.0
+
+
+def test_storage_refuses_path_traversal(tmp_path):
+    storage = Storage(JobsConfig(data_dir=tmp_path))
+    for bad in ("../../etc", "..", "a" * 31, "A" * 32, "a/b", ""):
+        with pytest.raises(InvalidIdError):
+            storage.avatar_dir(bad)
+        with pytest.raises(InvalidIdError):
+            storage.work_dir(bad)
+    assert storage.avatar_dir("a" * 32).parent == tmp_path / "avatars"
+
+
+def test_dead_workers_jobs_are_retried_then_failed(tmp_path):
+    queue = JobQueue(JobsConfig(data_dir=tmp_path, max_attempts=2, stale_after_s=30))
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    job = queue.store.create(JobOptions().model_dump())
+    queue.store.claim(job.id, f"{HOST}:{dead.pid}:0000")
+    queue.store.update(job.id, stage="train", completed_stage="align")
+    # A live worker (this process) is left alone.
+    other = queue.store.create(JobOptions().model_dump())
+    queue.store.claim(other.id, f"{HOST}:{os.getpid()}:me")
+    result = queue.recover(this_worker=f"{HOST}:{os.getpid()}:me")
+    assert result.requeued == [job.id] and result.failed == []
+    record = queue.store.get(job.id)
+    assert record.state == "queued" and record.stage == "train"
+    assert "retrying from stage 'train'" in record.message
+    assert queue.store.get(other.id).state == "running"
+    # Second death: attempts are used up, the job fails with the reason and its files go.
+    queue.store.claim(job.id, f"host-elsewhere:{dead.pid}:0000")
+    queue.store.update(job.id, heartbeat_at=time.time() - 60)  # silent for longer than stale_after_s
+    queue.storage.work_dir(job.id).mkdir(parents=True)
+    result = queue.recover()
+    assert result.failed == [job.id]
+    record = queue.store.get(job.id)
+    assert record.state == "failed" and "giving up after 2 attempts" in record.error
+    assert not queue.storage.work_dir(job.id).exists()
+
+
+def test_a_video_without_a_person_fails_cleanly(queue, tmp_path):
+    job_id = submit(queue, no_person_video(tmp_path / "nobody.mp4"), preset="tiny")
+    assert queue.run_pending() >= 1
+    job = queue.store.get(job_id)
+    assert job.state == "failed" and "no person" in job.error and "stage preprocess" in job.error
+    assert str(queue.storage.work_dir(job_id)) not in job.error
+    assert not queue.storage.work_dir(job_id).exists() and not queue.storage.avatar_exists(job.avatar_id)
+
+
+def test_cancel_a_running_job(queue, tmp_path):
+    video = no_person_video(tmp_path / "long.mp4", frames=60)
+    job_id = submit(queue, video, preset="tiny")
+    runner = threading.Thread(target=queue.run_pending)
+    runner.start()
+    wait_for(lambda: queue.store.get(job_id).state == "running", 60, "the job to start")
+    job = queue.cancel(queue.store.get(job_id))
+    assert job.cancel_requested
+    runner.join(60)
+    job = queue.store.get(job_id)
+    assert job.state == "cancelled" and job.error is None
+    assert not queue.storage.work_dir(job_id).exists()

@@ -1,0 +1,116 @@
+"""Real worker processes: one killed (SIGKILL) mid-job and restarted finishes the job from its
+last completed stage (SQLite mode); two workers sharing a real redis-server (Redis mode)."""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import subprocess
+
+import pytest
+import test_service_helpers as helpers
+from fastapi.testclient import TestClient
+from test_service_helpers import (
+    FAST_OPTIONS,
+    free_port,
+    log_tail,
+    no_person_video,
+    start_worker,
+    stop,
+    wait_for,
+)
+
+from jobs import JobsConfig
+from service import ServiceSettings, create_app
+
+pytestmark = pytest.mark.slow
+signer_video = helpers.signer_video  # a fixture
+
+
+def api(data_dir, queue_url=None) -> TestClient:
+    jobs = JobsConfig(data_dir=data_dir, queue_url=queue_url)
+    return TestClient(create_app(ServiceSettings(jobs=jobs, preload_body_models=())))
+
+
+def upload(client, video, **options) -> dict:
+    with open(video, "rb") as f:
+        res = client.post("/avatars", files={"video": (video.name, f, "video/mp4")}, data=options)
+    assert res.status_code == 202, res.text
+    return res.json()
+
+
+def test_a_killed_worker_is_replaced_and_the_job_resumes(tmp_path, signer_video):
+    data, log = tmp_path / "data", tmp_path / "worker.log"
+    options = {**FAST_OPTIONS, "iterations": "40"}  # a training stage long enough to kill it in
+    with api(data) as client:
+        ids = upload(client, signer_video, **options)
+        worker = start_worker(data, log)
+        try:
+            job = wait_for(lambda: (j := client.get(f"/jobs/{ids['job_id']}").json())["stage"] == "train"
+                           and j["state"] == "running" and j, 300, "the training stage")  # fmt: skip
+            worker.send_signal(signal.SIGKILL)
+            worker.wait()
+            job = client.get(f"/jobs/{ids['job_id']}").json()
+            assert job["state"] == "running"  # nobody has noticed yet
+            worker = start_worker(data, log)
+
+            def finished():
+                j = client.get(f"/jobs/{ids['job_id']}").json()
+                return j["state"] in ("succeeded", "failed", "cancelled") and j
+
+            job = wait_for(finished, 400, "the retried job")
+        finally:
+            stop(worker)
+        assert job["state"] == "succeeded", (job, log_tail(log))
+        assert job["attempts"] == 2 and job["progress"] == 1.0
+        assert f"requeued ['{ids['job_id']}']" in log.read_text()  # by the new worker, at start
+        assert client.get(f"/avatars/{ids['avatar_id']}").json()["status"] == "ready"
+        res = client.post(f"/avatars/{ids['avatar_id']}/render", json={"width": 64, "height": 64})
+        assert res.status_code == 200 and res.content[:4] == b"\x89PNG"
+    assert not (data / "jobs" / "work" / ids["job_id"]).exists()
+    assert sorted(p.name for p in (data / "avatars").iterdir()) == [ids["avatar_id"]]
+
+
+@pytest.fixture
+def redis_url(tmp_path):
+    server = shutil.which("redis-server")
+    if server is None:
+        pytest.fail("redis-server is not installed (scripts/install-system-deps.sh installs it)")
+    port = free_port()
+    subprocess.run([server, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
+                    "--dir", str(tmp_path), "--daemonize", "yes"], check=True)  # fmt: skip
+    try:
+        wait_for(lambda: subprocess.run(["redis-cli", "-p", str(port), "ping"], capture_output=True)
+                 .stdout.strip() == b"PONG", 20, "redis-server")  # fmt: skip
+        yield f"redis://127.0.0.1:{port}/0"
+    finally:
+        subprocess.run(["redis-cli", "-p", str(port), "shutdown", "nosave"], capture_output=True)
+
+
+def test_redis_mode_with_two_workers(tmp_path, signer_video, redis_url):
+    data = tmp_path / "data"
+    logs = [tmp_path / "w1.log", tmp_path / "w2.log"]
+    with api(data, redis_url) as client:
+        assert client.get("/healthz").json()["queue"] == "redis"
+        workers = [start_worker(data, log, queue_url=redis_url) for log in logs]
+        try:
+            real = upload(client, signer_video, **FAST_OPTIONS)
+            nobody = upload(client, no_person_video(tmp_path / "nobody.mp4"), preset="tiny")
+
+            def finished(job_id):
+                j = client.get(f"/jobs/{job_id}").json()
+                return j["state"] in ("succeeded", "failed", "cancelled") and j
+
+            first = wait_for(lambda: finished(real["job_id"]), 400, "the real job")
+            second = wait_for(lambda: finished(nobody["job_id"]), 120, "the no-person job")
+        finally:
+            for w in workers:
+                stop(w)
+        text = "\n".join(log_tail(log) for log in logs)
+        assert first["state"] == "succeeded" and first["attempts"] == 1, (first, text)
+        assert second["state"] == "failed" and "no person" in second["error"], (second, text)
+        # Each job ran exactly once, on one of the two workers; both workers were consuming.
+        ran = [sum(f"job {j['job_id']}: attempt" in log.read_text() for log in logs) for j in (first, second)]
+        assert ran == [1, 1], text
+        res = client.post(f"/avatars/{real['avatar_id']}/render", json={"width": 64, "height": 64})
+        assert res.status_code == 200

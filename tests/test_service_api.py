@@ -1,0 +1,200 @@
+"""The API in-process (FastAPI's TestClient, no worker): uploads and their limits, ids, the
+lifecycle of a job nobody runs yet (409 until ready, cancel), the API key and the docs."""
+
+from __future__ import annotations
+
+import pytest
+import test_service_helpers as helpers
+from fastapi.testclient import TestClient
+from test_service_helpers import FAST_OPTIONS, no_person_video
+
+from jobs import JobsConfig
+from service import ServiceSettings, create_app
+
+signer_video = helpers.signer_video  # a fixture
+
+
+def make_client(tmp_path, **overrides) -> TestClient:
+    jobs = JobsConfig(data_dir=tmp_path / "data")
+    settings = ServiceSettings(jobs=jobs, preload_body_models=(), **overrides)
+    return TestClient(create_app(settings))
+
+
+@pytest.fixture
+def client(tmp_path):
+    with make_client(tmp_path, max_upload_mb=1.0) as c:
+        yield c
+
+
+def leftovers(tmp_path) -> list:
+    """Files under the work and avatar folders (should be none after a rejected upload)."""
+    data = tmp_path / "data"
+    return [p for folder in (data / "jobs" / "work", data / "avatars") for p in folder.rglob("*")]
+
+
+def upload(client, content: bytes, name="clip.mp4", **options):
+    return client.post("/avatars", files={"video": (name, content, "video/mp4")}, data=options)
+
+
+def test_health_and_docs(client):
+    health = client.get("/healthz").json()
+    assert health["status"] == "ok" and health["queue"] == "sqlite" and health["jobs"]["queued"] == 0
+    assert client.get("/docs").status_code == 200
+    spec = client.get("/openapi.json").json()
+    paths = spec["paths"]
+    for path in ("/avatars", "/avatars/{avatar_id}", "/avatars/{avatar_id}/render",
+                 "/avatars/{avatar_id}/export", "/jobs/{job_id}", "/healthz"):  # fmt: skip
+        assert path in paths, path
+    render = spec["components"]["schemas"]["RenderRequest"]
+    assert render["examples"][0]["pose"]["joints"]
+
+
+def test_upload_queues_a_job_that_can_be_cancelled(client, signer_video, tmp_path):
+    res = upload(client, signer_video.read_bytes(), name="me.mp4", **FAST_OPTIONS)
+    assert res.status_code == 202, res.text
+    ids = res.json()
+    job = client.get(f"/jobs/{ids['job_id']}").json()
+    assert job["state"] == "queued" and job["progress"] == 0.0 and job["avatar_id"] == ids["avatar_id"]
+    assert job["options"]["preset"] == "tiny" and job["options"]["max_frames"] == 4
+    assert job["filename"] == "me.mp4"
+    work = tmp_path / "data" / "jobs" / "work" / ids["job_id"]
+    assert [p.name for p in work.iterdir()] == ["input.mp4"]
+    avatar = client.get(f"/avatars/{ids['avatar_id']}").json()
+    assert avatar["status"] == "pending" and avatar["num_gaussians"] is None
+    # Not finished yet: 409 with the reason.
+    for res in (client.post(f"/avatars/{ids['avatar_id']}/render", json={}),
+                client.get(f"/avatars/{ids['avatar_id']}/export"),
+                client.delete(f"/avatars/{ids['avatar_id']}")):  # fmt: skip
+        assert res.status_code == 409 and "queued" in res.text + "cancel" or res.status_code == 409, res.text
+    # Cancel: at once for a queued job; its upload is removed.
+    res = client.delete(f"/jobs/{ids['job_id']}")
+    assert res.status_code == 200 and res.json()["state"] == "cancelled"
+    assert not work.exists()
+    assert client.delete(f"/jobs/{ids['job_id']}").status_code == 409
+    res = client.post(f"/avatars/{ids['avatar_id']}/render")
+    assert res.status_code == 409 and "cancelled" in res.json()["detail"]
+    assert client.get(f"/avatars/{ids['avatar_id']}").json()["status"] == "cancelled"
+    # A cancelled avatar can be deleted: then it is gone.
+    assert client.delete(f"/avatars/{ids['avatar_id']}").status_code == 204
+    assert client.get(f"/avatars/{ids['avatar_id']}").status_code == 404
+    assert client.get("/avatars").json() == {"avatars": []}
+
+
+@pytest.mark.parametrize(
+    ("content", "needle"),
+    [
+        (b"", "empty"),
+        (b"this is a text file, not a video" * 10, "not a readable video"),
+        (b"\x00\x00\x00\x18ftypmp42" + bytes(range(256)) * 8, "video"),
+    ],
+    ids=["empty", "text", "corrupt-mp4"],
+)
+def test_not_a_video_is_422_and_leaves_nothing(client, tmp_path, content, needle):
+    res = upload(client, content)
+    assert res.status_code == 422, res.text
+    assert needle in res.json()["detail"] and str(tmp_path) not in res.json()["detail"]
+    assert leftovers(tmp_path) == [] and client.get("/avatars").json() == {"avatars": []}
+
+
+def test_truncated_and_frameless_videos_are_422(client, signer_video, tmp_path):
+    data = signer_video.read_bytes()
+    res = upload(client, data[: len(data) // 3])
+    assert res.status_code == 422, res.text
+    import av
+    import numpy as np
+
+    empty = tmp_path / "sound.mp4"  # a valid mp4 with zero video frames (only sound)
+    with av.open(str(empty), "w", format="mp4") as container:
+        stream = container.add_stream("aac", rate=16000)
+        frame = av.AudioFrame.from_ndarray(np.zeros((1, 1024), np.float32), format="fltp", layout="mono")
+        frame.sample_rate = 16000
+        for packet in [*stream.encode(frame), *stream.encode(None)]:
+            container.mux(packet)
+    res = upload(client, empty.read_bytes())
+    detail = res.json()["detail"]
+    assert res.status_code == 422 and "no video stream" in detail and str(tmp_path) not in detail, res.text
+    assert leftovers(tmp_path) == []
+
+
+def test_upload_over_the_size_limit_is_413(client, tmp_path):
+    big = b"\x00" * (2 * 1024 * 1024)
+    res = upload(client, big)
+    assert res.status_code == 413 and "limit" in res.json()["detail"]
+
+    def chunks():  # no Content-Length: stopped while streaming
+        for _ in range(40):
+            yield b"--x\r\n" + b"\x00" * 65536
+
+    headers = {"content-type": "multipart/form-data; boundary=x"}
+    res = client.post("/avatars", content=chunks(), headers=headers)
+    assert res.status_code == 413, res.text
+    assert leftovers(tmp_path) == []
+
+
+def test_video_over_the_length_limit_is_422(tmp_path, signer_video):
+    with make_client(tmp_path, max_video_seconds=0.1) as client:
+        res = upload(client, signer_video.read_bytes())
+    assert res.status_code == 422 and "limit" in res.json()["detail"], res.text
+    assert leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    ("options", "needle"),
+    [({"preset": "huge"}, "preset"), ({"max_frames": "0"}, "max_frames"),
+     ({"body_model": "smpl"}, "body_model"), ({"image_scale": "2"}, "image_scale"),
+     ({"iterations": "many"}, "iterations")],  # fmt: skip
+    ids=["preset", "max_frames", "body_model", "image_scale", "iterations"],
+)
+def test_bad_options_are_422(client, signer_video, tmp_path, options, needle):
+    res = upload(client, signer_video.read_bytes(), **options)
+    assert res.status_code == 422 and needle in res.text, res.text
+    assert leftovers(tmp_path) == []
+
+
+def test_missing_video_field_is_422(client):
+    res = client.post("/avatars", data={"preset": "tiny"})
+    assert res.status_code == 422 and "video" in res.text
+
+
+@pytest.mark.parametrize(
+    "path",
+    [
+        "/jobs/0123456789abcdef0123456789abcdef",
+        "/avatars/0123456789abcdef0123456789abcdef",
+        "/avatars/not-an-id",
+        "/avatars/..%2F..%2Fetc%2Fpasswd",
+        "/avatars/%2e%2e",
+        "/jobs/..%2Fjobs.db",
+        "/avatars/0123456789ABCDEF0123456789ABCDEF",
+    ],
+)
+def test_unknown_and_malformed_ids_are_404(client, path):
+    for method, suffix in (("get", ""), ("delete", ""), ("post", "/render"), ("get", "/export")):
+        if path.startswith("/jobs") and suffix:
+            continue
+        res = getattr(client, method)(path + suffix)
+        assert res.status_code == 404, (method, path + suffix, res.text)
+
+
+def test_api_key(tmp_path):
+    with make_client(tmp_path, api_key="s3cret") as client:
+        assert client.get("/healthz").status_code == 200
+        assert client.get("/avatars").status_code == 401
+        assert client.get("/avatars", headers={"X-API-Key": "wrong"}).status_code == 401
+        assert client.get("/avatars", headers={"X-API-Key": "s3cret"}).status_code == 200
+
+
+def test_job_records_survive_a_restart_of_the_api(tmp_path, signer_video):
+    with make_client(tmp_path) as client:
+        ids = upload(client, signer_video.read_bytes(), **FAST_OPTIONS).json()
+    with make_client(tmp_path) as client:
+        job = client.get(f"/jobs/{ids['job_id']}").json()
+        assert job["state"] == "queued" and job["options"]["iterations"] == 6
+        assert client.get("/avatars").json()["avatars"][0]["avatar_id"] == ids["avatar_id"]
+
+
+def test_render_body_is_validated_before_the_avatar_is_loaded(client, tmp_path):
+    no_person_video(tmp_path / "nobody.mp4")  # valid video: accepted here, fails in the worker
+    ids = upload(client, (tmp_path / "nobody.mp4").read_bytes()).json()
+    res = client.post(f"/avatars/{ids['avatar_id']}/render", json={"pose": {"joints": {"x": [0, 0]}}})
+    assert res.status_code in (409, 422)
