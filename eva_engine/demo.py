@@ -1,20 +1,15 @@
-"""The demo: the main job end to end on the embedded default, and a quick body-only scene.
+"""The demo's engine side: the new pose it asks the avatar for, a synthetic signer video, and a
+quick body-only scene.
 
-``run_pipeline_demo`` (``eva demo``): a synthetic signer (the Anny body, rendered as a mesh) is
-written as a video, then the product's pipeline runs on it -- ``preprocess_video`` (MediaPipe
-detection + body-model alignment), ``train_avatar``, ``save_avatar`` -- and the avatar is
-rendered in the input pose and in a new pose (a wave, curled fingers, a smile) from the input
-camera and from 35 degrees to the side.
-
-``render_demo`` (``eva demo --body-only``): the posed body model as surface Gaussians rendered
-by ``eva_engine.render`` -- the body model and rasterizer alone, in a second.
+``eva demo`` runs the whole product (``service.demo``): ``signer_video`` writes a video of a
+synthetic signer (the Anny body rendered as a textured mesh), the service turns it into an
+avatar, and the avatar is rendered in ``DEMO_POSE`` (a wave, curled fingers, a smile).
+``render_demo`` (``eva demo --body-only``) renders the posed body model as surface Gaussians
+with ``eva_engine.render`` -- the body model and rasterizer alone, in a second.
 """
 
 from __future__ import annotations
 
-import math
-import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -110,110 +105,13 @@ def render_demo(model: BodyModel, width: int = 384, height: int = 512, yaws=(0.0
     return torch.cat(views, dim=1)
 
 
-@dataclass
-class PipelineDemo:
-    """Where ``run_pipeline_demo`` wrote things, and what it measured."""
-
-    image: Path
-    video: Path
-    dataset: Path
-    avatar: Path
-    seconds: dict[str, float]
-    num_gaussians: int
-    psnr_input_pose: float
-
-
-def run_pipeline_demo(
-    workdir: Path,
-    out_png: Path,
-    preset_name: str = "fast",
-    iterations: int | None = None,
-    progress: Callable[[str], None] | None = None,
-) -> PipelineDemo:
-    """Video -> dataset -> avatar -> renders (see the module docstring). Everything it writes
-    goes under ``workdir`` (replaced on every run) except the PNG."""
-    import shutil
-
-    import numpy as np
-    from PIL import Image
-
-    from eva_engine.align import PreprocessConfig, preprocess_video
-    from eva_engine.avatar import save_avatar
-    from eva_engine.body import load_body_model
+def signer_video(folder: Path, model: BodyModel, seed: int = 0) -> tuple[Path, Tensor]:
+    """A video of the synthetic wild signer (256 px, 12 frames; MediaPipe finds body, face and
+    hands) written to ``folder/signer.mp4``; returns it and its frames [N, H, W, 3] in [0, 1]."""
     from eva_engine.data import load_dataset, write_video
     from eva_engine.data.synthetic import generate
-    from eva_engine.metrics import psnr
-    from eva_engine.render import Camera
-    from eva_engine.train import preset, train_avatar
 
-    def say(msg: str) -> None:
-        if progress is not None:
-            progress(msg)
-
-    seconds: dict[str, float] = {}
-    workdir = Path(workdir)
-    shutil.rmtree(workdir, ignore_errors=True)
-    workdir.mkdir(parents=True)
-    model = load_body_model("anny")
-
-    t0 = time.perf_counter()
-    say("rendering a synthetic signer video (Anny, mesh renderer)")
-    synth = load_dataset(generate("wild", "small", 0, workdir / "synthetic", model=model))
-    order = sorted(synth.splits["train"] + synth.splits["test_pose"])
-    frames = (synth.images(order).numpy() * 255 + 0.5).astype(np.uint8)
-    video = write_video(workdir / "signer.mp4", frames, fps=synth.meta.fps)
-    seconds["video"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    say("preprocessing: MediaPipe detection and body-model alignment")
-    preprocess_video(video, workdir / "dataset", PreprocessConfig(test_every=4), model=model)
-    dataset = load_dataset(workdir / "dataset")
-    seconds["preprocess"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    overrides = {} if iterations is None else {"iterations": iterations}
-    config = preset(preset_name, **overrides)
-    say(f"training the avatar ({preset_name} preset, {config.iterations} iterations)")
-    result = train_avatar(dataset, config, body=model)
-    avatar = result.avatar
-    save_avatar(avatar, workdir / "avatar", {"train_seconds": result.train_seconds, "demo": True})
-    seconds["train"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    say("rendering the avatar")
-    h, w = dataset.image_size
-    i = dataset.splits["test_pose"][0]  # a frame the avatar was not trained on
-    K, view = dataset.K[i], dataset.viewmat[i]
-    observed = dataset.params.map(lambda t: t[i : i + 1].clone())
-    novel = observed.map(lambda t: t.clone())
-    wave = model.params_from_pose(DEMO_POSE)
-    novel.joints, novel.expression = wave.joints.clone(), wave.expression.clone()
-    with torch.no_grad():
-        centre = model(observed).joints[0].mean(0)
-        side = view @ _turn_about(centre, math.radians(35.0))
-        white = torch.ones(3)
-        panels = [
-            dataset.image(i),
-            avatar.render(observed, Camera(K, view, w, h), white),
-            avatar.render(novel, Camera(K, view, w, h), white),
-            avatar.render(novel, Camera(K, side, w, h), white),
-        ]
-    target = dataset.image(i) * dataset.mask(i)[..., None] + (1 - dataset.mask(i)[..., None])
-    quality = float(psnr(panels[1].clamp(0, 1).permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]))
-    strip = torch.cat([p.clamp(0, 1) for p in panels], dim=1).numpy()
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray((strip * 255 + 0.5).astype(np.uint8)).save(out_png)
-    seconds["render"] = time.perf_counter() - t0
-    return PipelineDemo(
-        out_png, video, workdir / "dataset", workdir / "avatar", seconds, len(avatar.gaussians), quality
-    )
-
-
-def _turn_about(centre: Tensor, angle: float) -> Tensor:
-    """[4, 4] world transform turning points by ``angle`` about the vertical axis through ``centre``."""
-    c, s = math.cos(angle), math.sin(angle)
-    rot = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-    m = torch.eye(4)
-    m[:3, :3] = rot
-    m[:3, 3] = centre - rot @ centre
-    return m
+    ds = load_dataset(generate("wild", "small", seed, folder / "synthetic", model=model, overwrite=True))
+    frames = ds.images(sorted(ds.splits["train"] + ds.splits["test_pose"]))
+    video = write_video(folder / "signer.mp4", (frames.numpy() * 255 + 0.5).astype("uint8"), fps=ds.meta.fps)
+    return video, frames

@@ -1,4 +1,4 @@
-"""``eva demo``: the main job end to end on the embedded default."""
+"""``eva demo``: the whole product end to end on the embedded default."""
 
 from __future__ import annotations
 
@@ -15,46 +15,56 @@ from eva_engine.cli.app import app
 def demo(
     out: Path = typer.Option(Path("out/demo.png"), "--out", "-o", help="PNG to write."),
     workdir: Path = typer.Option(
-        Path("out/demo"), help="Folder for the demo's video, dataset and avatar (replaced)."
+        Path("out/demo"), help="Folder for the demo's video, service data, avatar and logs (replaced)."
     ),
     preset: str = typer.Option("fast", help="Training preset: tiny, fast or default."),
     iterations: int | None = typer.Option(None, min=1, help="Override the preset's iteration count."),
     body_only: bool = typer.Option(
-        False, "--body-only", help="Skip the pipeline: render the posed body model as Gaussians (seconds)."
+        False, "--body-only", help="Skip the product: render the posed body model as Gaussians (seconds)."
     ),
 ) -> None:
-    """Video -> avatar -> new pose on a synthetic signer (the embedded Anny body): preprocess
-    (MediaPipe + alignment), train, render. Writes a PNG: input frame | avatar in that pose |
-    avatar in a new pose | the new pose from the side."""
+    """Generate a synthetic signer video (the embedded Anny body), submit it to the service
+    (`eva serve` + `eva worker`), follow the job, render a new pose. Writes a PNG: input frame |
+    avatar in that pose | avatar in a new pose | the new pose from the side."""
     import numpy as np
     from PIL import Image
-
-    from eva_engine.body import load_body_model
-    from eva_engine.demo import render_demo, run_pipeline_demo
-    from eva_engine.train import PRESETS
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     console = Console(stderr=True)
     if out.suffix.lower() != ".png":
         raise typer.BadParameter(f"the output must be a .png file, got {out}", param_hint="--out")
-    if preset not in PRESETS:
+    if preset not in ("tiny", "fast", "default"):
         raise typer.BadParameter(
-            f"unknown preset {preset!r}; choose one of {list(PRESETS)}", param_hint="--preset"
+            f"unknown preset {preset!r}; choose tiny, fast or default", param_hint="--preset"
         )
     started = time.perf_counter()
     if body_only:
+        from eva_engine.body import load_body_model
+        from eva_engine.demo import render_demo
+
         image = render_demo(load_body_model("anny"))
         out.parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray((image.numpy() * 255 + 0.5).astype(np.uint8)).save(out)
         console.print(f"[green]wrote[/] {out} ({time.perf_counter() - started:.1f} s)")
         return
-    with console.status("demo") as status:
-        result = run_pipeline_demo(
-            workdir, out, preset, iterations, progress=lambda msg: (status.update(msg), console.log(msg))
-        )
-    steps = ", ".join(f"{k} {v:.0f} s" for k, v in result.seconds.items())
+
+    from service.demo import DemoError, run_service_demo
+
+    options = {"preset": preset} | ({"iterations": str(iterations)} if iterations else {})
+    columns = (TextColumn("{task.description:>10}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
+               TextColumn("{task.fields[eta]}"), TimeElapsedColumn())  # fmt: skip
+    with Progress(*columns, console=console) as bar:
+        task = bar.add_task("starting", total=1.0, eta="")
+
+        def report(stage: str, fraction: float, eta: float | None) -> None:
+            bar.update(task, description=stage, completed=fraction, eta=f"eta {eta:.0f} s" if eta else "")
+
+        try:
+            result = run_service_demo(workdir, out, options, progress=report)
+        except DemoError as err:
+            console.print(f"[red]error:[/] {err}")
+            raise typer.Exit(1) from err
     console.print(
-        f"[green]wrote[/] {out}: avatar with {result.num_gaussians:,} Gaussians, "
-        f"PSNR {result.psnr_input_pose:.1f} dB on a held-out frame "
-        f"({steps}; total {time.perf_counter() - started:.0f} s). "
-        f"Video, dataset and avatar are in {workdir}."
+        f"[green]wrote[/] {out}: avatar {result.avatar_id} ({result.num_gaussians:,} Gaussians) trained and "
+        f"rendered through the service in {result.seconds:.0f} s; video, service data and logs in {workdir}."
     )
