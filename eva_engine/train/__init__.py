@@ -6,6 +6,7 @@ control strategies, and the loop.
     result = train_avatar(load_dataset(path), preset("default"), progress=print)
 """
 
+from eva_engine.train.confidence import ConfidenceConfig, ConfidenceLoss, ConfidenceNet
 from eva_engine.train.config import PRESETS, OptimConfig, TrainConfig, preset
 from eva_engine.train.losses import (
     PHOTOMETRIC_LOSSES,
@@ -15,7 +16,8 @@ from eva_engine.train.losses import (
     PhotometricLoss,
     composite_target,
 )
-from eva_engine.train.strategy import DefaultStrategy, Strategy
+from eva_engine.train.methods import METHODS, with_method
+from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy, Strategy
 from eva_engine.train.trainer import (
     STAGES,
     TrainingError,
@@ -27,10 +29,15 @@ from eva_engine.train.trainer import (
 )
 
 __all__ = [
+    "METHODS",
     "PHOTOMETRIC_LOSSES",
     "PRESETS",
     "STAGES",
     "AvatarLoss",
+    "ConfidenceConfig",
+    "ConfidenceLoss",
+    "ConfidenceNet",
+    "ContextAwareStrategy",
     "DefaultStrategy",
     "L1Loss",
     "LossConfig",
@@ -46,4 +53,5 @@ __all__ = [
     "load_training_frames",
     "preset",
     "train_avatar",
+    "with_method",
 ]

@@ -2,6 +2,7 @@
 
 from eva_engine.train.strategy import ops
 from eva_engine.train.strategy.base import Strategy
+from eva_engine.train.strategy.context import ContextAwareStrategy
 from eva_engine.train.strategy.default import DefaultStrategy
 
-__all__ = ["DefaultStrategy", "Strategy", "ops"]
+__all__ = ["ContextAwareStrategy", "DefaultStrategy", "Strategy", "ops"]

@@ -1,0 +1,127 @@
+"""EVA's confidence-aware photometric loss (paper §3.4, eq. 12-13), made well-posed.
+
+A small feedback network E looks at the rendered image I_r and rendered depth D_r and predicts a
+per-pixel confidence C = μ + exp(E(I_r, D_r)) (μ = 1); the photometric term is C ⊙ |I_r − I|.
+
+As written, the loss has a trivial minimum: E → −∞ makes C = μ everywhere, i.e. plain L1 (the
+official code, with conf = (1 + eˣ)/2 and its log term disabled, ends there too: a uniform 0.5).
+Our choice, so that C means something and cannot collapse:
+
+1. **E is fitted by a heteroscedastic (Laplace) likelihood** on the detached residual r:
+   L_E = mean_R(C ⊙ |r| − a log C). Per pixel its minimum is C* = clamp(a / |r|, μ, C_max):
+   confidence is high where the render agrees with the frame and falls to μ where it does not
+   (misalignment, blur: the paper's motivation). The log term is what removes the trivial
+   minimum; C_max (a soft bound on E) keeps C finite where |r| → 0.
+2. **The avatar sees the confidence as a weight with mean 1**: the image term is
+   mean(w ⊙ |r|) with w = C / mean_R(C) on the person region R (person mask or rendered alpha
+   > 0.5) and w = 1 elsewhere, both detached. So the confidence redistributes the photometric
+   weight within the person without changing its total (the other loss weights, tuned against
+   L1, stay balanced), and the avatar cannot lower its loss by moving C.
+
+E sees its inputs detached (the render should fit the frame, not steer its own weights); its
+parameters are trained by the trainer's loss optimizer (``OptimConfig.loss_lr``). Registered as
+``PHOTOMETRIC_LOSSES["confidence"]``; select it with ``LossConfig(photometric="confidence")``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from eva_engine.train.losses import PHOTOMETRIC_LOSSES, PhotometricLoss
+
+
+@dataclass(frozen=True)
+class ConfidenceConfig:
+    """mu: the floor μ of C; residual_scale: a, pixels with |r| < a/μ get C > μ;
+    max_confidence: C_max; hidden: E's channels; region_threshold: mask/alpha level of R."""
+
+    mu: float = 1.0
+    residual_scale: float = 0.1
+    max_confidence: float = 10.0
+    hidden: int = 16
+    region_threshold: float = 0.5
+
+
+class ConfidenceNet(nn.Module):
+    """E: image [H, W, 3] and depth [H, W, 1] -> log(C − μ) [H, W], softly bounded above by
+    log(C_max − μ) (E = u − softplus(u − x): linear below, so pixels driven towards μ do not drag
+    shared weights into a saturated region). Two 3×3 convolutions and a 1×1 head,
+    zero-initialised.
+
+    The depth is alpha-blended camera z (``RenderOutput.depth``); it is divided by the image's
+    mean expected depth of covered pixels, so the input does not depend on the camera distance.
+    """
+
+    def __init__(self, hidden: int = 16, max_log: float = math.log(9.0)) -> None:
+        super().__init__()
+        self.max_log = max_log
+        self.body = nn.Sequential(
+            nn.Conv2d(4, hidden, 3, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(hidden, hidden, 3, padding=1),
+            nn.ReLU(),
+        )
+        self.head = nn.Conv2d(hidden, 1, 1)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, image: Tensor, depth: Tensor, alpha: Tensor) -> Tensor:
+        covered = alpha > 0.5
+        z = depth / alpha.clamp_min(1e-6)
+        ref = z[covered].mean() if bool(covered.any()) else depth.new_tensor(1.0)
+        rel_depth = depth / ref.clamp_min(1e-6)  # premultiplied: ~alpha × relative depth
+        x = torch.cat([image, rel_depth], dim=-1).permute(2, 0, 1)[None]
+        raw = self.head(self.body(x))[0, 0]
+        return self.max_log - F.softplus(self.max_log - raw)
+
+
+class ConfidenceLoss(PhotometricLoss):
+    """Confidence-aware L1 (module docstring). Inputs as ``PhotometricLoss``: image, target
+    [H, W, 3]; alpha, depth [H, W, 1]; mask [H, W] -> scalar (image term + E's fitting term)."""
+
+    def __init__(self, config: ConfidenceConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or ConfidenceConfig()
+        c = self.config
+        if not 0.0 < c.mu < c.max_confidence:
+            raise ValueError(f"need 0 < mu < max_confidence, got {c.mu}, {c.max_confidence}")
+        self.net = ConfidenceNet(c.hidden, max_log=math.log(c.max_confidence - c.mu))
+        self.last_confidence: Tensor | None = None  # [H, W] of the latest call, for inspection
+
+    def confidence(self, image: Tensor, depth: Tensor, alpha: Tensor) -> Tensor:
+        """[H, W] C = μ + exp(E(I_r, D_r)) on detached inputs."""
+        return self.config.mu + torch.exp(self.net(image.detach(), depth.detach(), alpha.detach()))
+
+    def region(self, alpha: Tensor, mask: Tensor) -> Tensor:
+        """[H, W] bool: the person region R (mask or rendered coverage)."""
+        t = self.config.region_threshold
+        return (mask > t) | (alpha[..., 0].detach() > t)
+
+    def fit_term(self, conf: Tensor, residual: Tensor, region: Tensor) -> Tensor:
+        """E's objective mean_R(C |r| − a log C); residual is detached here. conf, residual,
+        region: [H, W]."""
+        nll = conf * residual.detach() - self.config.residual_scale * torch.log(conf)
+        return nll[region].mean() if bool(region.any()) else nll.mean()
+
+    @staticmethod
+    def weights(conf: Tensor, region: Tensor) -> Tensor:
+        """[H, W] detached weights: C / mean_R(C) on R, 1 elsewhere (mean 1 over R)."""
+        conf = conf.detach()
+        if not bool(region.any()):
+            return torch.ones_like(conf)
+        return torch.where(region, conf / conf[region].mean(), torch.ones_like(conf))
+
+    def forward(self, image: Tensor, target: Tensor, alpha: Tensor, depth: Tensor, mask: Tensor) -> Tensor:
+        residual = (image - target).abs().mean(dim=-1)  # [H, W]
+        conf = self.confidence(image, depth, alpha)
+        region = self.region(alpha, mask)
+        self.last_confidence = conf.detach()
+        return (self.weights(conf, region) * residual).mean() + self.fit_term(conf, residual, region)
+
+
+PHOTOMETRIC_LOSSES["confidence"] = ConfidenceLoss

@@ -1,0 +1,45 @@
+"""The paper's methods and ablations as switches on one ``TrainConfig`` (no copies):
+
+- ``3dgs+body``: the Table-1 baseline, 3DGS on the articulated body: ``DefaultStrategy``
+  (constant threshold, template-distance pruning) and a plain L1 photometric term with the mask
+  term; no SSIM / LPIPS terms (3DGS's and the paper's baseline do not train on LPIPS).
+- ``eva``: context-aware density control (``ContextAwareStrategy``, per-Gaussian history) and the
+  confidence-aware loss, with the full objective (mask, SSIM, LPIPS; paper eq. 11).
+- ``eva-no-cadc`` / ``eva-no-cl``: Table 2's ablations (``DefaultStrategy`` / plain L1).
+- ``eva-no-cadc-no-cl``: both contributions off (the full objective alone): what separates the
+  baseline's objective from EVA's.
+- ``eva-part-mean``: EVA with the official code's per-part-mean thresholds.
+
+    cfg = with_method(preset("fast"), "eva")
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from eva_engine.train.config import TrainConfig
+from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy
+
+METHODS = ("3dgs+body", "eva", "eva-no-cadc", "eva-no-cl", "eva-no-cadc-no-cl", "eva-part-mean")
+
+
+def with_method(config: TrainConfig, method: str) -> TrainConfig:
+    """``config`` (its schedule, seeds, learning rates) switched to ``method`` (module docstring).
+    The config's strategy must be a ``DefaultStrategy`` (its schedule is kept)."""
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose one of {METHODS}")
+    base = config.strategy
+    if not isinstance(base, DefaultStrategy):
+        raise TypeError(f"with_method needs a DefaultStrategy-based config, got {type(base).__name__}")
+    if type(base) is not DefaultStrategy:  # back to the baseline fields only
+        base = DefaultStrategy(**{f.name: getattr(base, f.name) for f in dataclasses.fields(DefaultStrategy)})
+    cadc = method in ("eva", "eva-no-cl", "eva-part-mean")
+    confidence = method in ("eva", "eva-no-cadc", "eva-part-mean")
+    strategy = base
+    if cadc:
+        history = "part_mean" if method == "eva-part-mean" else "per_gaussian"
+        strategy = ContextAwareStrategy.from_default(base, history=history)
+    loss = dataclasses.replace(config.loss, photometric="confidence" if confidence else "l1")
+    if method == "3dgs+body":
+        loss = dataclasses.replace(loss, lambda_ssim=0.0, lambda_lpips=0.0)
+    return dataclasses.replace(config, strategy=strategy, loss=loss)

@@ -1,0 +1,163 @@
+"""Confidence-aware loss (EVA §3.4): no trivial minimum (E learns high confidence where the
+residual is small and μ where it is large), the avatar's weights keep mean 1 on the person,
+finite gradients on degenerate inputs, selection through the loss registry and the trainer's
+optimizers."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from eva_engine.render import RenderOutput
+from eva_engine.train import (
+    PHOTOMETRIC_LOSSES,
+    AvatarLoss,
+    ConfidenceConfig,
+    ConfidenceLoss,
+    LossConfig,
+    TrainConfig,
+)
+from eva_engine.train.trainer import make_extra_optimizers
+
+H = W = 16
+
+
+def inputs(seed: int = 0, requires_grad: bool = True):
+    g = torch.Generator().manual_seed(seed)
+    image = torch.rand(H, W, 3, generator=g).requires_grad_(requires_grad)
+    target = torch.rand(H, W, 3, generator=g)
+    alpha = torch.ones(H, W, 1)
+    depth = torch.full((H, W, 1), 3.0)
+    mask = torch.ones(H, W)
+    return image, target, alpha, depth, mask
+
+
+def test_registered_and_selected_by_config():
+    assert PHOTOMETRIC_LOSSES["confidence"] is ConfidenceLoss
+    loss = AvatarLoss(LossConfig(photometric="confidence", lambda_lpips=0.0))
+    assert isinstance(loss.photometric, ConfidenceLoss)
+    params = [p for p in loss.parameters() if p.requires_grad]
+    assert params, "the feedback network must be trainable"
+    assert not list(AvatarLoss(LossConfig(lambda_lpips=0.0)).parameters())
+
+
+def test_the_fit_term_pushes_confidence_up_where_the_residual_is_small_and_down_where_large():
+    loss = ConfidenceLoss()
+    a, mu = loss.config.residual_scale, loss.config.mu
+    conf = torch.full((2, 2), 3.0, requires_grad=True)
+    residual = torch.tensor([[0.001, 0.01], [0.5, 0.9]])
+    loss.fit_term(conf, residual, torch.ones(2, 2, dtype=torch.bool)).backward()
+    # d/dC (C|r| - a log C) = |r| - a/C: negative (C grows) for |r| < a/C, positive otherwise.
+    assert conf.grad[0, 0] < 0 and conf.grad[0, 1] < 0
+    assert conf.grad[1, 0] > 0 and conf.grad[1, 1] > 0
+    # Its minimiser is a/|r| clamped to [μ, C_max]: never the collapse C = μ everywhere.
+    c = torch.linspace(mu + 1e-3, loss.config.max_confidence, 2000)
+    for r in (0.02, 0.05):
+        best = c[torch.argmin(c * r - a * torch.log(c))]
+        assert best == pytest.approx(a / r, rel=0.01)
+
+
+def test_the_network_learns_where_to_trust_and_does_not_collapse():
+    """Left half: the render matches the frame; right half: a large residual (a misaligned
+    region). The image differs between halves, so E can tell them apart."""
+    torch.manual_seed(0)
+    loss = ConfidenceLoss(ConfidenceConfig(hidden=8))
+    image = torch.zeros(H, W, 3)
+    image[:, W // 2 :, 0] = 1.0
+    target = image.clone()
+    target[:, W // 2 :] += 0.6
+    alpha, depth, mask = torch.ones(H, W, 1), torch.full((H, W, 1), 3.0), torch.ones(H, W)
+    opt = torch.optim.Adam(loss.parameters(), lr=1e-2)
+    for _ in range(300):
+        opt.zero_grad()
+        loss(image, target, alpha, depth, mask).backward()
+        opt.step()
+    with torch.no_grad():
+        conf = loss.confidence(image, depth, alpha)
+    left, right = conf[:, : W // 2 - 1].mean(), conf[:, W // 2 + 1 :].mean()
+    assert left > 0.7 * loss.config.max_confidence, (left, right)  # trusted: towards C_max
+    assert right < loss.config.mu + 0.5, (left, right)  # misaligned: near the floor μ
+    assert torch.isfinite(conf).all()
+
+
+def test_image_weights_have_mean_one_on_the_person_and_one_elsewhere():
+    loss = ConfidenceLoss()
+    conf = torch.rand(H, W) * 5 + 1
+    region = torch.zeros(H, W, dtype=torch.bool)
+    region[4:12, 4:12] = True
+    w = loss.weights(conf, region)
+    assert w[region].mean() == pytest.approx(1.0, rel=1e-5)
+    assert torch.all(w[~region] == 1)
+    assert not w.requires_grad
+    # At initialisation C is uniform: the image term is exactly L1.
+    image, target, alpha, depth, mask = inputs(requires_grad=False)
+    residual = (image - target).abs().mean(-1)
+    fit = loss.fit_term(loss.confidence(image, depth, alpha), residual, mask > 0.5)
+    image_term = (loss(image, target, alpha, depth, mask) - fit).detach()
+    assert float(image_term) == pytest.approx(float(residual.mean()), rel=1e-5)
+
+
+def test_the_avatar_cannot_steer_the_confidence():
+    """The render gets gradient only through the weighted residual (sign(r) w / (H W 3))."""
+    loss = ConfidenceLoss()
+    image, target, alpha, depth, mask = inputs()
+    loss(image, target, alpha, depth, mask).backward()
+    with torch.no_grad():
+        conf = loss.confidence(image, depth, alpha)
+        w = loss.weights(conf, mask > 0.5)
+    expected = torch.sign(image.detach() - target) * w[..., None] / (H * W * 3)
+    assert torch.allclose(image.grad, expected, atol=1e-7)
+
+
+@pytest.mark.parametrize(
+    "case", ["zero_residual", "huge_residual", "empty_region", "zero_depth", "huge_depth", "saturated"]
+)
+def test_degenerate_inputs_give_finite_values_and_gradients(case):
+    loss = ConfidenceLoss()
+    image, target, alpha, depth, mask = inputs()
+    if case == "zero_residual":
+        target = image.detach().clone()
+    elif case == "huge_residual":
+        target = target + 1e4
+    elif case == "empty_region":
+        alpha, mask = torch.zeros(H, W, 1), torch.zeros(H, W)
+    elif case == "zero_depth":
+        depth = torch.zeros(H, W, 1)
+    elif case == "huge_depth":
+        depth = torch.full((H, W, 1), 1e8)
+    elif case == "saturated":
+        with torch.no_grad():
+            loss.net.head.bias.fill_(1e4)  # E at its bound: C = C_max
+    value = loss(image, target, alpha, depth, mask)
+    value.backward()
+    assert torch.isfinite(value)
+    assert torch.isfinite(image.grad).all()
+    for p in loss.parameters():
+        assert p.grad is None or torch.isfinite(p.grad).all()
+    assert loss.last_confidence.min() > loss.config.mu
+    assert loss.last_confidence.max() <= loss.config.max_confidence + 1e-4
+
+
+def test_invalid_config_is_refused():
+    with pytest.raises(ValueError, match="mu"):
+        ConfidenceLoss(ConfidenceConfig(mu=2.0, max_confidence=1.5))
+
+
+def test_trainer_optimises_the_network():
+    avatar_loss = AvatarLoss(LossConfig(photometric="confidence", lambda_lpips=0.0))
+    no_mlps = SimpleNamespace(mlp_parameters=lambda: [])  # only the loss's parameters here
+    extra = make_extra_optimizers(no_mlps, TrainConfig(), avatar_loss)
+    held = {id(p) for opt in extra for group in opt.param_groups for p in group["params"]}
+    assert held == {id(p) for p in avatar_loss.photometric.parameters()}
+
+
+def test_render_output_inputs_work_through_avatar_loss():
+    image, target, alpha, depth, mask = inputs()
+    n = 3
+    radii = torch.ones(n, dtype=torch.int32)
+    render = RenderOutput(image, alpha, depth, torch.zeros(n, 2), radii, torch.ones(n), 0)
+    terms = AvatarLoss(LossConfig(photometric="confidence", lambda_lpips=0.0))(render, target, mask)
+    terms["total"].backward()
+    assert torch.isfinite(terms["total"]) and torch.isfinite(image.grad).all()

@@ -1,0 +1,243 @@
+"""ContextAwareStrategy (EVA §3.3): thresholds from constructed gradient histories (per Gaussian
+and per part), part and history inheritance through clone/split, same-part distance pruning,
+selection by config."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+from test_avatar_scenes import teacher_scene
+
+from eva_engine.avatar import CanonicalGaussians
+from eva_engine.render import RenderOutput
+from eva_engine.train import (
+    METHODS,
+    AvatarLoss,
+    ConfidenceLoss,
+    LossConfig,
+    preset,
+    train_avatar,
+    with_method,
+)
+from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy
+
+R = 5
+BODY, HAND, FACE = 0, 1, 2
+
+
+def gaussians(parts: list[int], log_scale: float = -6.0, seed: int = 0) -> CanonicalGaussians:
+    """Gaussians on (a copy of) their own template vertices: template vertex i has part parts[i]."""
+    g = torch.Generator().manual_seed(seed)
+    n = len(parts)
+    template = torch.randn(n, 3, generator=g) * 0.3
+    splats = {
+        "means": template.clone(),
+        "scales": torch.full((n, 3), log_scale),
+        "quats": torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).clone(),
+        "opacities": torch.zeros(n),
+        "sh0": torch.randn(n, 1, 3, generator=g),
+        "shN": torch.zeros(n, 3, 3),
+    }
+    p = torch.tensor(parts)
+    return CanonicalGaussians(splats, p, torch.arange(n), template, p)
+
+
+def render_with_grad(grad: torch.Tensor, visible: torch.Tensor | None = None) -> RenderOutput:
+    """A render whose screen-space gradient is ``grad [N]`` (x only; a 2x2 image makes the NDC
+    scaling 1)."""
+    n = grad.shape[0]
+    means2d = torch.zeros(n, 2, requires_grad=True)
+    means2d.grad = torch.stack([grad, torch.zeros_like(grad)], dim=-1)
+    radii = torch.ones(n, dtype=torch.int32) if visible is None else visible.to(torch.int32)
+    return RenderOutput(torch.zeros(2, 2, 3), torch.zeros(2, 2, 1), torch.zeros(2, 2, 1), means2d, radii,
+                        torch.ones(n), 0)  # fmt: skip
+
+
+def drive(strategy, gs, history: list[torch.Tensor], visible=None) -> dict:
+    """Feed one gradient vector per step from step 0; returns the state just before step
+    len(history)'s refinement would run (statistics of that step included)."""
+    state = strategy.initialize_state()
+    for step, grad in enumerate(history[:-1]):
+        strategy.step_post_backward(gs, {}, state, step, render_with_grad(grad, visible))
+    strategy.update_state(gs, state, render_with_grad(history[-1], visible))
+    return state
+
+
+def two_windows(prev: list[float], cur: list[float]) -> list[torch.Tensor]:
+    """Steps 0..2R: constant ``prev`` in the first window (steps 0..R), ``cur`` in the second."""
+    return [torch.tensor(prev)] * (R + 1) + [torch.tensor(cur)] * R
+
+
+def strategy(**kw) -> ContextAwareStrategy:
+    return ContextAwareStrategy(refine_start_iter=2 * R, refine_stop_iter=100, refine_every=R, **kw)
+
+
+def test_per_gaussian_thresholds_follow_the_formula():
+    parts = [BODY, BODY, HAND, HAND, FACE, FACE]
+    prev = [1.0e-4, 2.0e-4, 1.0e-4, 1.0e-4, 3.0e-4, 1.0e-4]
+    cur = [1.1e-4, 1.5e-4, 1.05e-4, 0.9e-4, 3.0e-4, 1.1e-3]
+    gs, s = gaussians(parts), strategy()
+    eps = s.densify_thresholds(drive(s, gs, two_windows(prev, cur)), gs)
+    e, lam = torch.tensor(s.part_grad_base)[parts], torch.tensor(s.part_grad_lambda)[parts]
+    expected = e + lam * (torch.tensor(cur) - torch.tensor(prev))
+    # Rising gradients lower the threshold, falling ones raise it, flat ones keep e_part.
+    assert eps[:5] == pytest.approx(expected[:5], rel=1e-4)
+    assert eps[0] < 2e-4 < eps[1] and eps[2] < 1e-4 < eps[3] and eps[4] == pytest.approx(1.4e-4, rel=1e-4)
+    # A steep rise is floored (a threshold <= 0 would densify everything).
+    assert expected[5] < 0 and eps[5] == pytest.approx(s.min_threshold_ratio * 1.4e-4)
+
+
+def test_per_gaussian_history_is_normalised_by_visibility():
+    gs, s = gaussians([BODY, BODY]), strategy()
+    # Gaussian 1 is seen every other step in the second window only, with the same gradient.
+    history = two_windows([2e-4, 2e-4], [2e-4, 2e-4])
+    vis = [torch.tensor([True, True])] * (R + 1) + [torch.tensor([True, k % 2 == 0]) for k in range(R)]
+    state = s.initialize_state()
+    for step, (grad, v) in enumerate(zip(history[:-1], vis[:-1], strict=True)):
+        s.step_post_backward(gs, {}, state, step, render_with_grad(grad, v))
+    s.update_state(gs, state, render_with_grad(history[-1], vis[-1]))
+    assert s.densify_thresholds(state, gs) == pytest.approx(torch.full((2,), 2e-4), rel=1e-4)
+
+
+def test_part_mean_thresholds_use_the_part_means():
+    parts = [BODY, BODY, HAND, HAND, FACE]
+    prev = [1.0e-4, 3.0e-4, 1.0e-4, 1.0e-4, 2.0e-4]
+    cur = [2.0e-4, 2.2e-4, 1.0e-4, 1.2e-4, 1.9e-4]
+    gs, s = gaussians(parts), strategy(history="part_mean")
+    eps = s.densify_thresholds(drive(s, gs, two_windows(prev, cur)), gs)
+    body = 2e-4 - 9.0 * ((2.0e-4 + 2.2e-4) / 2 - (1.0e-4 + 3.0e-4) / 2)
+    hand = 1e-4 - 4.5 * ((1.0e-4 + 1.2e-4) / 2 - 1.0e-4)
+    face = 1.4e-4 - 6.3 * (1.9e-4 - 2.0e-4)
+    assert eps == pytest.approx(torch.tensor([body, body, hand, hand, face]), rel=1e-4)
+    # The official form's weights: e and λ are (1, 0.5, 0.7) times (2e-4, -9).
+    w = torch.tensor([1.0, 0.5, 0.7])
+    assert torch.tensor(s.part_grad_base) == pytest.approx(2e-4 * w)
+    assert torch.tensor(s.part_grad_lambda) == pytest.approx(-9.0 * w)
+
+
+def test_no_previous_window_means_no_history_term():
+    gs, s = gaussians([BODY, HAND, FACE]), strategy()
+    state = s.initialize_state()
+    s.update_state(gs, state, render_with_grad(torch.tensor([1e-3, 1e-3, 1e-3])))
+    assert s.densify_thresholds(state, gs) == pytest.approx(torch.tensor(s.part_grad_base))
+
+
+def test_refine_keeps_state_aligned_and_children_inherit_part_and_history():
+    parts = [BODY, HAND, FACE, BODY, HAND, FACE, BODY, FACE]
+    gs = gaussians(parts, seed=1)
+    with torch.no_grad():
+        gs.splats["scales"][2] = -3.9  # ~0.02 m: split (face); the others are small: clone
+    s = strategy(part_prune_dist=(1.0, 1.0, 1.0))
+    # Gaussians 1 (hand) and 2 (face) exceed their thresholds; each has its own history.
+    prev = [1e-5, 2e-5, 3e-5, 4e-5, 5e-5, 6e-5, 7e-5, 8e-5]
+    cur = [1e-5, 4e-4, 5e-4, 4e-5, 5e-5, 6e-5, 7e-5, 8e-5]
+    state = drive(s, gs, two_windows(prev, cur))
+    opts = {k: torch.optim.Adam([p], lr=1e-3) for k, p in gs.splats.items()}
+    stats = s.refine(gs, opts, state)
+    assert stats["cloned"] == 1 and stats["split"] == 1 and stats["pruned"] == 0
+    n = len(gs)
+    assert n == 8 + 1 + 1
+    for key in ("grad2d", "count", "win_sum", "win_count", "prev_mean", "prev_seen"):
+        assert state[key].shape == (n,), key
+    assert "origin" not in state
+    assert torch.all(state["win_sum"] == 0) and torch.all(state["win_count"] == 0)
+    # Survivors: 0, 1, 3..7 (2 was split); then the clone of 1; then the two children of 2.
+    assert gs.part_ids.tolist() == [BODY, HAND, BODY, HAND, FACE, BODY, FACE, HAND, FACE, FACE]
+    expected_prev = torch.tensor([cur[i] for i in (0, 1, 3, 4, 5, 6, 7, 1, 2, 2)])
+    assert state["prev_mean"] == pytest.approx(expected_prev, rel=1e-5)
+    assert torch.all(state["prev_seen"] == 1)
+
+
+def test_refine_rolls_windows_before_densification_starts():
+    gs, s = gaussians([BODY, HAND]), strategy()
+    s = ContextAwareStrategy(refine_start_iter=4 * R, refine_stop_iter=100, refine_every=R)
+    history = [torch.tensor([1e-4, 1e-4])] * (R + 1) + [torch.tensor([2e-4, 3e-4])] * R
+    history += [torch.tensor([2.5e-4, 3e-4])] * R
+    state = drive(s, gs, history)
+    assert state["prev_mean"] == pytest.approx(torch.tensor([2e-4, 3e-4]))
+    cur, _ = s.window_mean(state)
+    assert cur == pytest.approx(torch.tensor([2.5e-4, 3e-4]))
+
+
+def test_same_part_distance_pruning():
+    # Template: a body vertex at the origin, a hand vertex 0.2 m away, a face vertex 0.4 m away.
+    template = torch.tensor([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0], [0.4, 0.0, 0.0]])
+    tparts = torch.tensor([BODY, HAND, FACE])
+    # hand Gaussian on the body vertex (0.2 m from any hand vertex), body 0.04 m off its vertex,
+    # face 0.07 m off its vertex, hand 0.04 m off its vertex.
+    means = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.04, 0.0], [0.4, 0.07, 0.0], [0.2, 0.04, 0.0]])
+    parts = torch.tensor([HAND, BODY, FACE, HAND])
+    n = 4
+    splats = {
+        "means": means, "scales": torch.full((n, 3), -6.0), "quats": torch.eye(4)[:1].expand(n, 4),
+        "opacities": torch.zeros(n), "sh0": torch.zeros(n, 1, 3), "shN": torch.zeros(n, 3, 3),
+    }  # fmt: skip
+    make = lambda: CanonicalGaussians(splats, parts, torch.zeros(n, dtype=torch.long), template, tparts)  # noqa: E731
+
+    def refined(strategy) -> list[int]:
+        gs = make()
+        state = strategy.initialize_state()
+        strategy.update_state(gs, state, render_with_grad(torch.zeros(n)))
+        strategy.refine(gs, {k: torch.optim.Adam([p]) for k, p in gs.splats.items()}, state)
+        return gs.part_ids.tolist()
+
+    # Context-aware: the stray hand Gaussian (0) and the body one 0.04 m out (1) go; the face
+    # (limit 0.09) and the hand (limit 0.05) stay.
+    assert refined(strategy()) == [FACE, HAND]
+    # The baseline measures to any vertex with 0.05 m: the stray hand Gaussian and the body one
+    # stay, the face one 0.07 m out goes.
+    assert refined(DefaultStrategy(refine_start_iter=0, refine_stop_iter=100)) == [HAND, BODY, HAND]
+    # The option off: the baseline's rule.
+    assert refined(strategy(part_prune_dist=None)) == [HAND, BODY, HAND]
+
+
+def test_invalid_configuration_is_refused():
+    with pytest.raises(ValueError, match="history"):
+        ContextAwareStrategy(history="ema")
+    with pytest.raises(ValueError, match="one value per part"):
+        ContextAwareStrategy(part_grad_base=(1e-4, 2e-4))
+
+
+def test_selection_by_config_keeps_the_schedule():
+    base = preset("tiny")
+    eva = with_method(base, "eva")
+    assert type(eva.strategy) is ContextAwareStrategy and eva.strategy.history == "per_gaussian"
+    for field in ("refine_start_iter", "refine_stop_iter", "refine_every", "grow_grad2d", "seed"):
+        assert getattr(eva.strategy, field) == getattr(base.strategy, field)
+    assert eva.loss.photometric == "confidence" and eva.loss.lambda_lpips == base.loss.lambda_lpips
+    assert isinstance(AvatarLoss(eva.loss, lpips=object()).photometric, ConfidenceLoss)
+    baseline = with_method(eva, "3dgs+body")  # switching back needs no fresh preset
+    assert type(baseline.strategy) is DefaultStrategy and baseline.loss.photometric == "l1"
+    assert baseline.loss.lambda_lpips == 0 and baseline.loss.lambda_ssim == 0
+    assert type(with_method(base, "eva-no-cadc").strategy) is DefaultStrategy
+    assert with_method(base, "eva-no-cl").loss.photometric == "l1"
+    assert with_method(base, "eva-part-mean").strategy.history == "part_mean"
+    assert eva.to_dict()["strategy"]["name"] == "ContextAwareStrategy"
+    with pytest.raises(ValueError, match="unknown method"):
+        with_method(base, "gart")
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(anny_model):
+    return teacher_scene(anny_model, n_frames=4, size=40)[0]
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_tiny_end_to_end_run_with_each_method(method, tiny_scene, anny_model):
+    """A couple of dozen steps with each ablation switch: refinements happen, every per-Gaussian
+    tensor stays aligned, the loss stays finite. (LPIPS off: its network is the slow part here.)"""
+    base = preset("tiny", iterations=22, loss=LossConfig(lambda_lpips=0.0))
+    schedule = dict(refine_start_iter=10, refine_stop_iter=22, refine_every=5)
+    base = dataclasses.replace(base, strategy=dataclasses.replace(base.strategy, **schedule))
+    config = with_method(base, method)
+    result = train_avatar(tiny_scene, config, body=anny_model)
+    gs = result.avatar.gaussians
+    assert [r["step"] for r in result.refinements] == [10, 15, 20]
+    assert all(math.isfinite(v) for v in result.losses)
+    assert gs.part_ids.shape == gs.vertex_ids.shape == (len(gs),)
+    assert set(gs.part_ids.unique().tolist()) <= {BODY, HAND, FACE}
+    cadc = method in ("eva", "eva-no-cl", "eva-part-mean")
+    assert type(config.strategy) is (ContextAwareStrategy if cadc else DefaultStrategy)
