@@ -21,20 +21,11 @@ import time
 from pathlib import Path
 
 import torch
+from machine import cpu_name
 
 from eva_engine.body import load_body_model
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def time_call(fn, repeats: int, warmup: int = 1) -> dict:

@@ -35,13 +35,13 @@ import dataclasses
 import datetime as dt
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
+from machine import describe
 
 RESULTS = Path(__file__).resolve().parent / "results"
 TABLE1 = ("3dgs+body", "eva")
@@ -148,12 +148,6 @@ def run_method(ds, config, lpips, label: str) -> dict:
     print(f"  [{label}] done: {entry['n_gaussians']} GS, {entry['train_seconds']:.0f}s train, {lp}",
           file=sys.stderr, flush=True)  # fmt: skip
     return entry
-
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    return (f"{cpu}, {os.cpu_count()} logical CPUs, torch {torch.__version__} with {torch.get_num_threads()} "
-            f"threads, Python {platform.python_version()}")  # fmt: skip
 
 
 def markdown(doc: dict) -> str:
@@ -296,7 +290,7 @@ def main() -> None:
     doc = {
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "command": "python bench/paper_tables.py " + " ".join(sys.argv[1:]),
-        "machine": machine(),
+        "machine": describe(),
         "load_start": [round(x, 2) for x in load_start],
         "config": {
             "dataset": str(path),

@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 import torch
+from machine import cpu_name
 
 RESULTS = Path(__file__).resolve().parent / "results"
 THREADS = 2  # the target machine's core count; --threads overrides
@@ -183,16 +184,8 @@ def _interpreter() -> str:
 
 
 def _machine(threads: int) -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     return dict(
-        cpu=cpu, logical_cores=os.cpu_count(), torch_threads=threads, torch=torch.__version__,
+        cpu=cpu_name(), logical_cores=os.cpu_count(), torch_threads=threads, torch=torch.__version__,
         python=platform.python_version(), platform=platform.platform(),
         load_average_at_start=[round(x, 2) for x in os.getloadavg()],
     )  # fmt: skip

@@ -21,22 +21,13 @@ import time
 from pathlib import Path
 
 import torch
+from machine import cpu_name
 
 from eva_engine.body import load_body_model
 from eva_engine.data import load_dataset
 from eva_engine.data.synthetic import PRESETS, SIZES, generate
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def main() -> None:

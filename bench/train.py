@@ -17,12 +17,11 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
-import platform
 import sys
 from pathlib import Path
 
 import torch
+from machine import describe
 
 RESULTS = Path(__file__).resolve().parent / "results"
 TARGET_SECONDS = 600.0
@@ -79,7 +78,7 @@ def main() -> None:
     entry = {
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "command": "python bench/train.py " + " ".join(sys.argv[1:]),
-        "machine": machine(),
+        "machine": describe(),
         "dataset": str(path),
         "image_size": list(ds.image_size),
         "train_frames": len(ds.splits["train"]),
@@ -100,12 +99,6 @@ def main() -> None:
     json_path.write_text(json.dumps(runs, indent=2))
     (RESULTS / "train.md").write_text(markdown(runs, metrics_table))
     print(markdown({f"{Path(path).name}/{args.preset}": entry}, metrics_table))
-
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    return (f"{cpu}, {os.cpu_count()} logical CPUs, torch {torch.__version__} with {torch.get_num_threads()} "
-            f"threads, Python {platform.python_version()}, load average {os.getloadavg()}")  # fmt: skip
 
 
 def markdown(runs: dict, metrics_table) -> str:
