@@ -139,10 +139,10 @@ def test_splits_and_what_the_pipeline_gets(datasets):
 def test_perturb_imitates_an_estimator(datasets, anny_model):
     gt = datasets["controlled"].gt_params
     names = anny_model.pose_joint_names
-    assert all(torch.equal(a, b) for a, b in zip(perturb(gt, 0.0, joint_names=names).tensors().values(),
+    assert all(torch.equal(a, b) for a, b in zip(perturb(gt, 0.0, model=anny_model).tensors().values(),
                                                  gt.tensors().values(), strict=True))  # fmt: skip
-    noisy = perturb(gt, 1.0, joint_names=names, seed=3)
-    again = perturb(gt, 1.0, joint_names=names, seed=3)
+    noisy = perturb(gt, 1.0, model=anny_model, seed=3)
+    again = perturb(gt, 1.0, model=anny_model, seed=3)
     assert torch.equal(noisy.joints, again.joints)
     err = (noisy.joints - gt.joints).abs().mean(dim=(0, 2))
     hand = torch.tensor(["finger" in n or "wrist" in n or "metacarpal" in n for n in names])
@@ -152,10 +152,10 @@ def test_perturb_imitates_an_estimator(datasets, anny_model):
     assert torch.allclose(
         noisy.shape - gt.shape, (noisy.shape - gt.shape)[:1].expand_as(gt.shape)
     )  # one subject
-    worse = perturb(gt, 3.0, joint_names=names, seed=3)
+    worse = perturb(gt, 3.0, model=anny_model, seed=3)
     assert (worse.joints - gt.joints).abs().mean() > (noisy.joints - gt.joints).abs().mean()
     with pytest.raises(ValueError):
-        perturb(gt, -1.0, joint_names=names)
+        perturb(gt, -1.0, model=anny_model)
     out = anny_model(noisy)
     assert torch.isfinite(out.vertices).all()
 

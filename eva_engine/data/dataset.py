@@ -393,9 +393,8 @@ class DatasetWriter:
         if params is not None:
             _save_params(tmp / "params.safetensors", params, params_names, meta.params_source)
         if keypoints is not None:
-            _save_keypoints(
-                tmp / "keypoints.safetensors", keypoints, keypoint_names, meta.keypoints_source, keypoint_extras
-            )
+            kp_path = tmp / "keypoints.safetensors"
+            _save_keypoints(kp_path, keypoints, keypoint_names, meta.keypoints_source, keypoint_extras)
         if gt_params is not None or gt_keypoints is not None:
             (tmp / "ground_truth").mkdir()
         if gt_params is not None:

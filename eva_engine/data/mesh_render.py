@@ -16,7 +16,6 @@ System requirement: Debian packages ``libegl1 libgl1 libegl-mesa0 libgl1-mesa-dr
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 import torch

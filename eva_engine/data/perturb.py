@@ -9,15 +9,11 @@ scale linearly with ``level`` (0 = no change, 1 = typical of a good estimator).
 from __future__ import annotations
 
 import dataclasses
-import re
 from collections.abc import Sequence
 
 import torch
 
-from eva_engine.body.params import BodyParams
-
-HAND_JOINT_PATTERN = re.compile(r"finger|thumb|index|middle|ring|pinky|wrist|metacarpal|hand", re.IGNORECASE)
-"""Joint names that count as hand joints (Anny's and SMPL-X's names)."""
+from eva_engine.body import PART_NAMES, BodyModel, BodyParams
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,8 +28,6 @@ class PerturbConfig:
     shape: float = 0.05
     bias_fraction: float = 0.5
     """Share of the variance that is a per-sequence bias rather than per-frame jitter."""
-    expression_range: tuple[float, float] | None = (0.0, 1.0)
-    """Clamp expressions to this range (Anny's ARKit coefficients); None for unbounded models."""
 
 
 def _noise(shape: Sequence[int], sigma: float, bias_fraction: float, gen: torch.Generator) -> torch.Tensor:
@@ -47,33 +41,36 @@ def perturb(
     params: BodyParams,
     level: float,
     *,
-    joint_names: Sequence[str],
+    model: BodyModel,
     seed: int = 0,
     config: PerturbConfig | None = None,
 ) -> BodyParams:
     """Estimator-like noisy copy of ``params`` (batch N = frames of one subject).
 
-    joint_names: the model's ``pose_joint_names`` (one per row of ``params.joints``), used to
-    find the hand joints. Deterministic given ``seed``; ``level = 0`` returns an exact copy.
+    model: the body model the parameters are for; its joint parts pick the hand joints and its
+    expression bounds clamp the noisy expressions. Deterministic given ``seed``; ``level = 0``
+    returns an exact copy.
     """
     c = config or PerturbConfig()
     if not level >= 0.0:  # also rejects NaN
         raise ValueError(f"level must be >= 0, got {level}")
-    if len(joint_names) != params.joints.shape[1]:
-        raise ValueError(f"{len(joint_names)} joint names for {params.joints.shape[1]} joints")
+    hand = (model.joint_part_ids[1:] == PART_NAMES.index("hand")).cpu()  # pose joints: all but the root
+    if len(hand) != params.joints.shape[1]:
+        raise ValueError(
+            f"the {model.name} model has {len(hand)} pose joints, the params {params.joints.shape[1]}"
+        )
     if level == 0.0:
         return params.map(lambda t: t.detach().clone())
     gen = torch.Generator().manual_seed(int(seed))
     n = params.batch_size
-    hand = torch.tensor([bool(HAND_JOINT_PATTERN.search(name)) for name in joint_names], dtype=torch.bool)
     sigma = torch.where(hand, c.hand_joint, c.body_joint).to(torch.float64)[None, :, None]
     b = c.bias_fraction
     joints = params.joints.double() + level * sigma * _noise(params.joints.shape, 1.0, b, gen)
     root = params.root_orient.double() + _noise((n, 3), level * c.root_orient, b, gen)
     transl = params.transl.double() + _noise((n, 3), level * c.transl, b, gen)
     expression = params.expression.double() + _noise(params.expression.shape, level * c.expression, b, gen)
-    if c.expression_range is not None:
-        expression = expression.clamp(*c.expression_range)
+    if model.expression_bounds is not None:
+        expression = expression.clamp(*model.expression_bounds)
     shape_offset = torch.randn((1, params.shape.shape[1]), generator=gen, dtype=torch.float64)
     shape = params.shape.double() + level * c.shape * shape_offset
     out = BodyParams(root_orient=root, transl=transl, joints=joints, expression=expression, shape=shape)
