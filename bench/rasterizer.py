@@ -30,6 +30,8 @@ from pathlib import Path
 import torch
 from machine import cpu_name
 
+from eva_engine.demo import quat_from_z
+
 RESULTS = Path(__file__).resolve().parent / "results"
 THREADS = 2  # the target machine's core count; --threads overrides
 # The autograd reference keeps ~16 float32 values per Gaussian-pixel pair alive for backward;
@@ -94,12 +96,7 @@ def body_scene(n: int, size: int, seed: int = 0) -> dict:
         pts.append(p)
         nrm.append(q)
     means, normals = torch.cat(pts), torch.cat(nrm)
-    # Quaternion turning +z onto the normal: a flat disc tangent to the surface.
-    z = torch.tensor([0.0, 0.0, 1.0]).expand_as(normals)
-    axis = torch.linalg.cross(z, normals)
-    w = 1.0 + (normals * z).sum(-1, keepdim=True)
-    quats = torch.cat([w, axis], dim=-1)
-    quats[w[:, 0] < 1e-6] = torch.tensor([0.0, 1.0, 0.0, 0.0])
+    quats = quat_from_z(normals)  # flat discs tangent to the surface
     scales = torch.cat(
         [0.005 + 0.005 * torch.rand(n, 2, generator=gen), 0.001 + 0.001 * torch.rand(n, 1, generator=gen)], -1
     )
