@@ -6,13 +6,19 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+# eva_engine.train.METHODS, spelled out so that the options import without torch (a test checks).
+Method = Literal["3dgs+body", "eva", "eva-no-cadc", "eva-no-cl", "eva-no-cadc-no-cl", "eva-part-mean"]
+
 
 class JobOptions(BaseModel):
     """preset: training preset (``tiny`` for tests, ``fast`` ~minutes on a laptop CPU, ``default``
     the paper's 2,000 iterations); max_frames: frames of the video used (evenly from the start);
     max_size: longest image side the frames are resized to; body_model: ``anny`` (embedded) or
     ``smplx`` (needs the user's own model files); iterations / image_scale: override the preset's;
-    fit_scale: scales the body-model alignment's L-BFGS iterations (1 = the paper's 60/40/60).
+    fit_scale: scales the body-model alignment's L-BFGS iterations (1 = the paper's 60/40/60);
+    method: the training method (``eva_engine.train.METHODS``: ``eva`` is the paper's full
+    method, ``3dgs+body`` its baseline); None: the preset's own (3DGS density control with the
+    full objective).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -24,6 +30,7 @@ class JobOptions(BaseModel):
     iterations: int | None = Field(None, ge=1, le=100_000)
     image_scale: float | None = Field(None, gt=0.05, le=1.0)
     fit_scale: float = Field(1.0, gt=0.0, le=4.0)
+    method: Method | None = None
 
     def fit_config(self):
         """The alignment's ``FitConfig`` with ``fit_scale`` applied."""

@@ -201,7 +201,7 @@ class Pipeline:
 
         from eva_engine.avatar import save_avatar
         from eva_engine.data import load_dataset
-        from eva_engine.train import preset, train_avatar
+        from eva_engine.train import preset, train_avatar, with_method
 
         ds = load_dataset(dataset_dir)
         body = self.body_model(ds.meta.body_model or options.body_model)
@@ -211,6 +211,8 @@ class Pipeline:
         if options.image_scale is not None:
             overrides["image_scale"] = options.image_scale
         config = preset(options.preset, **overrides)
+        if options.method is not None:
+            config = with_method(config, options.method)
         report("train", 0.0, message="setting up training", force=True)
 
         def progress(p) -> None:
@@ -233,6 +235,7 @@ class Pipeline:
             "iterations": config.iterations,
             "final_loss": result.losses[-1],
             "timings": result.timings,
+            "gaussians_per_part": result.gaussians_per_part,
             "metrics": metrics,
             "frames": {"count": len(ds), "image_size": list(ds.meta.image_size), "fps": ds.meta.fps},
             "created_at": time.time(),

@@ -87,10 +87,13 @@ def region_mask(avatar: Avatar, params: BodyParams, camera: Camera, part: int) -
 
 
 @torch.no_grad()
-def teacher_scene(body, n_frames: int = 10, size: int = 64, seed: int = 0) -> tuple[SceneDataset, Avatar]:
-    """Render ``n_frames`` poses of the teacher; every third frame is a novel-pose test frame."""
+def teacher_scene(
+    body, n_frames: int = 10, size: int = 64, seed: int = 0, amplitude: float = 0.4
+) -> tuple[SceneDataset, Avatar]:
+    """Render ``n_frames`` poses of the teacher (``random_params``' amplitude); every third frame
+    is a novel-pose test frame."""
     teacher = teacher_avatar(body, seed=seed)
-    params = random_params(body, n_frames, seed)
+    params = random_params(body, n_frames, seed, amplitude)
     cam = front_camera(size)
     bg = torch.ones(3)
     frames = []

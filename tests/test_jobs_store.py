@@ -103,3 +103,13 @@ def test_cancel_a_running_job(queue, tmp_path):
     job = queue.store.get(job_id)
     assert job.state == "cancelled" and job.error is None
     assert not queue.storage.work_dir(job_id).exists()
+
+
+def test_job_methods_are_the_engines():
+    import typing
+
+    from eva_engine.train import METHODS
+    from jobs.options import Method
+
+    assert typing.get_args(Method) == METHODS
+    assert JobOptions(method="eva").method == "eva"

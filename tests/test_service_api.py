@@ -142,8 +142,8 @@ def test_video_over_the_length_limit_is_422(tmp_path, signer_video):
     ("options", "needle"),
     [({"preset": "huge"}, "preset"), ({"max_frames": "0"}, "max_frames"),
      ({"body_model": "smpl"}, "body_model"), ({"image_scale": "2"}, "image_scale"),
-     ({"iterations": "many"}, "iterations")],  # fmt: skip
-    ids=["preset", "max_frames", "body_model", "image_scale", "iterations"],
+     ({"iterations": "many"}, "iterations"), ({"method": "gart"}, "method")],  # fmt: skip
+    ids=["preset", "max_frames", "body_model", "image_scale", "iterations", "method"],
 )
 def test_bad_options_are_422(client, signer_video, tmp_path, options, needle):
     res = upload(client, signer_video.read_bytes(), **options)
@@ -190,6 +190,7 @@ def test_job_records_survive_a_restart_of_the_api(tmp_path, signer_video):
     with make_client(tmp_path) as client:
         job = client.get(f"/jobs/{ids['job_id']}").json()
         assert job["state"] == "queued" and job["options"]["iterations"] == 6
+        assert job["options"]["method"] is None
         assert client.get("/avatars").json()["avatars"][0]["avatar_id"] == ids["avatar_id"]
 
 

@@ -20,13 +20,16 @@ def dataset(anny_model, tmp_path_factory):
 def test_train_then_eval(dataset, tmp_path):
     runner = CliRunner()
     out = tmp_path / "avatar"
-    res = runner.invoke(
-        app, ["train", str(dataset), "--out", str(out), "--preset", "tiny", "--iterations", "30"]
-    )
+    args = ["--preset", "tiny", "--iterations", "30", "--method", "eva"]
+    res = runner.invoke(app, ["train", str(dataset), "--out", str(out), *args])
     assert res.exit_code == 0, res.output
     assert (out / "avatar.ply").is_file() and (out / "avatar.safetensors").is_file()
     info = json.loads((out / "avatar.json").read_text())
-    assert info["iterations"] == 30 and info["train_config"]["strategy"]["name"] == "DefaultStrategy"
+    assert info["iterations"] == 30 and info["method"] == "eva"
+    assert info["train_config"]["strategy"]["name"] == "ContextAwareStrategy"
+    assert info["train_config"]["loss"]["photometric"] == "confidence"
+    per_part = info["gaussians_per_part"]
+    assert per_part["before"]["hand"] > 0 and sum(per_part["after"].values()) == info["num_gaussians"]
     assert info["num_gaussians"] > 0 and info["train_seconds"] > 0
     report = tmp_path / "metrics.json"
     res = runner.invoke(app, ["eval", str(out), str(dataset), "--json", str(report)])
@@ -47,3 +50,5 @@ def test_cli_errors(tmp_path, dataset):
     assert res.exit_code == 2 and "no avatar directory" in res.output
     res = runner.invoke(app, ["train", str(dataset), "--out", str(tmp_path / "a"), "--preset", "huge"])
     assert res.exit_code == 2 and "unknown preset" in res.output
+    res = runner.invoke(app, ["train", str(dataset), "--out", str(tmp_path / "a"), "--method", "gart"])
+    assert res.exit_code == 2 and "unknown method" in res.output

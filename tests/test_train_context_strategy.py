@@ -125,6 +125,23 @@ def test_no_previous_window_means_no_history_term():
     assert s.densify_thresholds(state, gs) == pytest.approx(torch.tensor(s.part_grad_base))
 
 
+def test_a_gaussian_budget_keeps_the_candidates_furthest_above_their_own_threshold():
+    """max_gaussians = N + 1: one densification. A hand Gaussian 1.5x over its 1e-4 beats a body
+    Gaussian 1.25x over its 2e-4 although its gradient is smaller."""
+    gs = gaussians([BODY, HAND, FACE])
+    s = strategy(max_gaussians=4, part_prune_dist=None, prune_template_dist=10.0)
+    state = drive(s, gs, [torch.tensor([2.5e-4, 1.5e-4, 0.5e-4])] * (2 * R + 1))
+    stats = s.refine(gs, {}, state)
+    assert stats["cloned"] == 1 and len(gs) == 4 and gs.part_ids.tolist() == [BODY, HAND, FACE, HAND]
+    # The baseline (one threshold for all) takes the largest gradient.
+    gs = gaussians([BODY, HAND, FACE])
+    base = DefaultStrategy(refine_start_iter=2 * R, refine_every=R, max_gaussians=4, grow_grad2d=1e-4,
+                           prune_template_dist=10.0)  # fmt: skip
+    state = drive(base, gs, [torch.tensor([2.5e-4, 1.5e-4, 0.5e-4])] * (2 * R + 1))
+    base.refine(gs, {}, state)
+    assert gs.part_ids.tolist() == [BODY, HAND, FACE, BODY]
+
+
 def test_refine_keeps_state_aligned_and_children_inherit_part_and_history():
     parts = [BODY, HAND, FACE, BODY, HAND, FACE, BODY, FACE]
     gs = gaussians(parts, seed=1)

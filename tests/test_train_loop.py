@@ -55,6 +55,9 @@ def test_training_fits_and_generalises_to_novel_poses(trained, scene, lpips):
     # Density control ran in its window and the bookkeeping held.
     assert [r["step"] for r in result.refinements] == [40, 60]
     assert len(result.avatar.gaussians) == result.refinements[-1]["gaussians"]
+    # Every part is in view here: none is dropped after training.
+    assert sum(result.gaussians_per_part["before"].values()) == preset("tiny").avatar.init_max_gaussians
+    assert all(n > 0 for n in result.gaussians_per_part["after"].values())
     # Progress: setup, train reports with a falling ETA, done.
     assert reports[0].stage == "setup" and reports[-1].stage == "done"
     train = [r for r in reports if r.stage == "train"]

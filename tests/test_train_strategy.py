@@ -155,3 +155,51 @@ def test_check_sanity_rejects_foreign_optimizers():
     opts = {"means": torch.optim.Adam([torch.nn.Parameter(torch.zeros(3))])}
     with pytest.raises(ValueError, match="exactly"):
         DefaultStrategy().check_sanity(gs, opts)
+
+
+def off_screen(render: RenderOutput, rows: torch.Tensor) -> RenderOutput:
+    """``render`` with ``rows`` culled (radius 0, no gradient), as off-screen Gaussians are."""
+    render.radii[rows] = 0
+    render.means2d.grad[rows] = 0.0
+    return render
+
+
+@pytest.mark.parametrize("prune", [True, False])
+def test_parts_never_seen_are_removed_after_training(prune):
+    """Hands (part 1) off screen in every step: finalize removes exactly them, keeping splats,
+    optimizer state and buffers aligned; with ``prune_unseen_parts=False`` nothing changes."""
+    gs = make_gaussians()
+    opts = optimizers_after_a_step(gs)
+    strategy = DefaultStrategy(refine_start_iter=100, prune_unseen_parts=prune)
+    state = strategy.initialize_state()
+    hands = gs.part_ids == 1
+    for step in range(4):
+        grad = torch.full((N, 2), 1e-7)
+        strategy.step_post_backward(gs, opts, state, step, off_screen(fake_render(N, grad), hands))
+    assert state["part_seen"] == [4, 0, 4]
+    stats = strategy.finalize(gs, opts, state)
+    if not prune:
+        assert stats == {} and len(gs) == N
+        return
+    assert stats == {"unseen_parts": ["hand"], "pruned": N // 3, "gaussians": N - N // 3}
+    assert len(gs) == N - N // 3 and not bool((gs.part_ids == 1).any())
+    assert gs.vertex_ids.shape == (len(gs),)
+    for k, p in gs.splats.items():
+        assert opts[k].state[p]["exp_avg"].shape[0] == len(gs)
+
+
+def test_a_part_seen_once_is_kept_and_nothing_seen_removes_nothing():
+    gs = make_gaussians()
+    opts = optimizers_after_a_step(gs)
+    strategy = DefaultStrategy(refine_start_iter=100)
+    state = strategy.initialize_state()
+    hands = gs.part_ids == 1
+    grad = torch.full((N, 2), 1e-7)
+    strategy.step_post_backward(gs, opts, state, 0, off_screen(fake_render(N, grad.clone()), hands))
+    strategy.step_post_backward(gs, opts, state, 1, fake_render(N, grad.clone()))  # hands seen once
+    assert strategy.finalize(gs, opts, state) == {} and len(gs) == N
+    # On screen but with exactly zero gradient (fully occluded) does not count as seen.
+    state = strategy.initialize_state()
+    strategy.step_post_backward(gs, opts, state, 0, fake_render(N, torch.zeros(N, 2)))
+    assert state["part_seen"] == [0, 0, 0]
+    assert strategy.finalize(gs, opts, state) == {} and len(gs) == N  # never remove everything

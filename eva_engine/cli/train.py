@@ -18,6 +18,10 @@ def train(
     ),
     out: Path = typer.Option(..., "--out", "-o", help="Avatar directory to write."),
     preset: str = typer.Option("default", help="Training preset: tiny, fast or default (the paper's)."),
+    method: str | None = typer.Option(
+        None,
+        help="Method: eva (the paper's), 3dgs+body (its baseline) or an ablation; default: the preset's.",
+    ),
     iterations: int | None = typer.Option(None, min=1, help="Override the preset's iteration count."),
     image_scale: float | None = typer.Option(None, min=0.05, max=4.0, help="Resample frames by this factor."),
     device: str = typer.Option("cpu", help="cpu or cuda."),
@@ -29,13 +33,17 @@ def train(
 
     from eva_engine.avatar import save_avatar
     from eva_engine.data import DatasetError, load_dataset
-    from eva_engine.train import PRESETS, TrainingError, train_avatar
+    from eva_engine.train import METHODS, PRESETS, TrainingError, train_avatar, with_method
     from eva_engine.train import preset as make_preset
 
     console = Console(stderr=True)
     if preset not in PRESETS:
         raise typer.BadParameter(
             f"unknown preset {preset!r}; choose one of {list(PRESETS)}", param_hint="--preset"
+        )
+    if method is not None and method not in METHODS:
+        raise typer.BadParameter(
+            f"unknown method {method!r}; choose one of {list(METHODS)}", param_hint="--method"
         )
     if not dataset.is_dir():
         console.print(f"[red]error:[/] no dataset folder at {dataset}")
@@ -51,6 +59,8 @@ def train(
     if image_scale is not None:
         overrides["image_scale"] = image_scale
     config = make_preset(preset, **overrides)
+    if method is not None:
+        config = with_method(config, method)
 
     columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                TextColumn("loss {task.fields[loss]:.4f}"), TextColumn("{task.fields[gaussians]} GS"),
@@ -72,12 +82,14 @@ def train(
     info = {
         "dataset": str(dataset.resolve()),
         "preset": preset,
+        "method": method,
         "train_config": config.to_dict(),
         "train_seconds": result.train_seconds,
         "iterations": config.iterations,
         "final_loss": result.losses[-1],
         "timings": result.timings,
         "refinements": result.refinements,
+        "gaussians_per_part": result.gaussians_per_part,
     }
     save_avatar(result.avatar, out, info)
     console.print(

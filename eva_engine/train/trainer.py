@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from eva_engine.avatar import Avatar, Camera
-from eva_engine.body.model import BodyModel
+from eva_engine.body.model import PART_NAMES, BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.train.config import TrainConfig
 from eva_engine.train.losses import AvatarLoss, composite_target
@@ -51,13 +51,21 @@ class TrainProgress:
 class TrainResult:
     """avatar: the trained model (eval mode); losses: total loss per iteration;
     train_seconds: wall time of the optimisation loop; timings: seconds per stage (``STAGES``);
-    refinements: the strategy's reports (step and counts)."""
+    refinements: the strategy's reports (step and counts; the last one, with step = iterations,
+    is ``finalize``'s if it changed anything); gaussians_per_part: {"before", "after"} ->
+    {part name: count} at the start and the end of training."""
 
     avatar: Avatar
     losses: list[float]
     train_seconds: float
     timings: dict[str, float]
     refinements: list[dict] = field(default_factory=list)
+    gaussians_per_part: dict[str, dict[str, int]] = field(default_factory=dict)
+
+
+def part_counts(part_ids: Tensor) -> dict[str, int]:
+    """{part name: number of Gaussians} for ``part_ids [N]``."""
+    return {name: int((part_ids == i).sum()) for i, name in enumerate(PART_NAMES)}
 
 
 @dataclass
@@ -188,6 +196,7 @@ def train_avatar(
     strategy = config.strategy
     strategy.check_sanity(avatar.gaussians, optimizers)
     state = strategy.initialize_state()
+    parts_before = part_counts(avatar.gaussians.part_ids)
     logger.info("setup %.1fs: %d frames, %d Gaussians", time.perf_counter() - t_setup, len(train_ids),
                 len(avatar.gaussians))  # fmt: skip
 
@@ -246,9 +255,16 @@ def train_avatar(
                 TrainProgress("train", done, config.iterations, loss, len(avatar.gaussians), elapsed, eta)
             )
 
+    t = time.perf_counter()
+    stats = strategy.finalize(avatar.gaussians, optimizers, state)
+    if stats:
+        refinements.append({"step": config.iterations, **stats})
+        logger.info("after training: %s", stats)
+    tick("densify", t)
     train_seconds = time.perf_counter() - start
     avatar.eval()
     if progress:
         progress(TrainProgress("done", config.iterations, config.iterations, losses[-1],
                                len(avatar.gaussians), train_seconds, 0.0))  # fmt: skip
-    return TrainResult(avatar, losses, train_seconds, timings, refinements)
+    per_part = {"before": parts_before, "after": part_counts(avatar.gaussians.part_ids)}
+    return TrainResult(avatar, losses, train_seconds, timings, refinements, per_part)

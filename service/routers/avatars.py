@@ -9,7 +9,7 @@ from fastapi.responses import FileResponse
 
 from eva_engine.avatar import read_avatar_info
 from eva_engine.body import BodyPose
-from jobs.options import JobOptions
+from jobs.options import JobOptions, Method
 from jobs.store import JobRecord, new_id
 from service import rendering
 from service.deps import ServiceContext, avatar_record, context, ready_avatar
@@ -41,10 +41,12 @@ async def create_avatar(
     iterations: int | None = Form(None, ge=1, le=100_000),
     image_scale: float | None = Form(None, gt=0.05, le=1.0),
     fit_scale: float = Form(1.0, gt=0.0, le=4.0),
+    method: Method | None = Form(None, description="Training method (eva, 3dgs+body, ablations)."),
     ctx: ServiceContext = Depends(context),
 ) -> AvatarCreated:
     options = JobOptions(preset=preset, max_frames=max_frames, max_size=max_size, body_model=body_model,
-                         iterations=iterations, image_scale=image_scale, fit_scale=fit_scale)  # fmt: skip
+                         iterations=iterations, image_scale=image_scale, fit_scale=fit_scale,
+                         method=method)  # fmt: skip
     queue, settings = ctx.queue, ctx.settings
     job_id, avatar_id = new_id(), new_id()
     work = queue.storage.work_dir(job_id)

@@ -2,7 +2,8 @@
 
 A trainer holds ``strategy`` and ``state = strategy.initialize_state()`` and calls, per step,
 ``strategy.step_post_backward(gaussians, optimizers, state, step, render)`` after the backward
-pass and optimizer step (``render.means2d.grad`` then holds the screen-space gradient). The
+pass and optimizer step (``render.means2d.grad`` then holds the screen-space gradient), and
+``strategy.finalize(gaussians, optimizers, state)`` once after the last step. The
 strategy may add, split or remove Gaussians; it does so only through ``strategy.ops``, which
 keep splats, optimizer state, per-Gaussian buffers and every per-Gaussian tensor of ``state``
 aligned. All mutable data lives in ``state``; the strategy object itself is configuration.
@@ -42,4 +43,9 @@ class Strategy:
         render: RenderOutput,
     ) -> dict[str, int]:
         """Update statistics and maybe refine; returns counts of what changed (may be empty)."""
+        return {}
+
+    def finalize(self, gaussians: CanonicalGaussians, optimizers: Optimizers, state: dict) -> dict:
+        """Called once after the last step; may remove Gaussians (through ``ops``). Returns what
+        changed (may be empty)."""
         return {}

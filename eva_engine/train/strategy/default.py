@@ -10,6 +10,14 @@ when small (max scale <= ``grow_scale3d``) or split when large; then Gaussians w
 ``prune_opa``, scale above ``prune_scale3d``, or canonical distance to the template above
 ``prune_distance_thresholds`` are removed, and the accumulators reset (``end_window``).
 
+**Parts never seen** (``prune_unseen_parts``; "model only what a scene needs"): every step
+records which parts (body, hand, face) had a Gaussian that reached the image, i.e. was on screen
+and received a non-zero screen-space gradient (off-screen and fully occluded Gaussians get
+none). After the last step (``finalize``), the Gaussians of a part that was never seen are
+removed: a video that never shows the hands must not spend Gaussians on untrained hands. This
+is decided at the end, not at a refinement, because a part may first appear late in the frame
+order.
+
 Subclasses change the policy through the three hooks (``densify_thresholds``,
 ``prune_distance_thresholds``, ``end_window``) and extra per-Gaussian entries in ``state``, which
 the ops keep aligned; e.g. issue 6's context-aware strategy keeps the previous window's gradient
@@ -24,6 +32,7 @@ import torch
 from torch import Tensor
 
 from eva_engine.avatar.gaussians import CanonicalGaussians
+from eva_engine.body.model import PART_NAMES
 from eva_engine.render import RenderOutput
 from eva_engine.train.strategy import ops
 from eva_engine.train.strategy.base import Strategy
@@ -43,7 +52,9 @@ class DefaultStrategy(Strategy):
     refine_start_iter, refine_stop_iter, refine_every: the densification window (EVA: 400, 1000,
         100).
     reset_every: opacity reset period (3DGS: 3000; longer than EVA's 2,000 iterations, so off).
-    max_gaussians: optional budget: above it, only the strongest candidates are densified.
+    max_gaussians: optional budget: above it, only the candidates furthest above their
+        threshold (gradient / threshold) are densified.
+    prune_unseen_parts: remove, after training, the Gaussians of parts no step ever saw.
     seed: for the split samples.
     """
 
@@ -57,12 +68,15 @@ class DefaultStrategy(Strategy):
     refine_every: int = 100
     reset_every: int = 3000
     max_gaussians: int | None = None
+    prune_unseen_parts: bool = True
     seed: int = 0
 
     def initialize_state(self) -> dict:
         return {
             "grad2d": None,  # [N] summed gradient norms of the current window
             "count": None,  # [N] steps each Gaussian was visible in the window
+            # Steps in which each part was seen: a list (not a per-Gaussian tensor the ops edit).
+            "part_seen": [0] * len(PART_NAMES),
             "generator": torch.Generator().manual_seed(self.seed),
         }
 
@@ -81,6 +95,18 @@ class DefaultStrategy(Strategy):
         state["count"].zero_()
 
     # -- the step ----------------------------------------------------------------------------
+    @staticmethod
+    @torch.no_grad()
+    def record_seen_parts(gaussians: CanonicalGaussians, state: dict, render: RenderOutput) -> None:
+        """Count this step for every part with a Gaussian on screen and a non-zero gradient."""
+        grad = render.means2d.grad
+        if grad is None:
+            return
+        reached = (render.radii > 0) & (grad.abs().amax(dim=-1) > 0)
+        seen = torch.bincount(gaussians.part_ids[reached], minlength=len(PART_NAMES))
+        for part, n in enumerate(seen.tolist()[: len(PART_NAMES)]):
+            state["part_seen"][part] += int(n > 0)
+
     @torch.no_grad()
     def update_state(self, gaussians: CanonicalGaussians, state: dict, render: RenderOutput) -> None:
         n = len(gaussians)
@@ -105,6 +131,7 @@ class DefaultStrategy(Strategy):
         step: int,
         render: RenderOutput,
     ) -> dict[str, int]:
+        self.record_seen_parts(gaussians, state, render)
         if step >= self.refine_stop_iter:
             return {}
         self.update_state(gaussians, state, render)
@@ -119,11 +146,14 @@ class DefaultStrategy(Strategy):
     def refine(self, gaussians: CanonicalGaussians, optimizers: Optimizers, state: dict) -> dict[str, int]:
         """Densify then prune (see the module docstring); returns the counts."""
         grads = state["grad2d"] / state["count"].clamp_min(1)
-        candidates = grads > self.densify_thresholds(state, gaussians)
+        thresholds = self.densify_thresholds(state, gaussians)
+        candidates = grads > thresholds
         if self.max_gaussians is not None:
             room = max(self.max_gaussians - len(gaussians), 0)
             if int(candidates.sum()) > room:
-                order = torch.argsort(torch.where(candidates, grads, -1.0), descending=True)
+                # Strongest first, relative to each Gaussian's own threshold.
+                excess = grads / thresholds.clamp_min(1e-12)
+                order = torch.argsort(torch.where(candidates, excess, -1.0), descending=True)
                 candidates = torch.zeros_like(candidates)
                 candidates[order[:room]] = True
         small = gaussians.scales().amax(dim=-1) <= self.grow_scale3d
@@ -149,3 +179,21 @@ class DefaultStrategy(Strategy):
         gaussians.refresh_vertex_ids()
         self.end_window(state)
         return {"cloned": n_clone, "split": n_split, "pruned": n_prune, "gaussians": len(gaussians)}
+
+    @torch.no_grad()
+    def finalize(self, gaussians: CanonicalGaussians, optimizers: Optimizers, state: dict) -> dict:
+        """Remove the Gaussians of parts never seen (``prune_unseen_parts``); returns what it did
+        (empty when nothing changed)."""
+        unseen = [p for p, n in enumerate(state.get("part_seen", [])) if n == 0]
+        if not self.prune_unseen_parts or not unseen:
+            return {}
+        drop = torch.isin(gaussians.part_ids, torch.tensor(unseen, device=gaussians.part_ids.device))
+        if bool(drop.all()) or not bool(drop.any()):  # nothing seen at all, or nothing to drop
+            return {}
+        ops.remove(gaussians, optimizers, state, drop)
+        gaussians.refresh_vertex_ids()
+        return {
+            "unseen_parts": [PART_NAMES[p] for p in unseen],
+            "pruned": int(drop.sum()),
+            "gaussians": len(gaussians),
+        }
