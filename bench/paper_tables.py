@@ -219,31 +219,44 @@ def markdown(doc: dict) -> str:
                 f"{1000 * p['face_lpips']:.2f}",
             ]
             lines.append("| " + " | ".join(cells) + " |")
-        lines += ["", f"![speed vs error]({doc['figure']})"]
+        if set(CURVE_METHODS) <= {p["method"] for p in doc["curve"]}:
+            lines += ["", f"![speed vs error]({doc['figure']})"]
     if doc.get("findings"):
         lines += ["", "## Findings", "", *doc["findings"]]
     return "\n".join(lines) + "\n"
 
 
-def figure(curve: list[dict], path: Path) -> None:
+def figure(doc: dict, path: Path) -> None:
+    """Hand and face LPIPS against training time and against the final Gaussian count: the
+    baseline's and EVA's curves over the budgets, and the ``eva-same-gs`` run as a point."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    curve = list(doc["curve"])
+    if SAME_GS in doc["methods"]:
+        e = doc["methods"][SAME_GS]
+        curve.append({"method": SAME_GS, "train_seconds": e["train_seconds"], "n_gaussians": e["n_gaussians"],
+                      "hand_lpips": e["hand"]["lpips"], "face_lpips": e["face"]["lpips"]})  # fmt: skip
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for method, marker in zip(CURVE_METHODS, ("o", "s"), strict=True):
+    styles = zip((*CURVE_METHODS, SAME_GS), ("o", "s", "*"), ("C0", "C3", "C2"), strict=True)
+    for method, marker, color in styles:
         pts = sorted((p for p in curve if p["method"] == method), key=lambda p: p["train_seconds"])
+        if not pts:
+            continue
         for region, style in (("hand", "-"), ("face", "--")):
             y = [1000 * p[f"{region}_lpips"] for p in pts]
             for ax, key in zip(axes, ("train_seconds", "n_gaussians"), strict=True):
-                ax.plot([p[key] for p in pts], y, style, marker=marker, label=f"{method} {region}")
+                ax.plot([p[key] for p in pts], y, style, marker=marker, color=color,
+                        markersize=10 if marker == "*" else 6, label=f"{method} {region}")  # fmt: skip
     axes[0].set_xlabel("training time (s, wall clock)")
     axes[1].set_xlabel("Gaussians at the end")
     for ax in axes:
         ax.set_ylabel("LPIPS ×1000 (lower is better)")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
     fig.suptitle("Hand and face LPIPS vs training budget (synthetic controlled preset)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -266,12 +279,18 @@ def main() -> None:
     ap.add_argument("--perturb", type=float, default=0.0,
                     help="jitter the training frames' body parameters (level)")  # fmt: skip
     ap.add_argument("--name", default="paper_tables", help="result file stem (.json, .md)")
+    ap.add_argument("--replot", action="store_true", help="only rewrite the .md and figure from the .json")
     ap.add_argument("--budgets", nargs="+", type=float, default=[0.25, 0.5, 1.0],
                     help="schedule fractions for the speed curve (1.0 reuses the table runs)")  # fmt: skip
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", type=Path, default=RESULTS, help="results folder")
     args = ap.parse_args()
+    if args.replot:
+        doc = json.loads((args.out / f"{args.name}.json").read_text())
+        doc["findings"] = findings(doc["methods"])
+        save(doc, args.out, args.name)
+        return
 
     from eva_engine.data import load_dataset
     from eva_engine.metrics import LPIPS
@@ -380,8 +399,8 @@ def main() -> None:
 def save(doc: dict, out: Path, name: str) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{name}.json").write_text(json.dumps(doc, indent=2, default=str))
-    if len({p["method"] for p in doc["curve"]}) == len(CURVE_METHODS):
-        figure(doc["curve"], out / doc["figure"])
+    if set(CURVE_METHODS) <= {p["method"] for p in doc["curve"]}:
+        figure(doc, out / doc["figure"])
     (out / f"{name}.md").write_text(markdown(doc))
 
 
