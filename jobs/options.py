@@ -6,7 +6,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-# eva_engine.train.METHODS, spelled out so that the options import without torch (a test checks).
+# eva_engine.train.METHODS, spelled out so that the options import without torch (a test checks
+# the two agree).
 Method = Literal["3dgs+body", "eva", "eva-no-cadc", "eva-no-cl", "eva-no-cadc-no-cl", "eva-part-mean"]
 
 
