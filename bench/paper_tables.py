@@ -3,9 +3,10 @@ CADC, w/o CL, EVA) on the synthetic ``controlled`` preset with ground-truth body
 XHumans setting), plus a speed-vs-error figure (hand and face LPIPS against wall-clock training
 time, and against the Gaussian count) for the baseline and EVA.
 
-    .venv/bin/python bench/paper_tables.py         # what was committed (2-core CPU, ~25 min)
-    .venv/bin/python bench/paper_tables.py --preset default --image-scale 1 --test-every 1 \
-        --device cuda                              # the paper-size configuration (512 px, 2,000 its)
+    .venv/bin/python bench/paper_tables.py         # the committed tables (2-core CPU, 13 min)
+    .venv/bin/python bench/paper_tables.py --preset default --image-scale 1 \
+        --methods 3dgs+body eva eva-same-gs --budgets 1 --name paper_tables_512
+                                                   # the paper's size (512 px, 2,000 its; 30 min)
     .venv/bin/python bench/paper_tables.py --methods eva eva-no-cl --perturb 0.5 --budgets 1 \
         --name cl_misaligned                       # CL under misalignment (jittered training fits)
     .venv/bin/python bench/paper_tables.py --size tiny --preset tiny --image-scale 1 --budgets 1
@@ -19,7 +20,7 @@ shortened to each ``--budgets`` fraction (densification window and SH schedule s
 each point is what that training time buys.
 
 The defaults are what fits this project's machine (2 CPU cores, where 512 px / 2,000 iterations
-takes ~11 minutes per method): the ``fast`` preset (600 iterations, densification 120..300
+takes 6 to 13 minutes of training per method): the ``fast`` preset (600 iterations, densification 120..300
 every 30, 6,000 seeds) on frames resampled to half size (256 px), every second novel-pose test
 frame. Hands are ~20 px wide at that scale.
 
