@@ -132,10 +132,9 @@ def run_method(ds, config, lpips, label: str) -> dict:
     t0 = time.perf_counter()
     ev = evaluate_avatar(result.avatar, ds, lpips=lpips, train_seconds=result.train_seconds)
     eval_seconds = time.perf_counter() - t0
-    initial = sum(r.get("pruned", 0) - r.get("cloned", 0) - r.get("split", 0) for r in result.refinements)
     entry = {
         "n_gaussians": len(result.avatar.gaussians),
-        "n_gaussians_initial": len(result.avatar.gaussians) + initial,
+        "n_gaussians_initial": sum(result.gaussians_per_part["before"].values()),
         "gaussians_per_part": result.gaussians_per_part["after"],
         "gaussians_per_part_initial": result.gaussians_per_part["before"],
         "train_seconds": result.train_seconds,
@@ -204,10 +203,9 @@ def markdown(doc: dict) -> str:
         table("Further rows: both contributions off; the official per-part-mean CADC", extra)
     lines += ["## Gaussians per part (body / hand / face), before and after training", ""]
     for name, e in doc["methods"].items():
-        a, b = e["gaussians_per_part"], e.get("gaussians_per_part_initial")
         fmt = "{body:,} / {hand:,} / {face:,}"
-        start = fmt.format(**b) if b else f"{e['n_gaussians_initial']:,} in all"
-        lines.append(f"- {name}: {start} → {fmt.format(**a)}")
+        before, after = e["gaussians_per_part_initial"], e["gaussians_per_part"]
+        lines.append(f"- {name}: {fmt.format(**before)} → {fmt.format(**after)}")
     if doc.get("curve"):
         lines += ["", "## Speed vs error (the figure's points)", "",
                   "| Method | budget | iterations | Train (s) | N-GS | Hand LPIPS↓ | Face LPIPS↓ |",
