@@ -108,8 +108,7 @@ def table3(model, dataset: Path, preset_name: str, iterations: int | None, image
     camera's frames (train + test_pose); the side-view frames are not used by either run."""
     import copy
 
-    from eva_engine.eval import evaluate_avatar
-    from eva_engine.metrics import LPIPS
+    from eva_engine.eval import ImageMetrics, evaluate_avatar
     from eva_engine.train import preset, train_avatar
 
     ds = load_dataset(dataset)
@@ -120,7 +119,7 @@ def table3(model, dataset: Path, preset_name: str, iterations: int | None, image
     fitted = fit_sequence(model, targets, init=init).params
     overrides = {"image_scale": image_scale} | ({"iterations": iterations} if iterations else {})
     config = preset(preset_name, **overrides)
-    lpips = LPIPS()
+    metrics = ImageMetrics()
     rows = {}
     for name, params in (("w/o Align (initial estimate)", init), ("w/ Align (fitted)", fitted)):
         full = ds.gt_params.map(lambda t: t.clone())  # side-view rows: unused by training and eval
@@ -132,9 +131,9 @@ def table3(model, dataset: Path, preset_name: str, iterations: int | None, image
         started = time.perf_counter()
         result = train_avatar(variant, config, body=model)
         seconds = time.perf_counter() - started
-        ev = evaluate_avatar(result.avatar, variant, "test_pose", lpips=lpips, train_seconds=seconds)
+        ev = evaluate_avatar(result.avatar, variant, "test_pose", metrics=metrics, train_seconds=seconds)
         rows[name] = ev
-        print(name, {k: (v.psnr, v.ssim, v.lpips) for k, v in ev.regions.items()}, flush=True)
+        print(name, {k: (v.psnr, v.ssim, v.lpips_vgg) for k, v in ev.regions.items()}, flush=True)
     return {
         "dataset": str(dataset),
         "preset": preset_name,
@@ -144,7 +143,8 @@ def table3(model, dataset: Path, preset_name: str, iterations: int | None, image
             k: {
                 "train_seconds": v.train_seconds,
                 "n_gaussians": v.num_gaussians,
-                **{r: {"psnr": m.psnr, "ssim": m.ssim, "lpips": m.lpips} for r, m in v.regions.items()},
+                **{r: {"psnr": m.psnr, "ssim": m.ssim, "lpips_vgg": m.lpips_vgg, "lpips_alex": m.lpips_alex}
+                   for r, m in v.regions.items()},
             }
             for k, v in rows.items()
         },  # fmt: skip
@@ -253,15 +253,17 @@ def markdown(report: dict) -> str:
             f"## Table 3 on our data: avatar quality without / with alignment (wild preset, `{t['preset']}` "
             f"preset, {t['iterations']} iterations, image scale {t['image_scale']})",
             "",
-            "| parameters | Full PSNR | Full LPIPS×1000 | Hand PSNR | Hand LPIPS×1000 | Face PSNR | "
-            "Face LPIPS×1000 | N-GS |",
+            "| parameters | Full PSNR | Full LPIPS-VGG×1000 | Hand PSNR | Hand LPIPS-VGG×1000 | Face PSNR | "
+            "Face LPIPS-VGG×1000 | N-GS |",
             "|---|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for name, r in t["rows"].items():
             cells = []
             for region in ("full", "hand", "face"):
                 m = r.get(region)
-                cells += ["-", "-"] if m is None else [f"{m['psnr']:.2f}", f"{1000 * m['lpips']:.1f}"]
+                vgg = None if m is None else m.get("lpips_vgg")  # runs before LPIPS-VGG: not measured
+                lp = "-" if vgg is None else f"{1000 * vgg:.1f}"
+                cells += ["-", "-"] if m is None else [f"{m['psnr']:.2f}", lp]
             lines.append(f"| {name} | " + " | ".join(cells) + f" | {r['n_gaussians']:,} |")
         lines.append("")
     if report.get("videos"):

@@ -101,8 +101,19 @@ def main() -> None:
     print(markdown({f"{Path(path).name}/{args.preset}": entry}, metrics_table))
 
 
+def region_metrics(v: dict):
+    """A stored region entry as ``RegionMetrics``; runs recorded before LPIPS-VGG existed have only
+    ``lpips`` (AlexNet): their VGG column is NaN (not measured)."""
+    from eva_engine.eval import RegionMetrics
+
+    if "lpips" in v:
+        old = {k: x for k, x in v.items() if k != "lpips"}
+        v = {**old, "lpips_alex": v["lpips"], "lpips_vgg": float("nan")}
+    return RegionMetrics(**v)
+
+
 def markdown(runs: dict, metrics_table) -> str:
-    from eva_engine.eval import EvalResult, RegionMetrics
+    from eva_engine.eval import EvalResult
 
     lines = ["# Avatar training benchmark", ""]
     for key, e in runs.items():
@@ -125,7 +136,7 @@ def markdown(runs: dict, metrics_table) -> str:
         res = EvalResult(
             split=ev["split"], num_frames=ev["num_frames"], num_gaussians=ev["num_gaussians"],
             render_fps=ev["render_fps"], train_seconds=ev["train_seconds"],
-            regions={k: RegionMetrics(**v) for k, v in ev["regions"].items()},
+            regions={k: region_metrics(v) for k, v in ev["regions"].items()},
         )  # fmt: skip
         lines += [metrics_table({e["preset"]: res}), ""]
     return "\n".join(lines)

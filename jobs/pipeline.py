@@ -185,7 +185,9 @@ class Pipeline:
             elif stage == "detect":
                 report("preprocess", 0.1 + 0.9 * frac, message=f"detecting the person: frame {done}/{total}")
             elif stage == "align":
-                report("align", 0.8 * frac, message="fitting the body model", force=True)
+                report("align", 0.7 * frac, message="fitting the body model", force=True)
+            elif stage == "regions":
+                report("align", 0.8, message="rendering hand and face regions", force=True)
             else:
                 report("align", 0.8 + 0.2 * frac, message=f"writing frame {done}/{total}")
 
@@ -265,7 +267,7 @@ def _training_metrics(avatar, ds) -> dict:
     full = result.regions.get("full")
     out = {"split": "train", "frames": result.num_frames, "render_fps": result.render_fps}
     if full is not None:
-        out.update(psnr=full.psnr, ssim=full.ssim, lpips=full.lpips)
+        out.update(psnr=full.psnr, ssim=full.ssim, lpips_vgg=full.lpips_vgg, lpips_alex=full.lpips_alex)
     return out
 
 

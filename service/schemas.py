@@ -112,7 +112,7 @@ class AvatarInfo(BaseModel):
     train_seconds: float | None = None
     final_loss: float | None = None
     metrics: dict[str, Any] = Field(
-        default_factory=dict, description="Fit on training frames: psnr, ssim, lpips."
+        default_factory=dict, description="Fit on training frames: psnr, ssim, lpips_vgg, lpips_alex."
     )
     num_frames: int | None = Field(None, description="Training frames; render one with {'frame': i}.")
     frame_size: tuple[int, int] | None = Field(None, description="(height, width) of the training frames.")

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
+import torch
 from typer.testing import CliRunner
 
 from eva_engine.align import PreprocessConfig, PreprocessError, preprocess_video
@@ -57,6 +60,46 @@ def test_writes_a_dataset_with_detections_and_fitted_params(signer, preprocessed
         k = list(ds.keypoint_names).index(name)
         err = (ds.keypoints[:, k, :2] - gt[:, k, :2]).norm(dim=-1)
         assert err.median() < 8.0, (name, err)
+
+
+def test_region_masks_follow_the_fitted_body_and_the_detections(signer, preprocessed):
+    """Each hand's mask from the fitted body lands on that hand's true pixels (the renderer's
+    ground truth), only in frames where the detector found the hand, and inside the person."""
+    ds_truth, order, _, _ = signer
+    _, ds = preprocessed
+    assert ds.has_region_masks
+    conf = ds.keypoints[..., 2]
+    found = {"hand_left": conf[:, 33:54].amax(1) > 0, "hand_right": conf[:, 54:75].amax(1) > 0}
+    overlap = {"hand_left": [], "hand_right": [], "face": []}
+    for j, i in enumerate(order):
+        f, truth = ds[j], ds_truth[i]
+        for name, m in f.regions.items():
+            assert torch.all(m <= f.mask + 1 / 255)
+            if name in found and not found[name][j]:
+                assert float(m.sum()) == 0  # a hand the detector missed gets no mask
+            elif float(m.sum()) > 0:
+                mine, gt = m > 0.5, truth.regions[name] > 0.5
+                overlap[name].append(float((mine & gt).sum() / mine.sum().clamp_min(1)))
+    for name, values in overlap.items():
+        assert values and np.median(values) > 0.5, (name, values)
+
+
+def test_eval_of_a_preprocessed_video_scores_each_hand_and_the_face(preprocessed, tmp_path):
+    from eva_engine.avatar import save_avatar
+    from eva_engine.train import preset, train_avatar
+
+    _, ds = preprocessed
+    result = train_avatar(ds, preset("tiny", iterations=8))
+    save_avatar(result.avatar, tmp_path / "avatar", {"train_seconds": result.train_seconds})
+    args = ["eval", str(tmp_path / "avatar"), str(ds.root), "--json", str(tmp_path / "m.json")]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    doc = json.loads((tmp_path / "m.json").read_text())
+    assert set(doc["regions"]) == {"full", "hand", "face"}
+    assert doc["regions"]["hand"]["crops"] > doc["regions"]["hand"]["frames"] > 0  # often both hands
+    frame = next(iter(doc["per_frame"].values()))
+    assert {"hand_left", "hand_right"} & set(frame)
+    assert "Hand LPIPS-VGG" in doc["table"]
 
 
 def test_the_preprocessed_dataset_trains(preprocessed):

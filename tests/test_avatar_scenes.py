@@ -75,15 +75,18 @@ class SceneDataset:
         return tuple(self.frames[0].image.shape[:2])
 
 
-def region_mask(avatar: Avatar, params: BodyParams, camera: Camera, part: int) -> torch.Tensor:
-    """[H, W] where the Gaussians of ``part`` are what is seen (rendered with one-hot colours)."""
-    posed = avatar.pose(params)
-    onehot = torch.nn.functional.one_hot(avatar.gaussians.part_ids, 3).float()
+def region_masks(avatar: Avatar, params: BodyParams, camera: Camera) -> dict[str, torch.Tensor]:
+    """{hand_left, hand_right, face: [H, W]} where the Gaussians of that part are what is seen
+    (rendered with one-hot colours of ``body.sided_part_ids``)."""
     from eva_engine.render import rasterize
 
+    posed = avatar.pose(params)
+    sided = avatar.body.sided_part_ids[avatar.gaussians.vertex_ids]
+    onehot = torch.nn.functional.one_hot(sided, 4).float()[:, 1:]  # body is black
     out = rasterize(posed.means, posed.quats, posed.scales, posed.opacities, onehot,
                     camera.viewmat, camera.K, camera.width, camera.height)  # fmt: skip
-    return (out.image[..., part] > 0.5).float()
+    names = ("hand_left", "hand_right", "face")
+    return {name: (out.image[..., c] > 0.5).float() for c, name in enumerate(names)}
 
 
 @torch.no_grad()
@@ -101,8 +104,7 @@ def teacher_scene(
         out = teacher(params[i], cam, bg)
         frames.append(SimpleNamespace(
             index=i, image=out.image.clamp(0, 1), mask=out.alpha[..., 0].clamp(0, 1),
-            hand_mask=region_mask(teacher, params[i], cam, 1),
-            face_mask=region_mask(teacher, params[i], cam, 2),
+            regions=region_masks(teacher, params[i], cam),
             K=cam.K, viewmat=cam.viewmat, time=float(i),
         ))  # fmt: skip
     test = list(range(2, n_frames, 3))
@@ -117,7 +119,13 @@ def test_teacher_scene_is_a_fair_scene(anny_model):
     for i in range(len(ds)):
         f = ds[i]
         assert 0.05 < float((f.mask > 0.5).float().mean()) < 0.6  # the person fills part of the view
-        assert f.hand_mask.sum() > 0 and f.face_mask.sum() > 0
-        assert torch.all(f.hand_mask <= (f.mask > 0.3).float())
+        assert all(m.sum() > 0 for m in f.regions.values()), "both hands and the face in view"
+        for m in f.regions.values():
+            assert torch.all(m <= (f.mask > 0.3).float())
+        # each hand's mask lies on its own side of the image (the subject's left is image right)
+        cols = torch.arange(f.mask.shape[1]).float()
+        hands = ("hand_left", "hand_right")
+        centre = {h: float((f.regions[h].sum(0) * cols).sum() / f.regions[h].sum()) for h in hands}
+        assert centre["hand_left"] > centre["hand_right"]
     # Poses differ, so test frames are novel poses.
     assert not torch.allclose(ds[0].image, ds[1].image)

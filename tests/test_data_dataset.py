@@ -41,7 +41,8 @@ def write_sample(root, regions=True, params=True, overwrite=False):
         for i in range(N):
             w.add_frame(
                 images[i], masks[i], K=K_[i], viewmat=view[i], time=0.5 * i,
-                hand_mask=masks[i] // 2 if regions else None, face_mask=masks[i] // 3 if regions else None,
+                regions={"hand_left": masks[i] // 2, "hand_right": masks[i] // 4, "face": masks[i] // 3}
+                if regions else None,
             )  # fmt: skip
         out = w.finish(
             {"train": [0, 2, 4], "test_pose": [1, 3]},
@@ -76,18 +77,31 @@ def test_round_trip(tmp_path):
         assert f.image.dtype == torch.float32 and f.image.shape == (H, W, 3)
         np.testing.assert_array_equal((f.image.numpy() * 255).round().astype(np.uint8), images[i])
         np.testing.assert_array_equal((f.mask.numpy() * 255).round().astype(np.uint8), masks[i])
-        np.testing.assert_array_equal((f.hand_mask.numpy() * 255).round().astype(np.uint8), masks[i] // 2)
-        np.testing.assert_array_equal((f.face_mask.numpy() * 255).round().astype(np.uint8), masks[i] // 3)
-    assert ds.images([1, 3]).shape == (2, H, W, 3) and ds.masks(region="hand").shape == (N, H, W)
+        for name, div in (("hand_left", 2), ("hand_right", 4), ("face", 3)):
+            got = (f.regions[name].numpy() * 255).round().astype(np.uint8)
+            np.testing.assert_array_equal(got, masks[i] // div)
+    assert ds.images([1, 3]).shape == (2, H, W, 3) and ds.masks(region="hand_right").shape == (N, H, W)
+    assert ds.meta.version == 2 and ds.has_region_masks
 
 
 def test_optional_parts_absent(tmp_path):
     root, *_ = write_sample(tmp_path / "ds", regions=False, params=False)
     ds = load_dataset(root)
     assert ds.params is None and ds.gt_params is None and not ds.meta.has_region_masks
-    assert ds[0].hand_mask is None
-    with pytest.raises(DatasetError, match="no hand masks"):
+    assert ds[0].regions == {}
+    with pytest.raises(DatasetError, match="no hand_left masks"):
+        ds.mask(0, "hand_left")
+    with pytest.raises(ValueError, match="unknown region"):
         ds.mask(0, "hand")
+
+
+def test_version_1_region_masks_are_not_read_as_per_hand(tmp_path):
+    """Version 1 kept both hands in one mask: such a dataset loads, without region masks."""
+    root, *_ = write_sample(tmp_path / "ds")
+    meta = json.loads((root / "meta.json").read_text())
+    (root / "meta.json").write_text(json.dumps({**meta, "version": 1}))
+    ds = load_dataset(root)
+    assert ds.meta.has_region_masks and not ds.has_region_masks and ds[0].regions == {}
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no partial folder left
 
 
@@ -110,6 +124,13 @@ def test_writer_validates(tmp_path):
         with pytest.raises(ValueError, match="do not match"):
             w.add_frame(np.zeros((H + 1, W, 3)), np.zeros((H, W)), K=torch.eye(3), viewmat=torch.eye(4))
         w.add_frame(np.zeros((H, W, 3)), np.zeros((H, W)), K=torch.eye(3), viewmat=torch.eye(4))
+        with pytest.raises(ValueError, match="regions must hold exactly"):
+            w.add_frame(np.zeros((H, W, 3)), np.zeros((H, W)), K=torch.eye(3), viewmat=torch.eye(4),
+                        regions={"hand": np.zeros((H, W)), "face": np.zeros((H, W))})  # fmt: skip
+        with pytest.raises(ValueError, match="every frame or for none"):
+            zeros = {r: np.zeros((H, W)) for r in ("hand_left", "hand_right", "face")}
+            w.add_frame(np.zeros((H, W, 3)), np.zeros((H, W)), K=torch.eye(3), viewmat=torch.eye(4),
+                        regions=zeros)  # fmt: skip
         with pytest.raises(ValueError, match="outside"):
             w.finish({"train": [0, 1]})
         with pytest.raises(ValueError, match="unknown split"):

@@ -15,7 +15,7 @@ def test_synth_writes_a_dataset(tmp_path):
                                       "--out", str(out)])  # fmt: skip
     assert result.exit_code == 0, result.output
     ds = load_dataset(out)
-    assert ds.meta.extra["preset"] == "controlled" and ds.meta.extra["seed"] == 2 and len(ds) == 15
+    assert ds.meta.extra["preset"] == "controlled" and ds.meta.extra["seed"] == 2 and len(ds) == 18
     again = CliRunner().invoke(app, ["synth", "--size", "tiny", "--out", str(out)])
     assert again.exit_code == 2 and "already exists" in again.output
 

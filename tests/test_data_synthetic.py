@@ -10,6 +10,7 @@ import torch
 
 from eva_engine.body import KEYPOINT_GROUPS, PART_NAMES
 from eva_engine.data import load_dataset, perturb
+from eva_engine.data.motion import FACE_ACTIONS, MotionConfig, sign_motion
 from eva_engine.data.synthetic import PRESETS, generate, project
 
 
@@ -80,52 +81,62 @@ def test_keypoints_project_inside_the_mask(datasets, preset):
     visible = kp[..., 2] > 0
     h, w = ds.image_size
     assert torch.all((kp[..., 0] >= 0) & (kp[..., 0] < w) & (kp[..., 1] >= 0) & (kp[..., 1] < h) == visible)
-    if preset == "wild":
-        assert not visible[:, 27:33].any()  # ankles, heels, feet below the frame
-    else:
-        assert visible[:, :33].all()
+    assert not visible[:, 27:33].any()  # ankles, heels, feet below the frame (waist / thighs up)
+    if preset == "controlled":
+        assert visible[:, 23:27].all()  # hips and knees in view
 
 
 @pytest.mark.parametrize("preset", list(PRESETS))
-def test_region_masks_hold_hand_and_face_pixels(datasets, preset, anny_model):
+def test_region_masks_hold_each_hand_and_the_face(datasets, preset):
     ds = datasets[preset]
-    assert ds.meta.has_region_masks
-    hand_hits, face_hits = [], []
+    assert ds.has_region_masks
+    hits = {"hand_left": [], "hand_right": [], "face": []}
+    misses = {"hand_left": [], "hand_right": []}
     for i in range(len(ds)):
         f = ds[i]
-        assert torch.all(f.hand_mask <= f.mask + 1.5 / 255) and torch.all(f.face_mask <= f.mask + 1.5 / 255)
-        assert f.hand_mask.sum() > 3 and f.face_mask.sum() > 3
-        hand = _dilate(f.hand_mask.numpy() > 0, 2)
-        face = _dilate(f.face_mask.numpy() > 0, 1)
+        for m in f.regions.values():
+            assert torch.all(m <= f.mask + 1.5 / 255)  # a part of the person
+        assert f.regions["face"].sum() > 3
         kp = ds.gt_keypoints[i]
-        for group, hits, m in (
-            ("left_hand", hand_hits, hand),
-            ("right_hand", hand_hits, hand),
-            ("face", face_hits, face),
-        ):
+        masks = {r: _dilate(m.numpy() > 0, 2 if r != "face" else 1) for r, m in f.regions.items()}
+        for group, region in (("left_hand", "hand_left"), ("right_hand", "hand_right"), ("face", "face")):
             k = kp[KEYPOINT_GROUPS[group]]
             k = k[k[:, 2] > 0]
-            hits += list(m[k[:, 1].long(), k[:, 0].long()])
-    # Hand points may be hidden behind the other hand or the body; most are on hand pixels.
-    assert np.mean(hand_hits) > 0.8, np.mean(hand_hits)
-    assert np.mean(face_hits) > 0.95, np.mean(face_hits)
+            hits[region] += list(masks[region][k[:, 1].long(), k[:, 0].long()])
+        # Each hand's keypoints are on its own mask, not on the other hand's (unless the hands touch).
+        for group, other in (("left_hand", "hand_right"), ("right_hand", "hand_left")):
+            k = kp[KEYPOINT_GROUPS[group]]
+            k = k[k[:, 2] > 0]
+            misses[other] += list(masks[other][k[:, 1].long(), k[:, 0].long()])
+    # Hand points may be hidden behind the other hand or the body; most are on their hand's pixels.
+    for region in ("hand_left", "hand_right"):
+        assert np.mean(hits[region]) > 0.8, (region, np.mean(hits[region]))
+        assert np.mean(misses[region]) < 0.2, (region, np.mean(misses[region]))
+    assert np.mean(hits["face"]) > 0.95, np.mean(hits["face"])
     assert PART_NAMES == ("body", "hand", "face")
 
 
 def test_splits_and_what_the_pipeline_gets(datasets):
     wild, ctrl = datasets["wild"], datasets["controlled"]
+    # controlled (XHumans): train on take 0, test on another take, held-out views of training poses
+    s, takes = ctrl.splits, ctrl.meta.extra["take_of_frame"]
+    assert len(ctrl) == 18 and ctrl.image_size == (96, 96)
+    assert s["train"] == list(range(12)) and s["test_pose"] == [12, 13, 14] and s["test_view"] == [15, 16, 17]
+    assert {takes[i] for i in s["train"]} == {0} and {takes[i] for i in s["test_pose"]} == {1}
+    # wild (UPB): alternate frames of one take
+    s = wild.splits
+    assert len(wild) == 15 and s["test_pose"] == [1, 3, 5, 7, 9, 11] and s["train"] == [0, 2, 4, 6, 8, 10]
+    assert set(wild.meta.extra["take_of_frame"]) == {0}
     for ds in (wild, ctrl):
         s = ds.splits
-        assert len(ds) == 15 and ds.image_size == (96, 96)
-        assert s["test_pose"] == [2, 5, 8, 11] and len(s["train"]) == 8 and s["test_view"] == [12, 13, 14]
         assert not set(s["train"]) & set(s["test_pose"]) and not set(s["train"]) & set(s["test_view"])
         # Same static camera for the sequence; the held-out view is elsewhere and shows training poses.
-        assert torch.equal(ds.viewmat[0], ds.viewmat[11]) and not torch.allclose(
-            ds.viewmat[0], ds.viewmat[12]
-        )
+        view = s["test_view"][0]
+        assert torch.equal(ds.viewmat[0], ds.viewmat[s["test_pose"][-1]])
+        assert not torch.allclose(ds.viewmat[0], ds.viewmat[view])
         src = ds.meta.extra["pose_of_frame"]
         assert all(src[i] in s["train"] for i in s["test_view"])
-        assert torch.equal(ds.gt_params.joints[12], ds.gt_params.joints[src[12]])
+        assert torch.equal(ds.gt_params.joints[view], ds.gt_params.joints[src[view]])
         assert ds.meta.body_model == "anny" and ds.meta.source == "synthetic"
     assert wild.params is None and wild.keypoints is None and wild.gt_params is not None
     assert ctrl.params is not None and ctrl.meta.params_source == "ground_truth"
@@ -134,6 +145,59 @@ def test_splits_and_what_the_pipeline_gets(datasets):
     j = wild.gt_params.joints
     assert (j[:12] - j[:1]).abs().amax() > 0.3
     assert wild.gt_params.expression[:12].std(0).max() > 0.05
+    # The test take is another motion, not frames of the training one.
+    assert (ctrl.gt_params.joints[12] - ctrl.gt_params.joints[0]).abs().amax() > 0.1
+
+
+def test_training_take_keeps_held_out_expressions_out(datasets, anny_model):
+    """The training take draws from a subset of the facial actions; other takes from all, so a
+    test take shows expressions the avatar never saw."""
+    ctrl = datasets["controlled"]
+    held = ctrl.meta.extra["held_out_face_actions"]
+    assert held and ctrl.meta.extra["motion"][0]["face_actions"] == [
+        a for a in FACE_ACTIONS if a not in held
+    ] and ctrl.meta.extra["motion"][1]["face_actions"] == list(FACE_ACTIONS)  # fmt: skip
+    cols = [anny_model.expression_names.index(a) for a in held]
+    assert ctrl.gt_params.expression[ctrl.splits["train"]][:, cols].abs().max() == 0
+    # Densely sampled, another take of the same subject shows them.
+    times = np.linspace(0, 6, 121)
+    cfg = MotionConfig(face_actions=FACE_ACTIONS)
+    test_take = sign_motion(anny_model, ctrl.gt_params.shape[:1], times, seed=0, cfg=cfg, take=1)
+    assert test_take.expression[:, cols].max() > 0.3
+    with pytest.raises(ValueError, match="face_actions"):
+        sign_motion(anny_model, ctrl.gt_params.shape[:1], times, 0, MotionConfig(face_actions=("frown",)))
+
+
+def test_shading_follows_a_world_light_and_has_highlights(anny_model, tmp_path):
+    """The benchmark's light is fixed in the world (shading changes when the body turns) and
+    glossy surfaces get a highlight that a matte render lacks."""
+    from eva_engine.data.mesh_render import MeshRenderConfig, MeshRenderer
+
+    params = anny_model.default_params(2)
+    params.root_orient[1, 1] = 0.8  # the second frame turns the body
+    verts = anny_model(params).vertices
+    K = torch.tensor([[120.0, 0, 48], [0, 120.0, 48], [0, 0, 1]])
+    view = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))
+    view[:3, 3] = torch.tensor([0.0, 0.3, 2.5])
+    faces = anny_model.faces
+    colors = np.full((anny_model.num_vertices, 3), 0.6, np.float32)
+    shaded = {}
+    for frame in ("camera", "world"):
+        cfg = MeshRenderConfig(width=96, height=96, light_frame=frame, light=(-0.35, 0.55, 1.0))
+        with MeshRenderer(faces, cfg, num_vertices=anny_model.num_vertices) as r:
+            r.set_surface(colors=colors)
+            shaded[frame] = [r.render(verts[i], view, K).rgb for i in range(2)]
+            # A texture with gloss (alpha) adds a highlight over the same albedo.
+            uv = np.zeros((anny_model.num_vertices, 2), np.float32)
+            albedo = np.full((4, 4, 3), 0.6)
+            matte, glossy = (np.concatenate([albedo, np.full((4, 4, 1), a)], -1) for a in (0.0, 1.0))
+            r.set_surface(texture=matte, uv=uv)
+            m = r.render(verts[0], view, K).rgb
+            r.set_surface(texture=glossy, uv=uv)
+            g = r.render(verts[0], view, K).rgb
+            assert torch.all(g >= m - 1e-6) and (g - m).max() > 0.2
+    # Same frames, another light frame: different shading (the world light is not the camera's).
+    assert (shaded["camera"][0] - shaded["world"][0]).abs().max() > 0.05
 
 
 def test_perturb_imitates_an_estimator(datasets, anny_model):
@@ -165,12 +229,13 @@ def test_held_out_view_and_contact_sheet(datasets):
 
     ds = datasets["wild"]
     # The held-out camera sits 35 deg about the vertical axis from the training camera.
-    centres = [-(v[:3, :3].T @ v[:3, 3]) for v in (ds.viewmat[0], ds.viewmat[12])]
+    view = ds.splits["test_view"][0]
+    centres = [-(v[:3, :3].T @ v[:3, 3]) for v in (ds.viewmat[0], ds.viewmat[view])]
     target = torch.tensor([0.0, centres[0][1], 0.0])
     a, b = (c - target for c in centres)
     angle = torch.rad2deg(torch.acos((a @ b) / (a.norm() * b.norm())))
     assert float(angle) == pytest.approx(ds.meta.extra["view_angle_deg"], abs=1.0)
-    sheet = contact_sheet(ds, [0, 12], tile=32)
+    sheet = contact_sheet(ds, [0, view], tile=32)
     assert sheet.shape == (64, 128, 3) and sheet.dtype == np.uint8
     # Every close-up shows the person, not just background.
     tiles = sheet.reshape(2, 32, 4, 32, 3).transpose(0, 2, 1, 3, 4)

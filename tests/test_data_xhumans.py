@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pickle
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -123,3 +124,33 @@ def test_reader_refuses_unsafe_pickles_and_bad_folders(subject, tmp_path):
     assert not (tmp_path / "ds").exists()
     with pytest.raises(DatasetError, match="XHumans layout"):
         read_xhumans(tmp_path / "empty", tmp_path / "ds2")
+
+
+def test_reader_writes_region_masks_with_the_users_smplx_model(tmp_path, smplx_model):
+    """A subject in the rest pose seen from the front: each hand's mask on its own side of the
+    image (the subject's left on the image's right), the face above both, all inside the person."""
+    h, w = 96, 64
+    take = tmp_path / "00001" / "train" / "Take1"
+    for sub in ("render/image", "render/depth", "SMPLX"):
+        (take / sub).mkdir(parents=True)
+    view = np.diag([1.0, -1.0, -1.0])  # OpenCV camera on +Z looking at the origin, y down
+    extrinsic = np.concatenate([view, [[0.0], [0.2], [3.0]]], axis=1)[None]
+    intrinsic = np.array([[40.0, 0, w / 2], [0, 40.0, h / 2], [0, 0, 1]])
+    np.savez(take / "render" / "cameras.npz", intrinsic=intrinsic, extrinsic=extrinsic)
+    cv2.imwrite(str(take / "render" / "image" / "color_000001.png"), np.full((h, w, 3), 128, np.uint8))
+    cv2.imwrite(str(take / "render" / "depth" / "depth_000001.tiff"), np.full((h, w), 3000, np.uint16))
+    rest = {k: np.zeros_like(v) for k, v in _smplx_frame(np.random.default_rng(0)).items()}
+    (take / "SMPLX" / "mesh-f00001_smplx.pkl").write_bytes(pickle.dumps(rest))
+    ds = load_dataset(read_xhumans(tmp_path / "00001", tmp_path / "ds", model=smplx_model))
+    assert ds.has_region_masks
+    f = ds[0]
+    assert set(f.regions) == {"hand_left", "hand_right", "face"}
+    centre = {}
+    for name, m in f.regions.items():
+        assert m.shape == (h, w) and float(m.sum()) > 1 and torch.all(m <= f.mask + 1 / 255)
+        ys, xs = torch.nonzero(m > 0.5, as_tuple=True)
+        centre[name] = (float(xs.float().mean()), float(ys.float().mean()))
+    assert centre["hand_left"][0] > w / 2 > centre["hand_right"][0]
+    assert centre["face"][1] < min(centre["hand_left"][1], centre["hand_right"][1])
+    with pytest.raises(ValueError, match="SMPL-X"):
+        read_xhumans(tmp_path / "00001", tmp_path / "ds2", model=SimpleNamespace(name="anny"))

@@ -1,61 +1,112 @@
-"""Evaluation: region metrics from the dataset's masks, the paper's table layout, clear errors."""
+"""Evaluation: per-hand region crops from the dataset's masks, both LPIPS networks, the paper's
+table layout, clear errors."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 import torch
-from test_avatar_scenes import teacher_scene
+from test_avatar_scenes import SceneDataset, teacher_scene
 
-from eva_engine.avatar import Avatar, AvatarConfig
-from eva_engine.eval import EvalResult, RegionMetrics, evaluate_avatar, image_metrics, metrics_table
-from eva_engine.metrics import LPIPS
+from eva_engine.avatar import Avatar, AvatarConfig, Camera
+from eva_engine.eval import METRICS, EvalResult, ImageMetrics, RegionMetrics, evaluate_avatar, metrics_table
+from eva_engine.eval.evaluate import MIN_CROP, PAD
 
 
 @pytest.fixture(scope="module")
-def lpips():
-    return LPIPS()
+def metrics():
+    return ImageMetrics()
 
 
-def test_the_teacher_beats_an_untrained_avatar(anny_model, lpips):
+def test_the_teacher_beats_an_untrained_avatar(anny_model, metrics):
     ds, teacher = teacher_scene(anny_model, n_frames=3, size=48)
     cfg = AvatarConfig(init_max_gaussians=800, mlp_width=8, pe_frequencies=1, sh_degree=0)
     fresh = Avatar.create(anny_model, anny_model.shape_defaults, cfg)
-    good = evaluate_avatar(teacher, ds, lpips=lpips, train_seconds=1.0)
-    bad = evaluate_avatar(fresh, ds, lpips=lpips)
+    good = evaluate_avatar(teacher, ds, metrics=metrics, train_seconds=1.0)
+    bad = evaluate_avatar(fresh, ds, metrics=metrics)
     assert (
         good.split == "test_pose" and good.num_frames == 1 and set(good.regions) == {"full", "hand", "face"}
     )
     for region in ("full", "hand", "face"):
         g, b = good.regions[region], bad.regions[region]
-        assert g.psnr > b.psnr + 5 and g.ssim > b.ssim and g.lpips < b.lpips
+        assert (
+            g.psnr > b.psnr + 5
+            and g.ssim > b.ssim
+            and g.lpips_vgg < b.lpips_vgg
+            and g.lpips_alex < b.lpips_alex
+        )
+    # both hands are in the frame: two hand crops, one frame
+    assert good.regions["hand"].crops == 2 and good.regions["hand"].frames == 1
+    frame = good.per_frame[2]
+    assert {"hand_left", "hand_right", "face", "hand", "full"} <= set(frame)
+    for m in METRICS:  # the frame's hand score is the mean of its two hands
+        assert frame["hand"][m] == pytest.approx((frame["hand_left"][m] + frame["hand_right"][m]) / 2)
     assert good.num_gaussians == len(teacher.gaussians) and good.render_fps > 0
     assert set(good.to_dict()["per_frame"]) == {"2"}
     with pytest.raises(ValueError, match="no frames"):
-        evaluate_avatar(teacher, ds, split="test_view", lpips=lpips)
+        evaluate_avatar(teacher, ds, split="test_view", metrics=metrics)
 
 
-def test_region_metrics_crop_to_the_region(lpips):
+def test_region_metrics_crop_to_the_region(metrics):
     torch.manual_seed(0)
     target = torch.rand(64, 64, 3)
     pred = target.clone()
     pred[:, 40:] = 0.0  # wrong only on the right
     mask = torch.zeros(64, 64)
     mask[5:10, 5:10] = 1.0  # a small region on the left: grown to 32 px, still exact there
-    m = image_metrics(pred, target, lpips, mask)
-    assert m["psnr"] == float("inf") and m["lpips"] == 0.0
-    assert image_metrics(pred, target, lpips, torch.zeros(64, 64)) == {}
-    assert image_metrics(pred, target, lpips)["psnr"] < 20
+    m = metrics(pred, target, mask)
+    assert m["psnr"] == float("inf") and m["lpips_vgg"] == 0.0 and m["lpips_alex"] == 0.0
+    assert metrics(pred, target)["psnr"] < 20
+
+
+def test_each_hand_is_scored_on_its_own_crop(anny_model, metrics):
+    """Hands far apart: each hand's crop holds only its own hand. An error painted on the right
+    hand changes only the right hand's score, and a frame whose left hand is absent is scored on
+    the right hand alone."""
+    size = 192
+    ds, teacher = teacher_scene(anny_model, n_frames=3, size=size, amplitude=0.0)
+    f = ds[2]
+    left, right = f.regions["hand_left"], f.regions["hand_right"]
+    for own, other in ((left, right), (right, left)):
+        x0, y0, x1, y1 = metrics.box(own)
+        assert x1 - x0 >= MIN_CROP and y1 - y0 >= MIN_CROP
+        assert float(own[y0:y1, x0:x1].sum()) == float(own.sum())  # the whole hand ...
+        assert float(other[y0:y1, x0:x1].sum()) == 0.0  # ... and nothing of the other one
+        ys, xs = torch.nonzero(own > 0.5, as_tuple=True)
+        assert x1 - x0 <= max(MIN_CROP, int(xs.max() - xs.min()) + 1 + 2 * PAD)
+    # the avatar's own render is the target, with the right hand painted black
+    with torch.no_grad():
+        cam = Camera(f.K, f.viewmat, size, size)
+        target = teacher(ds.params[2], cam, torch.ones(3)).image.clamp(0, 1)
+    target[right > 0.5] = 0.0
+    frame = SimpleNamespace(**{**vars(f), "image": target, "mask": torch.ones(size, size),
+                               "regions": dict(f.regions)})  # fmt: skip
+    one = SceneDataset([frame], ds.params[[2]], {"train": [], "test_pose": [0], "test_view": []})
+    res = evaluate_avatar(teacher, one, metrics=metrics)
+    scores = res.per_frame[0]
+    assert scores["hand_left"]["psnr"] > 40 and scores["hand_left"]["lpips_vgg"] < 1e-3  # untouched
+    assert scores["hand_right"]["psnr"] < 25 and scores["hand_right"]["lpips_vgg"] > 0.05
+    frame.regions["hand_left"] = torch.zeros(size, size)
+    res = evaluate_avatar(teacher, one, metrics=metrics)
+    assert "hand_left" not in res.per_frame[0] and res.regions["hand"].crops == 1
+    assert res.per_frame[0]["hand"] == res.per_frame[0]["hand_right"]
 
 
 def test_table_in_the_papers_layout():
     r = EvalResult(
         split="test_pose", num_frames=4, num_gaussians=19458, render_fps=12.5, train_seconds=300.0,
-        regions={"full": RegionMetrics(28.88, 0.9609, 0.04493, 4),
-                 "hand": RegionMetrics(25.28, 0.9189, 0.09137, 3)},
+        regions={"full": RegionMetrics(28.88, 0.9609, 0.04493, 0.0321, 4, 4, 512.0),
+                 "hand": RegionMetrics(25.28, 0.9189, 0.09137, 0.0712, 3, 5, 21.0)},
+        notes=["hand regions are small"],
     )  # fmt: skip
     table = metrics_table({"3DGS + body": r})
     lines = table.strip().splitlines()
-    assert lines[0].startswith("| Method | N-GS | Full PSNR↑ | Full SSIM↑ | Full LPIPS↓ (×1000) | Hand PSNR↑")
-    assert lines[2] == (
-        "| 3DGS + body | 19,458 | 28.88 | 0.9609 | 44.93 | 25.28 | 0.9189 | 91.37 | – | – | – | 300 | 12.5 |"
+    assert lines[0].startswith(
+        "| Method | N-GS | Full PSNR↑ | Full SSIM↑ | Full LPIPS-VGG↓ | Full LPIPS-Alex↓ |"
     )
+    assert lines[2] == (
+        "| 3DGS + body | 19,458 | 28.88 | 0.9609 | 44.93 | 32.10 | 25.28 | 0.9189 | 91.37 | 71.20 | "
+        "– | – | – | – | 300 | 12.5 |"
+    )
+    assert "held out" in table and "hand 3 frames / 5 crops" in table and "hand regions are small" in table

@@ -29,13 +29,13 @@ from eva_engine.metrics import (
     ssim,
 )
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-LPIPS_REFERENCE = REPO_ROOT.parent / "shared" / "reference" / "lpips"
+LPIPS_IMAGES = Path(__file__).resolve().parent / "data" / "lpips"  # vendored, BSD-2 (LICENSE there)
 
-# LPIPS(net="alex", version="0.1") of the reference repo's example images, (ex_ref, ex_p0) and
-# (ex_ref, ex_p1), as printed by its test_network.py with the official v0.1/alex.pth weights
-# ("Distances: (0.722, 0.138)", richzhang/PerceptualSimilarity issue #120). Published to 3 decimals.
-PUBLISHED_EX_P0, PUBLISHED_EX_P1 = 0.722, 0.138
+# LPIPS v0.1 of the reference repo's example images, (ex_ref, ex_p0) and (ex_ref, ex_p1), with the
+# official weights, published to 3 decimals: AlexNet "Distances: (0.722, 0.138)" as printed by its
+# test_network.py (richzhang/PerceptualSimilarity issue #120); VGG 0.569 and 0.422 (the official
+# PyTorch model's values, quoted in the README of moono/lpips-tf2.x).
+PUBLISHED = {"alex": (0.722, 0.138), "vgg": (0.569, 0.422)}
 
 
 @pytest.fixture(scope="module")
@@ -43,10 +43,13 @@ def lpips_model() -> LPIPS:
     return LPIPS()
 
 
+@pytest.fixture(scope="module")
+def lpips_nets(lpips_model) -> dict[str, LPIPS]:
+    return {"alex": lpips_model, "vgg": LPIPS("vgg")}
+
+
 def _load_uint8(name: str) -> np.ndarray:
-    path = LPIPS_REFERENCE / name
-    assert path.is_file(), f"missing reference image {path} (CI has ../shared beside the checkout)"
-    return np.asarray(Image.open(path).convert("RGB"))
+    return np.asarray(Image.open(LPIPS_IMAGES / name).convert("RGB"))
 
 
 def _to_tensor(img: np.ndarray) -> torch.Tensor:
@@ -57,44 +60,53 @@ def _to_tensor(img: np.ndarray) -> torch.Tensor:
 # ---------------------------------------------------------------- LPIPS: reference values
 
 
-def test_lpips_matches_published_reference_values(lpips_model):
+@pytest.mark.parametrize("net", ["alex", "vgg"])
+def test_lpips_matches_published_reference_values(lpips_nets, net):
+    model = lpips_nets[net]
     ref, p0, p1 = (_load_uint8(f"ex_{n}.png") for n in ("ref", "p0", "p1"))
-    d0 = lpips_model(_to_tensor(ref), _to_tensor(p0)).item()
-    d1 = lpips_model(_to_tensor(ref), _to_tensor(p1)).item()
-    assert round(d0, 3) == PUBLISHED_EX_P0, d0
-    assert round(d1, 3) == PUBLISHED_EX_P1, d1
+    d0 = model(_to_tensor(ref), _to_tensor(p0)).item()
+    d1 = model(_to_tensor(ref), _to_tensor(p1)).item()
+    assert (round(d0, 3), round(d1, 3)) == PUBLISHED[net], (d0, d1)
     # The reference's own input convention: uint8 / 127.5 - 1 with normalize=False.
     signed = [torch.from_numpy(im.astype(np.float32) / 127.5 - 1).permute(2, 0, 1)[None] for im in (ref, p0)]
-    assert lpips_model(*signed, normalize=False).item() == pytest.approx(d0, abs=1e-6)
+    assert model(*signed, normalize=False).item() == pytest.approx(d0, abs=1e-6)
 
 
-def _numpy_lpips(params: dict, x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarray, list]:
+# (stride, padding) per conv, pool-after conv indices, pool (kernel, stride), tapped convs, trunk key
+_NUMPY_LAYOUT = {
+    "alex": ([(4, 2), (1, 2), (1, 1), (1, 1), (1, 1)], (0, 1), (3, 2), (0, 1, 2, 3, 4), "AlexNet_0"),
+    "vgg": ([(1, 1)] * 13, (1, 3, 6, 9), (2, 2), (1, 3, 6, 9, 12), "VGG16_0"),
+}
+
+
+def _numpy_lpips(net: str, params: dict, x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarray, list]:
     """Independent float64 LPIPS in the checkpoint's own flax layout (NHWC images, HWIO kernels).
 
     x0, x1: [N, H, W, 3] in [-1, 1] -> ([N], per-tap [N] contributions). Shares no code with the
-    torch port (no kernel transposition, no torch convolution).
+    torch port (no kernel transposition, no torch convolution); the layout is written out here.
     """
     shift = np.array([-0.030, -0.088, -0.188])
     scale = np.array([0.458, 0.448, 0.450])
-    layout = [(4, 2), (1, 2), (1, 1), (1, 1), (1, 1)]
+    layout, pool_after, (pk, ps), tapped, trunk = _NUMPY_LAYOUT[net]
 
     def conv(x, kernel, bias, stride, pad):
         x = np.pad(x, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
         kh, kw = kernel.shape[:2]
         win = sliding_window_view(x, (kh, kw), axis=(1, 2))[:, ::stride, ::stride]  # [N,Ho,Wo,C,kh,kw]
-        return np.einsum("nhwcij,ijco->nhwo", win, kernel.astype(np.float64)) + bias
+        return np.einsum("nhwcij,ijco->nhwo", win, kernel.astype(np.float64), optimize=True) + bias
 
     def maxpool(x):
-        return sliding_window_view(x, (3, 3), axis=(1, 2))[:, ::2, ::2].max(axis=(-2, -1))
+        return sliding_window_view(x, (pk, pk), axis=(1, 2))[:, ::ps, ::ps].max(axis=(-2, -1))
 
     def taps(x):
         x = (x - shift) / scale
         out = []
         for i, (stride, pad) in enumerate(layout):
-            conv_p = params["AlexNet_0"][f"Conv_{i}"]
+            conv_p = params[trunk][f"Conv_{i}"]
             x = np.maximum(conv(x, conv_p["kernel"], conv_p["bias"], stride, pad), 0.0)
-            out.append(x)
-            if i < 2:
+            if i in tapped:
+                out.append(x)
+            if i in pool_after:
                 x = maxpool(x)
         return out
 
@@ -107,8 +119,9 @@ def _numpy_lpips(params: dict, x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarr
     return sum(per_tap), per_tap
 
 
-def test_lpips_matches_independent_numpy_forward(lpips_model):
-    params = load_numpy_pickle(lpips_weights_path())
+@pytest.mark.parametrize("net", ["alex", "vgg"])
+def test_lpips_matches_independent_numpy_forward(lpips_nets, net):
+    params = load_numpy_pickle(lpips_weights_path(net))
     rng = np.random.default_rng(0)
     ref, p0, p1 = (_load_uint8(f"ex_{n}.png") for n in ("ref", "p0", "p1"))
     pairs = [
@@ -116,9 +129,9 @@ def test_lpips_matches_independent_numpy_forward(lpips_model):
         # non-square, so a swapped H/W or kernel transpose cannot hide
         (rng.uniform(-1, 1, (2, 47, 70, 3)), rng.uniform(-1, 1, (2, 47, 70, 3))),
     ]
-    model64 = LPIPS().double()
+    model64 = LPIPS(net).double()
     for x0, x1 in pairs:
-        expected, expected_taps = _numpy_lpips(params, x0, x1)
+        expected, expected_taps = _numpy_lpips(net, params, x0, x1)
         t0, t1 = (torch.from_numpy(np.ascontiguousarray(x.transpose(0, 3, 1, 2))) for x in (x0, x1))
         got64 = model64(t0, t1, normalize=False).numpy()
         np.testing.assert_allclose(got64, expected, rtol=0, atol=1e-10)
@@ -129,7 +142,7 @@ def test_lpips_matches_independent_numpy_forward(lpips_model):
             nb = b / (b.norm(dim=1, keepdim=True) + 1e-10)
             tap = model64.lins[i]((na - nb) ** 2).mean(dim=(1, 2, 3)).numpy()
             np.testing.assert_allclose(tap, expected_taps[i], rtol=0, atol=1e-10)
-        got32 = lpips_model(t0.float(), t1.float(), normalize=False).numpy()
+        got32 = lpips_nets[net](t0.float(), t1.float(), normalize=False).numpy()
         np.testing.assert_allclose(got32, expected, rtol=0, atol=2e-5)
 
 
@@ -187,18 +200,41 @@ def test_lpips_rejects_bad_input(lpips_model, shape0, shape1, match):
         lpips_model(torch.rand(shape0), torch.rand(shape1))
 
 
-def test_lpips_smallest_input(lpips_model):
-    a, b = torch.rand(1, 3, 31, 31), torch.rand(1, 3, 31, 31)
-    assert torch.isfinite(lpips_model(a, b)).all()
+@pytest.mark.parametrize(("net", "side"), [("alex", 31), ("vgg", 16)])
+def test_lpips_smallest_input(lpips_nets, net, side):
+    model = lpips_nets[net]
+    assert model.min_side == side
+    a, b = torch.rand(1, 3, side, side), torch.rand(1, 3, side, side)
+    assert torch.isfinite(model(a, b)).all()
+    with pytest.raises(ValueError, match=f"LPIPS\\({net}\\) needs H, W >= {side}"):
+        model(a[..., 1:], b[..., 1:])
+
+
+def test_lpips_vgg_identity_symmetry_and_gradients(lpips_nets):
+    vgg = lpips_nets["vgg"]
+    torch.manual_seed(3)
+    a, b = torch.rand(2, 3, 40, 56), torch.rand(2, 3, 40, 56)
+    with torch.no_grad():
+        assert torch.equal(vgg(a, a), torch.zeros(2))
+        torch.testing.assert_close(vgg(a, b), vgg(b, a), rtol=1e-6, atol=1e-7)
+    flat = torch.stack([torch.zeros(3, 40, 56), torch.ones(3, 40, 56)]).requires_grad_(True)
+    vgg(flat, b).sum().backward()
+    assert torch.isfinite(flat.grad).all()
+    with pytest.raises(ValueError, match="unknown LPIPS network"):
+        LPIPS("squeeze")
 
 
 # ---------------------------------------------------------------- LPIPS: weights
 
 
 def test_prepare_lpips_finds_and_verifies_weights():
-    path = prepare_lpips()
-    assert path.is_file() and path.name == "alexnet.ckpt"
-    weights = load_lpips_weights(path)
+    paths = prepare_lpips()
+    assert sorted(paths) == ["alex", "vgg"]
+    assert paths["alex"].name == "alexnet.ckpt" and paths["vgg"].name == "vgg16.ckpt"
+    vgg = load_lpips_weights(paths["vgg"], net="vgg")
+    assert [w.shape[0] for w in vgg.conv_weights] == [64, 64, 128, 128, 256, 256, 256] + [512] * 6
+    assert [tuple(w.shape) for w in vgg.lin_weights] == [(1, c, 1, 1) for c in (64, 128, 256, 512, 512)]
+    weights = load_lpips_weights(paths["alex"])
     assert [tuple(w.shape) for w in weights.conv_weights] == [
         (64, 3, 11, 11), (192, 64, 5, 5), (384, 192, 3, 3), (256, 384, 3, 3), (256, 256, 3, 3),
     ]  # fmt: skip
@@ -223,6 +259,9 @@ def test_tampered_weights_are_refused(tmp_path):
         f.write(b"\x00" * 8)
     with pytest.raises(LPIPSWeightsError, match="SHA-256"):
         load_lpips_weights(tampered)
+    # each network's file is pinned to its own digest
+    with pytest.raises(LPIPSWeightsError, match="vgg file"):
+        load_lpips_weights(lpips_weights_path("alex"), net="vgg")
 
 
 class _RunsCommand:

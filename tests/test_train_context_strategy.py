@@ -228,7 +228,12 @@ def test_selection_by_config_keeps_the_schedule():
     assert isinstance(AvatarLoss(eva.loss, lpips=object()).photometric, ConfidenceLoss)
     baseline = with_method(eva, "3dgs+body")  # switching back needs no fresh preset
     assert type(baseline.strategy) is DefaultStrategy and baseline.loss.photometric == "l1"
-    assert baseline.loss.lambda_lpips == 0 and baseline.loss.lambda_ssim == 0
+    # 3DGS's own objective: 0.8 L1 + 0.2 D-SSIM (plus the mask term), no LPIPS
+    assert baseline.loss.lambda_photometric == 0.8 and baseline.loss.lambda_ssim == 0.2
+    assert baseline.loss.lambda_lpips == 0 and baseline.loss.lambda_mask == eva.loss.lambda_mask
+    assert baseline.loss.pixel_norm == eva.loss.pixel_norm == "person_box"
+    assert baseline.avatar == eva.avatar and baseline.optim == eva.optim
+    assert baseline.iterations == eva.iterations
     assert type(with_method(base, "eva-no-cadc").strategy) is DefaultStrategy
     assert with_method(base, "eva-no-cl").loss.photometric == "l1"
     assert with_method(base, "eva-part-mean").strategy.history == "part_mean"

@@ -9,7 +9,7 @@ import pytest
 import torch
 from test_avatar_scenes import teacher_scene
 
-from eva_engine.eval import evaluate_avatar, metrics_table
+from eva_engine.eval import ImageMetrics, evaluate_avatar, metrics_table
 from eva_engine.metrics import LPIPS, psnr
 from eva_engine.render import RenderOutput
 from eva_engine.train import AvatarLoss, LossConfig, TrainingError, composite_target, preset, train_avatar
@@ -48,7 +48,8 @@ def test_training_fits_and_generalises_to_novel_poses(trained, scene, lpips):
     losses = torch.tensor(result.losses)
     assert len(losses) == preset("tiny").iterations
     assert losses[-20:].mean() < 0.75 * losses[:20].mean()
-    ev = evaluate_avatar(result.avatar, ds, lpips=lpips, train_seconds=result.train_seconds)
+    metrics = ImageMetrics(lpips_alex=lpips)
+    ev = evaluate_avatar(result.avatar, ds, metrics=metrics, train_seconds=result.train_seconds)
     baseline = sum(trivial_psnr(ds, i) for i in ds.splits["test_pose"]) / len(ds.splits["test_pose"])
     assert ev.regions["full"].psnr > baseline + 3.0, (ev.regions["full"].psnr, baseline)
     assert set(ev.regions) == {"full", "hand", "face"}
@@ -104,13 +105,24 @@ def test_loss_terms_are_finite_and_use_the_crop(lpips):
     mask = torch.zeros(h, w)
     mask[20:30, 10:14] = 1.0  # a box smaller than LPIPS's minimum: grown to 32 px
     target = torch.rand(h, w, 3)
-    terms = AvatarLoss(LossConfig(), lpips=lpips)(render, target, mask)
+    loss = AvatarLoss(LossConfig(), lpips=lpips)
+    x0, y0, x1, y1 = loss.person_box(mask)
+    assert (x1 - x0, y1 - y0) == (32, 32)  # the mask's box, padded by 4, grown to min_crop
+    terms = loss(render, target, mask)
     assert set(terms) == {"photometric", "mask", "ssim", "lpips", "total"}
     terms["total"].backward()
     assert torch.isfinite(image.grad).all() and torch.isfinite(alpha.grad).all()
-    # SSIM / LPIPS only see the crop: pixels far outside the box get only the L1 gradient.
-    l1_grad = 1.0 / (h * w * 3)
-    assert torch.allclose(image.grad[0, 0].abs(), torch.full((3,), l1_grad))
+    # SSIM / LPIPS only see the crop: pixels far outside the box get only the L1 gradient, which
+    # weighs each pixel as a mean over the person's box does (the official code's scale).
+    l1_grad = 1.0 / (32 * 32 * 3)
+    assert torch.allclose(image.grad[h - 1, w - 1].abs(), torch.full((3,), l1_grad))
+    # "frame" normalisation: a mean over the frame; 3DGS's 0.8 weight scales the L1 gradient.
+    image.grad = None
+    frame = AvatarLoss(LossConfig(pixel_norm="frame", lambda_photometric=0.8), lpips=lpips)
+    frame(render, target, mask)["total"].backward()
+    assert torch.allclose(image.grad[h - 1, w - 1].abs(), torch.full((3,), 0.8 / (h * w * 3)))
+    with pytest.raises(ValueError, match="pixel_norm"):
+        LossConfig(pixel_norm="box")
     # Degenerate: an empty mask (person out of view) still gives finite terms.
     terms = AvatarLoss(LossConfig(), lpips=lpips)(render, target, torch.zeros(h, w))
     assert all(torch.isfinite(v) for v in terms.values())

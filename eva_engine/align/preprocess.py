@@ -3,7 +3,10 @@
 ``preprocess_video`` is the in-the-wild front half of the pipeline (``eva preprocess``); its
 output is an ``eva-dataset`` folder (docs/dataset-format.md) that ``eva train`` reads unchanged:
 frames, person masks (holistic's segmentation), the guessed camera, detected keypoints with
-their extras (hand depth, pose world landmarks) and the fitted body parameters.
+their extras (hand depth, pose world landmarks), the fitted body parameters, and region masks
+(each hand, the face) for evaluation: the fitted body's parts rendered with the frame's camera
+and intersected with the person mask, for the hands and face the detector found in that frame
+(``data.region_masks``).
 
 Frames where no person is found are dropped and counted; a video with no person in any frame is
 a :class:`PreprocessError`.
@@ -26,7 +29,7 @@ from eva_engine.align.fit import FitConfig, FitTargets, fit_sequence, initial_es
 from eva_engine.body import KEYPOINT_NAMES, BodyModel
 
 Progress = Callable[[str, int, int], None]
-"""progress(stage, done, total): stage is one of "decode", "detect", "align", "write"."""
+"""progress(stage, done, total): stage is one of "decode", "detect", "align", "regions", "write"."""
 
 
 class PreprocessError(ValueError):
@@ -78,6 +81,11 @@ class Detections:
             torch.from_numpy(self.hand_depth),
             torch.from_numpy(self.pose_world),
         )
+
+    def regions_found(self) -> np.ndarray:
+        """[F, 3] bool per frame: left hand, right hand, face found (``REGION_MASKS`` order)."""
+        keys = ("left_hand", "right_hand", "face")
+        return np.array([[f.get(k, False) for k in keys] for f in self.found], dtype=bool).reshape(-1, 3)
 
     def rates(self) -> dict[str, float]:
         """Fraction of frames in which each part was found."""
@@ -182,6 +190,17 @@ def preprocess_video(
         if progress is not None:
             progress("align", len(config.fitting.stages), len(config.fitting.stages))
 
+    regions = None
+    if params is not None:
+        from eva_engine.data.region_masks import region_masks
+
+        started = time.perf_counter()
+        person = [np.ones((h, w), np.float32) if m is None else m for m in det.masks]
+        regions = region_masks(model, params, K, viewmat, (h, w), person, present=det.regions_found())
+        seconds["regions"] = time.perf_counter() - started
+        if progress is not None:
+            progress("regions", len(regions), len(regions))
+
     started = time.perf_counter()
     fps = clip.fps / config.every if clip.fps > 0 else 25.0
     meta = DatasetMeta(
@@ -195,7 +214,10 @@ def preprocess_video(
         for j, i in enumerate(keep):
             mask = det.masks[j]
             mask = np.ones((h, w), np.float32) if mask is None else mask
-            writer.add_frame(clip.frames[i], mask, K=K, viewmat=viewmat, time=float(clip.timestamps[i]))
+            writer.add_frame(
+                clip.frames[i], mask, K=K, viewmat=viewmat, time=float(clip.timestamps[i]),
+                regions=regions[j] if regions is not None else None,
+            )  # fmt: skip
             if progress is not None:
                 progress("write", j + 1, n)
         root = writer.finish(

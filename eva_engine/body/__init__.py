@@ -22,6 +22,7 @@ from eva_engine.body.keypoints import (
 )
 from eva_engine.body.model import (
     PART_NAMES,
+    SIDED_PART_NAMES,
     BodyModel,
     BodyOutput,
     lbs,
@@ -59,6 +60,7 @@ __all__ = [
     "KEYPOINT_GROUPS",
     "KEYPOINT_NAMES",
     "PART_NAMES",
+    "SIDED_PART_NAMES",
     "POSE_NAMES",
     "AnnyCacheError",
     "BodyModel",

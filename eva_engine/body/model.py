@@ -21,6 +21,8 @@ from eva_engine.body.params import BodyParams, BodyPose, params_from_poses, pose
 
 PART_NAMES = ("body", "hand", "face")
 """Names of the values of ``BodyModel.part_ids``."""
+SIDED_PART_NAMES = ("body", "hand_left", "hand_right", "face")
+"""Names of the values of ``BodyModel.sided_part_ids``: the parts with the two hands apart."""
 
 
 @dataclasses.dataclass
@@ -117,6 +119,17 @@ class BodyModel(torch.nn.Module, abc.ABC):
         ids = mass.argmax(dim=1)
         ids[mass.sum(dim=1) == 0] = PART_NAMES.index("body")
         return ids.to(self.device)
+
+    @property
+    def sided_part_ids(self) -> torch.Tensor:
+        """[V] int64 indices into :data:`SIDED_PART_NAMES`: ``part_ids`` with each hand vertex
+        given its side, the subject's left (+X in the rest pose) or right."""
+        with torch.no_grad():
+            x = self.canonical(self.default_params(1))[0, :, 0]
+        hand = self.part_ids == PART_NAMES.index("hand")
+        out = torch.where(self.part_ids == PART_NAMES.index("face"), 3, 0)
+        out = torch.where(hand & (x > 0), 1, out)
+        return torch.where(hand & (x <= 0), 2, out).to(torch.int64)
 
     def part_vertex_ids(self, part: str) -> torch.Tensor:
         """Indices [N] of the vertices of one part of :data:`PART_NAMES`."""

@@ -36,4 +36,4 @@ def setup(
     except LPIPSWeightsError as err:
         console.print(f"[red]error[/] LPIPS weights: {err}")
         raise typer.Exit(1) from err
-    console.print(f"[green]ok[/] LPIPS weights {weights}")
+    console.print("[green]ok[/] LPIPS weights " + ", ".join(f"{k}: {v}" for k, v in weights.items()))

@@ -25,10 +25,11 @@ class SynthSize(StrEnum):
 def synth(
     preset: SynthPreset = typer.Option(
         SynthPreset.wild,
-        help="controlled: XHumans-like, full body, ground truth given; wild: UPB-like waist-up signer.",
+        help="controlled: XHumans-like, thighs up, ground truth given, tested on other motion takes; "
+        "wild: UPB-like waist-up signer, alternate frames tested.",
     ),  # fmt: skip
     size: SynthSize = typer.Option(
-        SynthSize.tiny, help="tiny: 96 px, 12 frames; small: 256 px, 12 frames; bench: 512 px, 150 frames."
+        SynthSize.tiny, help="tiny: 96 px; small: 256 px (12 training frames); bench: 512 px, 150 of them."
     ),
     seed: int = typer.Option(0, min=0, help="Random seed (subject, look and motion)."),
     out: Path | None = typer.Option(

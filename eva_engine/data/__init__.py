@@ -5,6 +5,7 @@ public datasets. The on-disk layout is documented in ``docs/dataset-format.md``.
 from __future__ import annotations
 
 from eva_engine.data.dataset import (
+    REGION_MASKS,
     Dataset,
     DatasetError,
     DatasetMeta,
@@ -17,6 +18,7 @@ from eva_engine.data.perturb import PerturbConfig, perturb
 from eva_engine.data.video import VideoClip, VideoError, VideoReadOptions, read_video, write_video
 
 __all__ = [
+    "REGION_MASKS",
     "Dataset",
     "DatasetError",
     "DatasetMeta",

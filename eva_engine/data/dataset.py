@@ -6,7 +6,7 @@ builds a dataset atomically, and a loader that returns torch tensors.
             w.add_frame(rgb, mask, K=K, viewmat=viewmat, time=t)
         w.finish({"train": [...], "test_pose": [...]}, params=..., params_names=...)
     ds = load_dataset(root)
-    frame = ds[0]  # Frame(image [H, W, 3], mask [H, W], hand_mask, face_mask, K, viewmat, time)
+    frame = ds[0]  # Frame(image [H, W, 3], mask [H, W], region masks, K, viewmat, time)
 
 No pickle: JSON, PNG and safetensors only.
 """
@@ -27,9 +27,11 @@ import torch
 from eva_engine.body.params import BodyParams
 
 FORMAT = "eva-dataset"
-VERSION = 1
+VERSION = 2
 SPLITS = ("train", "test_pose", "test_view")
-REGIONS = ("person", "hand", "face")
+REGION_MASKS = ("hand_left", "hand_right", "face")
+"""Per-frame region masks (the subject's left and right hand, the face): version 2 and later."""
+REGIONS = ("person", *REGION_MASKS)
 PARAM_FIELDS = ("root_orient", "transl", "joints", "expression", "shape")
 
 
@@ -101,17 +103,17 @@ class DatasetMeta:
 
 @dataclasses.dataclass
 class Frame:
-    """One frame. image: [H, W, 3] float32 in [0, 1]; mask, hand_mask, face_mask: [H, W] float32
-    coverage in [0, 1] (region masks None when absent); K: [3, 3]; viewmat: [4, 4]; time: s."""
+    """One frame. image: [H, W, 3] float32 in [0, 1]; mask: [H, W] person coverage in [0, 1];
+    regions: ``REGION_MASKS`` name -> [H, W] coverage (empty when the dataset has no region
+    masks; a region not in the frame is an all-zero mask); K: [3, 3]; viewmat: [4, 4]; time: s."""
 
     index: int
     image: torch.Tensor
     mask: torch.Tensor
-    hand_mask: torch.Tensor | None
-    face_mask: torch.Tensor | None
     K: torch.Tensor
     viewmat: torch.Tensor
     time: float
+    regions: dict[str, torch.Tensor] = dataclasses.field(default_factory=dict)
 
 
 # -- image files ---------------------------------------------------------------------------------
@@ -290,12 +292,12 @@ class DatasetWriter:
         K: torch.Tensor | np.ndarray,
         viewmat: torch.Tensor | np.ndarray,
         time: float | None = None,
-        hand_mask: np.ndarray | torch.Tensor | None = None,
-        face_mask: np.ndarray | torch.Tensor | None = None,
+        regions: Mapping[str, np.ndarray | torch.Tensor] | None = None,
     ) -> int:
         """Append frame ``num_frames``: image [H, W, 3] and masks [H, W] (uint8, or float in
         [0, 1]); K [3, 3]; viewmat [4, 4]; ``time`` in seconds (default ``index / fps``).
-        Region masks: both or neither, the same for every frame. Returns the frame index."""
+        ``regions``: a mask for every name of ``REGION_MASKS`` (all-zero where the region is not
+        in the frame), for every frame or for none. Returns the frame index."""
         if self._done:
             raise RuntimeError("the dataset is already finished")
         h, w = self.meta.image_size
@@ -304,10 +306,10 @@ class DatasetWriter:
             raise ValueError(
                 f"image {img.shape} / mask {m.shape} do not match the dataset's image size {(h, w)}"
             )
-        regions = hand_mask is not None and face_mask is not None
-        if (hand_mask is None) != (face_mask is None):
-            raise ValueError("give both hand_mask and face_mask, or neither")
-        if self._regions is not None and regions != self._regions:
+        if regions is not None and set(regions) != set(REGION_MASKS):
+            raise ValueError(f"regions must hold exactly {list(REGION_MASKS)}, got {sorted(regions)}")
+        has_regions = regions is not None
+        if self._regions is not None and has_regions != self._regions:
             raise ValueError("region masks must be given for every frame or for none")
         K_, view = torch.as_tensor(K, dtype=torch.float32), torch.as_tensor(viewmat, dtype=torch.float32)
         if K_.shape != (3, 3) or view.shape != (4, 4):
@@ -320,14 +322,13 @@ class DatasetWriter:
         name = _frame_name(i)
         _write_png(self._tmp / "frames" / name, img)
         _write_png(self._tmp / "masks" / "person" / name, m)
-        if regions:
-            for region, rm in (("hand", hand_mask), ("face", face_mask)):
-                rm = _to_uint8(rm, f"{region}_mask")
-                if rm.shape != (h, w):
-                    raise ValueError(f"{region}_mask {rm.shape} does not match the image size {(h, w)}")
-                (self._tmp / "masks" / region).mkdir(exist_ok=True)
-                _write_png(self._tmp / "masks" / region / name, rm)
-        self._regions = regions
+        for region in REGION_MASKS if has_regions else ():
+            rm = _to_uint8(regions[region], f"{region} mask")
+            if rm.shape != (h, w):
+                raise ValueError(f"{region} mask {rm.shape} does not match the image size {(h, w)}")
+            (self._tmp / "masks" / region).mkdir(exist_ok=True)
+            _write_png(self._tmp / "masks" / region / name, rm)
+        self._regions = has_regions
         self._K.append(K_)
         self._view.append(view)
         self._times.append(float(time) if time is not None else i / float(self.meta.fps))
@@ -455,6 +456,9 @@ class Dataset:
             self.meta = DatasetMeta.from_json(raw)
         except (KeyError, TypeError, ValueError) as err:
             raise DatasetError(f"{meta_path} is malformed: {err}") from err
+        # Version 1 stored both hands in one mask; per-hand regions start with version 2, so a
+        # version-1 dataset is read without its region masks (regenerate it to get them).
+        self.has_region_masks = self.meta.has_region_masks and self.meta.version >= 2
         n = self.meta.num_frames
         try:
             cams = load_file(str(self.root / "cameras.safetensors"))
@@ -528,11 +532,12 @@ class Dataset:
         return self._checked(torch.from_numpy(a).float() / 255.0, i)
 
     def mask(self, i: int, region: str = "person") -> torch.Tensor:
-        """Mask ``region`` (person, hand, face) of frame ``i`` as [H, W] float32 in [0, 1]."""
+        """Mask ``region`` (``REGIONS``: person, hand_left, hand_right, face) of frame ``i`` as
+        [H, W] float32 in [0, 1]."""
         i = self._check_index(i)
         if region not in REGIONS:
             raise ValueError(f"unknown region {region!r}; choose one of {REGIONS}")
-        if region != "person" and not self.meta.has_region_masks:
+        if region != "person" and not self.has_region_masks:
             raise DatasetError(f"{self.root} has no {region} masks")
         a = _read_png(self.root / "masks" / region / _frame_name(i), 1)
         return self._checked(torch.from_numpy(a).float() / 255.0, i)
@@ -544,16 +549,15 @@ class Dataset:
 
     def __getitem__(self, i: int) -> Frame:
         i = self._check_index(i)
-        regions = self.meta.has_region_masks
+        regions = REGION_MASKS if self.has_region_masks else ()
         return Frame(
             index=i,
             image=self.image(i),
             mask=self.mask(i),
-            hand_mask=self.mask(i, "hand") if regions else None,
-            face_mask=self.mask(i, "face") if regions else None,
             K=self.K[i],
             viewmat=self.viewmat[i],
             time=float(self.timestamps[i]),
+            regions={r: self.mask(i, r) for r in regions},
         )
 
     def images(self, indices: Sequence[int] | None = None) -> torch.Tensor:

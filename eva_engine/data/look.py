@@ -1,11 +1,13 @@
 """The synthetic subject's look: a procedural albedo texture for Anny, painted in the body's rest
 pose and baked into Anny's UV atlas, so the detail moves with the skin.
 
-What is painted, and why (``../shared/reference/detection-notes.md``; EVA's point that hands and
-face carry the hard detail): clothing unlike skin (a checked shirt with sleeves, twill trousers,
-shoes), a painted face (hair, eyebrows, lid lines, lips, sclera, iris and pupil), hands with a
-distinct tint per finger, knuckle creases and nails. The patterns have millimetre-scale lines, so
-blur shows up in LPIPS.
+What is painted, and why (MediaPipe needs shading, clothing unlike skin and a painted face to
+find a rendered body; EVA's point is that hands and face carry the hard detail): clothing unlike
+skin (a checked shirt with sleeves and a printed chest panel, twill trousers, shoes), a painted
+face (hair, eyebrows, lid lines, lips, sclera, iris and pupil, fine skin mottling), hands with a
+distinct tint per finger, knuckle creases and nails. The patterns have millimetre-scale lines and
+edges, so blur shows up in LPIPS. The texture's alpha channel is the surface's gloss (the
+strength of the renderer's highlight): wet eyes, nails and lips shine, cloth barely.
 """
 
 from __future__ import annotations
@@ -25,6 +27,10 @@ SHIRT_COLORS = (
 )
 TROUSER_COLORS = ((0.28, 0.21, 0.15), (0.14, 0.18, 0.30), (0.13, 0.13, 0.13))
 HAIR_COLORS = ((0.06, 0.05, 0.05), (0.24, 0.15, 0.08), (0.55, 0.43, 0.26))
+PRINT_INKS = ((0.95, 0.93, 0.85), (0.98, 0.80, 0.15), (0.90, 0.25, 0.20))
+# Highlight strength (texture alpha) per material.
+GLOSS = {"skin": 0.10, "lips": 0.25, "eye": 0.8, "nail": 0.5, "hair": 0.2, "shirt": 0.04, "print": 0.2,
+         "trousers": 0.03, "shoes": 0.35, "mouth": 0.3}  # fmt: skip
 IRIS_COLORS = ((0.30, 0.17, 0.07), (0.22, 0.38, 0.58), (0.28, 0.42, 0.22))
 # Multiplicative tint per finger (thumb .. pinky): distinct but still skin.
 FINGER_TINTS = (
@@ -48,6 +54,7 @@ class Look:
     lips: tuple[float, float, float]
     nails: tuple[float, float, float] = (0.95, 0.80, 0.78)
     shoes: tuple[float, float, float] = (0.10, 0.09, 0.09)
+    print_ink: tuple[float, float, float] = (0.95, 0.93, 0.85)
 
     @classmethod
     def random(cls, rng: np.random.Generator) -> Look:
@@ -57,7 +64,7 @@ class Look:
         skin = pick(SKIN_TONES)
         lips = tuple(float(x) for x in np.clip(np.array(skin) * (0.95, 0.55, 0.55) + (0.10, 0.0, 0.0), 0, 1))
         return cls(skin=skin, shirt=pick(SHIRT_COLORS), trousers=pick(TROUSER_COLORS), hair=pick(HAIR_COLORS),
-                   iris=pick(IRIS_COLORS), lips=lips)  # fmt: skip
+                   iris=pick(IRIS_COLORS), lips=lips, print_ink=pick(PRINT_INKS))  # fmt: skip
 
 
 def _hash_noise(p: np.ndarray, scale: float, seed: int) -> np.ndarray:
@@ -168,46 +175,60 @@ def paint(
     look: Look,
     seed: int,
 ) -> np.ndarray:
-    """Albedo [N, 3] at surface points p [N, 3] (rest pose) with normals [N, 3], Anny segment
-    label [N] and dominant bone index [N] (into ``model.joint_names``). Each region is painted
-    on its own subset of points (the atlas has millions of texels)."""
+    """Albedo and gloss [N, 4] (RGB, highlight strength) at surface points p [N, 3] (rest pose)
+    with normals [N, 3], Anny segment label [N] and dominant bone index [N] (into
+    ``model.joint_names``). Each region is painted on its own subset of points (the atlas has
+    millions of texels)."""
     from eva_engine.body.anny_backend import SEGMENT_LABELS
 
     lab = {n: i for i, n in enumerate(SEGMENT_LABELS)}
     names = model.joint_names
     col = np.tile(np.asarray(look.skin), (len(p), 1))
+    gloss = np.full(len(p), GLOSS["skin"])
 
     skin = np.isin(label, [lab["body"], lab["head"], lab["hand.L"], lab["hand.R"]])
     idx = np.nonzero(skin)[0]
-    col[idx] *= (0.94 + 0.09 * _hash_noise(p[idx], 0.02, seed))[:, None]
+    # Broad blotches and fine (3 mm) mottling: skin a blur cannot fake.
+    fine = _hash_noise(p[idx], 0.003, seed + 9) - 0.5
+    mottle = 0.94 + 0.09 * _hash_noise(p[idx], 0.02, seed) + 0.06 * fine
+    col[idx] *= mottle[:, None]
     body = np.nonzero(label == lab["body"])[0]
-    col[body] = _paint_body(p[body], bone[body], names, anatomy, look, seed, col[body])
+    col[body], gloss[body] = _paint_body(
+        p[body], normal[body], bone[body], names, anatomy, look, seed, col[body]
+    )
     feet = np.nonzero(np.isin(label, [lab["foot.L"], lab["foot.R"]]))[0]
     if len(feet):
         fc = np.tile(np.asarray(look.shoes), (len(feet), 1))
         fc[p[feet, 1] < p[feet, 1].min() + 0.008] = (0.55, 0.55, 0.53)  # soles
-        col[feet] = fc
+        col[feet], gloss[feet] = fc, GLOSS["shoes"]
     for s in "LR":
         hand = np.nonzero(label == lab[f"hand.{s}"])[0]
-        col[hand] = _paint_hand(p[hand], normal[hand], bone[hand], names, anatomy, s, look, col[hand])
+        col[hand], gloss[hand] = _paint_hand(
+            p[hand], normal[hand], bone[hand], names, anatomy, s, look, col[hand]
+        )
     head = np.nonzero(label == lab["head"])[0]
-    col[head] = _paint_head(p[head], anatomy, look, seed, col[head])
+    col[head], gloss[head] = _paint_head(p[head], anatomy, look, seed, col[head])
     for s in "LR":
         ball = np.nonzero(label == lab[f"eye_front.{s}"])[0]
-        col[ball] = _paint_eye(p[ball], anatomy, s, look, seed)
+        col[ball], gloss[ball] = _paint_eye(p[ball], anatomy, s, look, seed), GLOSS["eye"]
         col[label == lab[f"eye_back.{s}"]] = (0.9, 0.9, 0.88)
         col[label == lab[f"eye_cavity.{s}"]] = (0.15, 0.08, 0.07)
+    mouth = np.isin(label, [lab["mouth_cavity"], lab["tongue"]])
     col[label == lab["mouth_cavity"]] = (0.35, 0.08, 0.08)
     col[label == lab["tongue"]] = (0.78, 0.42, 0.42)
-    return np.clip(col, 0.0, 1.0)
+    gloss[mouth] = GLOSS["mouth"]
+    return np.concatenate([np.clip(col, 0.0, 1.0), gloss[:, None]], axis=1)
 
 
 def _bone_table(names, pred) -> np.ndarray:
     return np.array([bool(pred(x)) for x in names])
 
 
-def _paint_body(p, bone, names, a: _Anatomy, look: Look, seed: int, col: np.ndarray) -> np.ndarray:
-    """Shirt with sleeves, trousers below the waist, skin elsewhere (neck, forearms)."""
+def _paint_body(
+    p, normal, bone, names, a: _Anatomy, look: Look, seed: int, col: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Shirt with sleeves and a printed chest panel, trousers below the waist, skin elsewhere
+    (neck, forearms). Returns colour [N, 3] and gloss [N]."""
     h = a.heads
     lower = _bone_table(names, lambda x: x.startswith(("pelvis", "upperleg", "lowerleg", "foot", "toe")))[
         bone
@@ -235,18 +256,38 @@ def _paint_body(p, bone, names, a: _Anatomy, look: Look, seed: int, col: np.ndar
     weave = 0.95 + 0.05 * np.sin(2 * np.pi * (q[:, 0] - q[:, 1]) / 0.003)
     hem = 0.25 * _line(q[:, 1] - neck_y[shirt] + 0.006, 0.002)
     col[shirt] = np.asarray(look.shirt)[None] * (check * weave)[:, None] + hem[:, None]
+    gloss = np.full(len(p), GLOSS["skin"])
+    gloss[shirt] = GLOSS["shirt"]
+    # A printed panel on the chest: a frame and blocky "lettering" with sharp 4 mm edges.
+    chest_y = h["neck01"][1] - 0.14
+    front = shirt & (normal[:, 2] > 0.5) & (p[:, 2] > h["spine01"][2])
+    px, py = p[:, 0] / 0.085, (p[:, 1] - chest_y) / 0.07
+    panel = front & (np.abs(px) < 1.0) & (np.abs(py) < 1.0)
+    border = panel & ((np.abs(px) > 0.9) | (np.abs(py) > 0.86))
+    cells = np.floor(p[:, :2] / 0.004).astype(np.int64)
+    glyph = _hash_noise(np.concatenate([cells * 0.004, np.zeros((len(p), 1))], 1), 0.004, seed + 11) > 0.55
+    rows = np.abs(np.mod(py + 1.0, 0.5) - 0.25) < 0.16  # three lines of "text"
+    ink = border | (panel & (np.abs(px) < 0.8) & (np.abs(py) < 0.75) & rows & glyph)
+    grain = 0.93 + 0.07 * _hash_noise(p[ink], 0.002, seed + 12)
+    col[ink] = np.asarray(look.print_ink)[None] * grain[:, None]
+    gloss[ink] = GLOSS["print"]
     q = p[trousers]
     twill = 0.88 + 0.12 * np.sin(2 * np.pi * (q[:, 1] + 0.6 * q[:, 0] + 0.6 * q[:, 2]) / 0.004)
     col[trousers] = (
         np.asarray(look.trousers)[None] * (twill * (0.9 + 0.2 * _hash_noise(q, 0.03, seed + 2)))[:, None]
     )
-    return col
+    gloss[trousers] = GLOSS["trousers"]
+    return col, gloss
 
 
-def _paint_hand(p, normal, bone, names, a: _Anatomy, s: str, look: Look, col: np.ndarray) -> np.ndarray:
-    """A tint per finger, creases across every finger joint, nails, palm lines."""
+def _paint_hand(
+    p, normal, bone, names, a: _Anatomy, s: str, look: Look, col: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """A tint per finger, creases across every finger joint, nails, palm lines. Returns colour
+    [N, 3] and gloss [N]."""
     h = a.heads
     col = col.copy()
+    gloss = np.full(len(p), GLOSS["skin"])
     for i in range(1, 6):
         finger = _bone_table(names, lambda x, i=i: x in {f"finger{i}-{k}.{s}" for k in (1, 2, 3)})[bone]
         q = p[finger]
@@ -271,23 +312,28 @@ def _paint_hand(p, normal, bone, names, a: _Anatomy, s: str, look: Look, col: np
         nc[t < 0.47] = (0.85, 0.62, 0.60)  # cuticle
         fc[nail] = nc[nail]
         col[finger] = fc
+        fg = gloss[finger]
+        fg[nail] = GLOSS["nail"]
+        gloss[finger] = fg
     palm = (normal @ a.palm_dir[s] > 0.5) & _bone_table(names, lambda x: x == f"wrist.{s}")[bone]
     q = p[palm] - h[f"wrist.{s}"]
     lines = _line(np.sin(2 * np.pi * (q @ np.array([0.3, 1.0, 0.2])) / 0.02), 0.08)
     col[palm] *= (1.0 - 0.25 * lines)[:, None]
-    return col
+    return col, gloss
 
 
-def _paint_head(p, a: _Anatomy, look: Look, seed: int, col: np.ndarray) -> np.ndarray:
-    """Hair, eyebrows, lid lines and lips."""
+def _paint_head(p, a: _Anatomy, look: Look, seed: int, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Hair, eyebrows, lid lines and lips. Returns colour [N, 3] and gloss [N]."""
     h = a.heads
     col = col.copy()
+    gloss = np.full(len(p), GLOSS["skin"])
     hair = (p[:, 1] - h["head"][1]) + 0.75 * (0.04 - p[:, 2]) > 0.055
     q = p[hair]
     strands = 0.8 + 0.2 * np.sin(2 * np.pi * (q[:, 0] * 0.9 + q[:, 2] * 0.4) / 0.0025) * _hash_noise(
         q, 0.01, seed + 3
     )
     col[hair] = np.asarray(look.hair)[None] * strands[:, None]
+    gloss[hair] = GLOSS["hair"]
     dark = np.asarray(look.hair) * 0.6
     for s in "LR":
         margin = a.eye_margin[s]
@@ -319,7 +365,8 @@ def _paint_head(p, a: _Anatomy, look: Look, seed: int, col: np.ndarray) -> np.nd
         lc = np.asarray(look.lips)[None] * (0.92 + 0.08 * np.sin(2 * np.pi * q[:, 0] / 0.002))[:, None]
         c = col[near] * (1 - lip) + lc * lip
         col[near] = c * (1.0 - 0.5 * _line(d, 0.0007))[:, None]  # the line between the lips
-    return col
+        gloss[near] = GLOSS["skin"] + (GLOSS["lips"] - GLOSS["skin"]) * lip[:, 0]
+    return col, gloss
 
 
 def _paint_eye(p, a: _Anatomy, s: str, look: Look, seed: int) -> np.ndarray:
@@ -343,7 +390,7 @@ def bake_texture(
     """Paint the subject of ``params`` (batch 1; its shape sets the rest pose) into a
     ``size x size`` texture for ``renderer.set_surface(texture=..., uv=..., face_uv=...)`` with
     Anny's UV atlas. ``face_label``: :func:`face_segments` if already computed. Returns uint8
-    [size, size, 3]."""
+    [size, size, 4]: albedo and gloss."""
     from scipy import ndimage
 
     from eva_engine.data.mesh_render import vertex_normals
@@ -370,7 +417,7 @@ def bake_texture(
     albedo = paint(
         pos[valid].astype(np.float64), normal, face_label[f], face_bone[f], model, anatomy, look, seed
     )
-    tex = np.zeros((size, size, 3))
+    tex = np.zeros((size, size, 4))
     tex[valid] = albedo
     # Fill texels outside the UV islands with the nearest painted texel, so mipmaps and
     # bilinear filtering at seams do not bleed black.

@@ -2,8 +2,11 @@
 software EGL (llvmpipe), so it runs headless on CPU. It is deliberately a different image
 formation model from the Gaussian rasterizer the avatar is trained with.
 
-Per frame it gives Lambert-shaded colour, coverage (alpha), camera depth and the id of the
-triangle seen at each pixel (``gl_PrimitiveID``), with supersampling for anti-aliased edges.
+Per frame it gives shaded colour (Lambert diffuse plus an optional Blinn-Phong highlight whose
+strength comes from the texture's alpha channel), coverage (alpha), camera depth and the id of the
+triangle seen at each pixel (``gl_PrimitiveID``), with supersampling for anti-aliased edges. The
+light is fixed to the camera or to the world (``MeshRenderConfig.light_frame``): in the world, the
+shading of a surface changes as the body moves and as the camera moves around it.
 
 Conventions (the project's): OpenCV camera, ``viewmat [4, 4]`` world->camera (x right, y down,
 z forward), ``K [3, 3]`` in pixels, pixel (x, y) has its centre at (x + 0.5, y + 0.5).
@@ -60,6 +63,7 @@ uniform sampler2D tex;
 uniform bool use_texture;
 uniform vec3 light;      // unit direction towards the light, camera frame
 uniform float ambient;
+uniform float shininess; // Blinn-Phong exponent; highlight strength = texture alpha
 in vec3 v_normal;
 in vec3 v_cam;
 in vec3 v_color;
@@ -71,9 +75,11 @@ void main() {
     float len = length(v_normal);
     vec3 n = len > 1e-8 ? v_normal / len : vec3(0.0, 0.0, -1.0);
     if (dot(n, v_cam) > 0.0) n = -n;  // two-sided: shade the side facing the camera
-    vec3 albedo = use_texture ? texture(tex, v_uv).rgb : v_color;
+    vec4 texel = use_texture ? texture(tex, v_uv) : vec4(v_color, 0.0);
     float shade = ambient + (1.0 - ambient) * max(dot(n, light), 0.0);
-    f_color = vec4(albedo * shade, 1.0);
+    vec3 half_dir = normalize(light - normalize(v_cam));
+    float highlight = dot(n, light) > 0.0 ? texel.a * pow(max(dot(n, half_dir), 0.0), shininess) : 0.0;
+    f_color = vec4(texel.rgb * shade + vec3(highlight), 1.0);
     f_id = gl_PrimitiveID + 1;  // 0 = background
     f_depth = v_cam.z;
 }
@@ -118,7 +124,14 @@ class MeshRenderConfig:
     ambient: float = 0.35
     """Fraction of the albedo seen with no direct light (the rest is Lambert from ``light``)."""
     light: tuple[float, float, float] = (-0.35, -0.55, -1.0)
-    """Direction towards the light in camera coordinates (default: above-left of the camera)."""
+    """Direction towards the light, in the frame ``light_frame`` names (default, in camera
+    coordinates: above-left of the camera)."""
+    light_frame: str = "camera"
+    """"camera" (the light moves with the camera) or "world" (a fixed direction in world
+    coordinates: Y up, the subject faces +Z; e.g. (-0.35, 0.55, 1.0) is the camera default seen
+    from a front camera)."""
+    shininess: float = 24.0
+    """Blinn-Phong exponent of the highlight (its strength is the texture's alpha channel)."""
     near: float = 0.01
     far: float = 100.0
 
@@ -129,6 +142,8 @@ class MeshRenderConfig:
             raise ValueError(f"ambient must be in [0, 1], got {self.ambient}")
         if not 0.0 < self.near < self.far:
             raise ValueError("need 0 < near < far")
+        if self.light_frame not in ("camera", "world"):
+            raise ValueError(f"light_frame must be 'camera' or 'world', got {self.light_frame!r}")
 
 
 @dataclasses.dataclass
@@ -234,8 +249,10 @@ class MeshRenderer:
                  (self._col, "3f", "in_color"), (self._uv, "2f", "in_uv")],
             )  # fmt: skip
             light = np.asarray(c.light, dtype=np.float64)
-            self._prog["light"].value = tuple(light / np.linalg.norm(light))
+            self._light = light / np.linalg.norm(light)
+            self._prog["light"].value = tuple(self._light)
             self._prog["ambient"].value = float(c.ambient)
+            self._prog["shininess"].value = float(c.shininess)
             self._prog["clip"].value = (c.near, c.far)
             self._prog["size"].value = (float(self._size[0]), float(self._size[1]))
             self.set_surface(colors=np.full((self.num_vertices, 3), 0.7, np.float32))
@@ -257,8 +274,9 @@ class MeshRenderer:
 
     # -- surface -----------------------------------------------------------------------------
     def set_surface(self, colors=None, texture=None, uv=None, face_uv=None) -> None:
-        """Per-vertex ``colors [V, 3]``, or ``texture [Ht, Wt, 3]`` (uint8 or float in [0, 1],
-        row 0 at v = 0) with ``uv [T, 2]`` and ``face_uv [F, 3]`` (default: ``faces``)."""
+        """Per-vertex ``colors [V, 3]``, or ``texture [Ht, Wt, 3 or 4]`` (uint8 or float in
+        [0, 1], row 0 at v = 0; a 4th channel is the highlight strength, else none) with
+        ``uv [T, 2]`` and ``face_uv [F, 3]`` (default: ``faces``)."""
         if (colors is None) == (texture is None):
             raise ValueError("give either colors or texture")
         n = len(self._corners)
@@ -275,12 +293,14 @@ class MeshRenderer:
         if fuv.shape != self.faces.shape or uv.ndim != 2 or uv.shape[1] != 2 or fuv.max() >= len(uv):
             raise ValueError("uv must be [T, 2] and face_uv [F, 3] indexing it")
         tex = np.asarray(texture)
-        if tex.ndim != 3 or tex.shape[2] != 3:
-            raise ValueError(f"texture must be [Ht, Wt, 3], got {tex.shape}")
+        if tex.ndim != 3 or tex.shape[2] not in (3, 4):
+            raise ValueError(f"texture must be [Ht, Wt, 3 or 4], got {tex.shape}")
         tex = tex if tex.dtype == np.uint8 else np.clip(np.round(tex * 255.0), 0, 255).astype(np.uint8)
+        if tex.shape[2] == 3:  # no highlight
+            tex = np.concatenate([tex, np.zeros_like(tex[..., :1])], axis=2)
         if self._texture is not None:
             self._texture.release()
-        self._texture = self.ctx.texture((tex.shape[1], tex.shape[0]), 3, np.ascontiguousarray(tex).tobytes())
+        self._texture = self.ctx.texture((tex.shape[1], tex.shape[0]), 4, np.ascontiguousarray(tex).tobytes())
         self._texture.build_mipmaps()
         import moderngl
 
@@ -319,6 +339,8 @@ class MeshRenderer:
         self._nrm.write(np.ascontiguousarray(n[self._corners]).tobytes())
         self._prog["view"].write(np.ascontiguousarray(view.T, dtype=np.float32).tobytes())  # column-major
         self._prog["intr"].value = (s * K_[0, 0], s * K_[1, 1], s * K_[0, 2], s * K_[1, 2])
+        if self.config.light_frame == "world":
+            self._prog["light"].value = tuple(view[:3, :3] @ self._light)
         self._prog["skew"].value = float(s * K_[0, 1])
 
         import moderngl

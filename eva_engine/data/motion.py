@@ -30,6 +30,8 @@ HANDSHAPES = {  # per-finger curl (thumb .. pinky), 0 = straight, 1 = fully bent
 }
 FACE_ACTIONS = ("jawOpen", "mouthSmileLeft", "mouthSmileRight", "browInnerUp", "mouthPucker", "eyeWideLeft",
                 "eyeWideRight", "mouthFunnel", "browDownLeft", "browDownRight", "cheekPuff")  # fmt: skip
+HELD_OUT_FACE_ACTIONS = ("mouthPucker", "mouthFunnel", "browDownLeft", "browDownRight", "cheekPuff")
+"""Facial actions a benchmark can keep out of its training take, so test takes show new expressions."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +48,8 @@ class MotionConfig:
     head_motion: float = 0.2
     blink_every: float = 1.8
     """Mean seconds between blinks."""
+    face_actions: tuple[str, ...] = FACE_ACTIONS
+    """The facial actions keyframes draw from (blinks come on top)."""
 
 
 @dataclasses.dataclass
@@ -114,9 +118,10 @@ def _keyframes(rng: np.random.Generator, k: int, cfg: MotionConfig, n_expr: int,
     kf["spine"] = rng.uniform(-0.06, 0.06, (k, 3))
     expr = np.zeros((k, n_expr))
     for r in range(k):
-        for name in rng.choice(FACE_ACTIONS, size=rng.integers(1, 4), replace=False):
+        actions = list(cfg.face_actions)
+        for name in rng.choice(actions, size=min(int(rng.integers(1, 4)), len(actions)), replace=False):
             expr[r, expr_index[name]] = rng.uniform(0.3, 0.9) if name != "jawOpen" else rng.uniform(0.2, 0.6)
-        if expr[r, expr_index["mouthSmileLeft"]] > 0:  # smiles are mostly symmetric
+        if "mouthSmileRight" in actions and expr[r, expr_index["mouthSmileLeft"]] > 0:  # mostly symmetric
             expr[r, expr_index["mouthSmileRight"]] = max(
                 expr[r, expr_index["mouthSmileRight"]], expr[r, expr_index["mouthSmileLeft"]] * 0.8
             )
@@ -133,12 +138,18 @@ def _interp(values: np.ndarray, times: np.ndarray, interval: float) -> np.ndarra
 
 
 def sign_motion(
-    model, shape: torch.Tensor, times: np.ndarray, seed: int, cfg: MotionConfig | None = None
+    model, shape: torch.Tensor, times: np.ndarray, seed: int, cfg: MotionConfig | None = None, take: int = 0
 ) -> BodyParams:
     """Body parameters [T] for frame ``times`` [T] (seconds in [0, duration]) of the subject with
-    ``shape [1, S]``; deterministic given ``seed``."""
+    ``shape [1, S]``; deterministic given ``seed`` and ``take`` (another take is another motion
+    of the same subject)."""
     cfg = cfg or MotionConfig()
-    rng = np.random.default_rng([seed, 7])
+    unknown = set(cfg.face_actions) - set(model.expression_names)
+    if unknown or not cfg.face_actions:
+        raise ValueError(
+            f"face_actions must be non-empty expression names of the model; unknown: {sorted(unknown)}"
+        )
+    rng = np.random.default_rng([seed, 7, take])
     axes = rest_axes(model, shape)
     names = model.pose_joint_names
     jidx = {n: i for i, n in enumerate(names)}

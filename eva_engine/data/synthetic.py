@@ -1,18 +1,27 @@
 """The synthetic benchmark: a textured Anny subject signing in front of a static camera, rendered
 by a triangle-mesh rasterizer (``data.mesh_render``, not Gaussians), written in the dataset
-layout with ground truth.
+layout with ground truth, per-hand and face region masks included.
 
 Presets (modelled on the paper's data):
 
-- ``controlled`` (XHumans-like): full body, a slow whole-body turn; ground-truth parameters and
-  keypoints are given to the pipeline.
+- ``controlled`` (XHumans-like): the subject from the thighs up (so hands are ~60-70 px long at
+  512 px), a slow whole-body turn; ground-truth parameters and keypoints are given to the
+  pipeline. Split as XHumans: the avatar trains on one motion take and is tested on other takes
+  of the same subject (20 frames each, every 5th frame), whose motions, hand shapes and facial
+  expressions it has never seen (the training take draws from a subset of the facial actions,
+  the test takes from all of them).
 - ``wild`` (UPB-like): a waist-up signer; the pipeline gets only images (it must detect and
-  align); the ground truth is kept under ``ground_truth/`` for evaluation.
+  align); the ground truth is kept under ``ground_truth/`` for evaluation. Split as UPB:
+  alternate frames of one take train and test.
 
-Sizes: ``tiny`` (96 px, 12 frames, for tests) and ``bench`` (512 px, 150 frames). Splits as in
-the paper's appendix: every third frame of the sequence is a novel-pose test frame (interleaved,
-as UPB), the rest train; ``test_view`` frames show training poses from a camera turned 35 deg
-about the subject. Everything is deterministic given the seed.
+Appearance: a procedural albedo and gloss texture (``data.look``) with millimetre-scale detail on
+the hands, face and clothing, lit by a light fixed in the world with Lambert diffuse and a
+Blinn-Phong highlight, so shading changes with the pose and with the view. ``test_view`` frames
+show training poses from a camera turned 35 deg about the subject. Everything is deterministic
+given the seed (which picks the subject and its motions).
+
+Sizes: ``tiny`` (96 px, for tests), ``small`` (256 px, large enough for MediaPipe) and ``bench``
+(512 px, 150 training frames).
 """
 
 from __future__ import annotations
@@ -25,11 +34,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from eva_engine.body.model import PART_NAMES
+from eva_engine.body.params import BodyParams
 from eva_engine.data.dataset import DatasetMeta, DatasetWriter, ParamNames
 from eva_engine.data.look import Look, bake_texture, face_segments
 from eva_engine.data.mesh_render import MeshRenderConfig, MeshRenderer, intrinsics, look_at
-from eva_engine.data.motion import MotionConfig, sign_motion
+from eva_engine.data.motion import FACE_ACTIONS, HELD_OUT_FACE_ACTIONS, MotionConfig, sign_motion
+from eva_engine.data.region_masks import coverage_by_region, face_regions
+
+SPLIT_STYLES = ("takes", "interleaved")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,8 +57,13 @@ class Preset:
     """Amplitude (radians) of the slow whole-body turn."""
     give_ground_truth: bool
     """Write the ground-truth parameters and keypoints as pipeline inputs too."""
+    split: str
+    """"takes" (train on one take, test on others: XHumans) or "interleaved" (alternate frames
+    of one take: UPB)."""
     view_angle_deg: float = 35.0
     """The held-out camera, turned about the vertical axis through the target."""
+    light: tuple[float, float, float] = (-0.35, 0.55, 1.0)
+    """Direction towards the light in the world (above, in front, to the subject's right)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,26 +73,36 @@ class Size:
     name: str
     image_size: int
     num_frames: int
-    """Frames of the sequence (train + test_pose)."""
+    """Frames of the training take (6 s of motion)."""
     num_view_frames: int
     supersample: int
     texture_size: int
-    test_every: int = 3
-    test_offset: int = 2
+    test_takes: int = 1
+    """"takes" split: number of test takes ..."""
+    test_frames: int = 3
+    """... frames sampled from each ..."""
+    test_stride: int = 1
+    """... every this many frames (at the training take's frame rate)."""
+    test_every: int = 2
+    """"interleaved" split: every this many frames (the second of each group) is a test frame."""
 
 
 PRESETS: dict[str, Preset] = {
-    "controlled": Preset("controlled", (0.0, 0.17, 0.0), 3.2, 40.0, body_turn=0.5, give_ground_truth=True),
-    "wild": Preset("wild", (0.0, 0.42, 0.0), 2.45, 30.0, body_turn=0.15, give_ground_truth=False),
-}
+    "controlled": Preset("controlled", (0.0, 0.22, 0.0), 2.0, 40.0, body_turn=0.5, give_ground_truth=True,
+                         split="takes"),
+    "wild": Preset("wild", (0.0, 0.42, 0.0), 2.45, 30.0, body_turn=0.15, give_ground_truth=False,
+                   split="interleaved"),
+}  # fmt: skip
 SIZES: dict[str, Size] = {
     "tiny": Size("tiny", 96, 12, 3, supersample=3, texture_size=512),
     # Large enough for a real detector (MediaPipe needs ~15 px palms), small enough for tests.
-    "small": Size("small", 256, 12, 3, supersample=2, texture_size=1024),
-    "bench": Size("bench", 512, 150, 30, supersample=2, texture_size=2048),
-}
+    "small": Size("small", 256, 12, 3, supersample=2, texture_size=1024, test_frames=4),
+    # XHumans' protocol: 20 frames of each test take, sampled every 5th frame.
+    "bench": Size("bench", 512, 150, 30, supersample=2, texture_size=2048, test_takes=2, test_frames=20,
+                  test_stride=5),
+}  # fmt: skip
 MOTION_SECONDS = 6.0
-FACE_PART = {"hand.L": "hand", "hand.R": "hand", "body": "body", "foot.L": "body", "foot.R": "body"}
+TRAIN_FACE_ACTIONS = tuple(a for a in FACE_ACTIONS if a not in HELD_OUT_FACE_ACTIONS)
 
 
 def project(
@@ -95,19 +122,50 @@ def project(
     return torch.stack([u, v], dim=-1), z
 
 
-def splits(size: Size) -> tuple[dict[str, list[int]], list[int]]:
-    """The split design for ``size`` and, per frame, the sequence frame whose pose it shows."""
-    n = size.num_frames
-    test = [i for i in range(n) if i % size.test_every == size.test_offset]
-    train = [i for i in range(n) if i not in set(test)]
-    picks = (
-        np.linspace(0, len(train) - 1, size.num_view_frames).round().astype(int)
-        if size.num_view_frames
-        else []
-    )
-    view_src = [train[i] for i in picks]
-    out = {"train": train, "test_pose": test, "test_view": list(range(n, n + len(view_src)))}
-    return out, list(range(n)) + view_src
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """Which motion sample every dataset frame shows. frames: per frame (take, time in seconds);
+    splits: the dataset's splits; views: per ``test_view`` frame, the training frame whose pose
+    it shows."""
+
+    frames: list[tuple[int, float]]
+    splits: dict[str, list[int]]
+    views: list[int]
+
+
+def layout(preset: Preset, size: Size) -> Layout:
+    """The frames and splits of ``preset`` at ``size`` (module docstring)."""
+    fps = size.num_frames / MOTION_SECONDS
+    seq = [(0, i / fps) for i in range(size.num_frames)]
+    if preset.split == "takes":
+        train = list(range(len(seq)))
+        test = []
+        for take in range(1, size.test_takes + 1):
+            for j in range(size.test_frames):
+                test.append(len(seq))
+                seq.append((take, j * size.test_stride / fps))
+    elif preset.split == "interleaved":
+        test = [i for i in range(len(seq)) if i % size.test_every == size.test_every - 1]
+        train = [i for i in range(len(seq)) if i % size.test_every != size.test_every - 1]
+    else:
+        raise ValueError(f"unknown split style {preset.split!r}; choose one of {SPLIT_STYLES}")
+    picks = np.linspace(0, len(train) - 1, size.num_view_frames).round().astype(int)
+    views = [train[i] for i in picks] if size.num_view_frames else []
+    n = len(seq)
+    splits = {"train": train, "test_pose": test, "test_view": list(range(n, n + len(views)))}
+    return Layout(seq + [seq[i] for i in views], splits, views)
+
+
+def take_motion(
+    model, shape: torch.Tensor, preset: Preset, seed: int, take: int, times: list[float]
+) -> tuple[BodyParams, dict]:
+    """Body parameters [T] at ``times`` of motion ``take``, and its settings. The training take
+    of a "takes" preset keeps the held-out facial actions out; every other take draws from all."""
+    held_out = preset.split == "takes" and take == 0
+    actions = TRAIN_FACE_ACTIONS if held_out else FACE_ACTIONS
+    cfg = MotionConfig(duration=MOTION_SECONDS, body_turn=preset.body_turn, face_actions=actions)
+    times_ = np.asarray(times, dtype=np.float64)
+    return sign_motion(model, shape, times_, seed, cfg, take=take), dataclasses.asdict(cfg)
 
 
 def cameras(preset: Preset, size: Size) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -153,9 +211,8 @@ def generate(
     if model.name != "anny":
         raise ValueError(f"the synthetic benchmark renders Anny, got body model {model.name!r}")
     p, s = PRESETS[preset], SIZES[size]
-    split, pose_of_frame = splits(s)
+    plan = layout(p, s)
     fps = s.num_frames / MOTION_SECONDS
-    times = np.arange(s.num_frames) / fps
     rng = np.random.default_rng([seed, 1])
     shape = random_shape(model, rng)
     look = Look.random(rng)
@@ -169,24 +226,32 @@ def generate(
         background=(1.0, 1.0, 1.0),
         camera_source="ground_truth",
     )
-    motion_cfg = MotionConfig(duration=MOTION_SECONDS, body_turn=p.body_turn)
+    # Each take's motion at its frames' times, then every frame's row in the plan's order.
+    motions, rows = {}, {}
+    for take in sorted({k for k, _ in plan.frames}):
+        times = [t for k, t in plan.frames if k == take]
+        rows[take], motions[take] = take_motion(model, shape, p, seed, take, times)
+    seen = dict.fromkeys(rows, 0)
+    frame_rows = []
+    for take, _ in plan.frames:
+        frame_rows.append(rows[take][seen[take]])
+        seen[take] += 1
+    params = BodyParams.cat(frame_rows)
     with DatasetWriter(out, meta, overwrite=overwrite) as writer:
-        seq = sign_motion(model, shape, times, seed, motion_cfg)
-        params = seq[pose_of_frame]
         with torch.no_grad():
             posed = model(params)
             keypoints3d = model.keypoints(posed)
-        views = [view_main if i < s.num_frames else view_side for i in range(len(pose_of_frame))]
+        n_seq = len(plan.frames) - len(plan.views)
+        views = [view_main if i < n_seq else view_side for i in range(len(plan.frames))]
         viewmats = torch.stack(views)
         uv, depth = project(keypoints3d, viewmats, K)
         h = w = s.image_size
         inside = (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h) & (depth > 0)
         keypoints = torch.cat([uv, inside[..., None].to(uv.dtype)], dim=-1).float()
-        from eva_engine.body.anny_backend import SEGMENT_LABELS
-
         seg = face_segments(model)
-        part = torch.tensor([PART_NAMES.index(FACE_PART.get(SEGMENT_LABELS[x], "face")) for x in seg])
-        config = MeshRenderConfig(width=w, height=h, supersample=s.supersample, background=(1.0, 1.0, 1.0))
+        regions = face_regions(model)
+        config = MeshRenderConfig(width=w, height=h, supersample=s.supersample, background=(1.0, 1.0, 1.0),
+                                  light=p.light, light_frame="world")  # fmt: skip
         with MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer:
             texture = bake_texture(
                 model, params[0], look, renderer, s.texture_size, seed=seed, face_label=seg
@@ -196,26 +261,27 @@ def generate(
                 uv=model.anny.texture_coordinates.cpu().numpy(),
                 face_uv=model.anny.face_texture_coordinate_indices.cpu().numpy(),
             )
-            total = len(pose_of_frame)
-            for i, src in enumerate(pose_of_frame):
+            total = len(plan.frames)
+            for i, (_, t) in enumerate(plan.frames):
                 r = renderer.render(posed.vertices[i], views[i], K)
-                writer.add_frame(
-                    r.rgb.numpy(), r.alpha.numpy(), K=K, viewmat=views[i], time=float(times[src]),
-                    hand_mask=r.label_coverage(part, PART_NAMES.index("hand")).numpy(),
-                    face_mask=r.label_coverage(part, PART_NAMES.index("face")).numpy(),
-                )  # fmt: skip
+                writer.add_frame(r.rgb.numpy(), r.alpha.numpy(), K=K, viewmat=views[i], time=float(t),
+                                 regions=coverage_by_region(r, regions))  # fmt: skip
                 if progress is not None:
                     progress(i + 1, total)
         give = p.give_ground_truth
+        pose_of_frame = list(range(n_seq)) + plan.views
         return writer.finish(
-            split,
+            plan.splits,
             params=params if give else None, params_names=ParamNames.of(model), params_source="ground_truth",
             keypoints=keypoints if give else None, keypoint_names=list(model.keypoint_names),
             keypoints_source="ground_truth", gt_params=params, gt_keypoints=keypoints,
             extra={
                 "generator": "eva_engine.data.synthetic", "preset": preset, "size": size, "seed": seed,
+                "split_style": p.split, "take_of_frame": [k for k, _ in plan.frames],
                 "pose_of_frame": pose_of_frame, "look": dataclasses.asdict(look),
-                "view_angle_deg": p.view_angle_deg, "motion": dataclasses.asdict(motion_cfg),
-                "renderer": "moderngl/llvmpipe textured mesh, Lambert", "supersample": s.supersample,
+                "view_angle_deg": p.view_angle_deg, "motion": [motions[k] for k in sorted(motions)],
+                "held_out_face_actions": list(HELD_OUT_FACE_ACTIONS) if p.split == "takes" else [],
+                "renderer": "moderngl/llvmpipe textured mesh, Lambert + Blinn-Phong, world light",
+                "supersample": s.supersample,
             },
         )  # fmt: skip

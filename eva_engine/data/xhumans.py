@@ -13,8 +13,10 @@ Public layout of a subject (e.g. ``00016/``)::
 Training takes become ``train``; test takes become ``test_pose`` (whole novel-pose takes, as in
 the paper). Parameters are SMPL-X (``body_model = "smplx"``), given to the pipeline as ground
 truth. Person masks come from the depth maps, or from the background colour (the top-left
-pixel) when a take has none. Pickles are read with a numpy-only unpickler: anything else is
-refused.
+pixel) when a take has none. With the user's SMPL-X model (``model=load_body_model("smplx")``)
+the reader also writes the region masks (each hand, the face) for the hand and face metrics:
+the posed SMPL-X parts rendered with the frame's camera, intersected with the person mask
+(``data.region_masks``). Pickles are read with a numpy-only unpickler: anything else is refused.
 """
 
 from __future__ import annotations
@@ -113,12 +115,21 @@ def _read(path: Path, flags: int) -> np.ndarray:
 
 
 def read_xhumans(
-    subject: str | Path, out: str | Path, options: XHumansOptions | None = None, overwrite: bool = False
+    subject: str | Path,
+    out: str | Path,
+    options: XHumansOptions | None = None,
+    overwrite: bool = False,
+    model=None,
 ) -> Path:
-    """Convert one XHumans subject folder into a dataset at ``out``; returns ``out``."""
+    """Convert one XHumans subject folder into a dataset at ``out``; returns ``out``. ``model``:
+    a SMPL-X ``BodyModel`` (10 betas, 10 expressions) to render region masks with, or None."""
     import cv2
 
+    from eva_engine.data.region_masks import RegionMaskRenderer
+
     opts = options or XHumansOptions()
+    if model is not None and model.name != "smplx":
+        raise ValueError(f"XHumans parameters are SMPL-X; region masks need that model, got {model.name!r}")
     root = Path(subject)
     takes = [("train", t) for t in _takes(root, "train")] + [("test", t) for t in _takes(root, "test")]
     if not takes:
@@ -128,6 +139,7 @@ def read_xhumans(
     gender_file = root / "gender.txt"
     gender = gender_file.read_text().strip() if gender_file.is_file() else None
     writer = None
+    regions = None
     frames_params: list[dict[str, np.ndarray]] = []
     source_frames: list[str] = []
     split_ids: dict[str, list[int]] = {"train": [], "test_pose": []}
@@ -181,13 +193,14 @@ def read_xhumans(
                         body_model="smplx", camera_source="ground_truth",
                     )  # fmt: skip
                     writer = DatasetWriter(out, meta, overwrite=overwrite)
-                i = writer.add_frame(
-                    rgb,
-                    mask,
-                    K=torch.from_numpy(K).float(),
-                    viewmat=torch.from_numpy(view).float(),
-                    time=(k - 1) / opts.fps,
-                )
+                    regions = RegionMaskRenderer(model, (h, w)) if model is not None else None
+                K_t, view_t = torch.from_numpy(K).float(), torch.from_numpy(view).float()
+                masks = None
+                if regions is not None:
+                    with torch.no_grad():
+                        vertices = model(_params([params]).to(model.dtype)).vertices[0]
+                    masks = regions(vertices, view_t, K_t, mask)
+                i = writer.add_frame(rgb, mask, K=K_t, viewmat=view_t, time=(k - 1) / opts.fps, regions=masks)
                 split_ids["train" if split == "train" else "test_pose"].append(i)
                 frames_params.append(params)
                 source_frames.append(f"{split}/{take.name}/{img_path.name}")
@@ -206,3 +219,5 @@ def read_xhumans(
     finally:
         if writer is not None:
             writer.discard()
+        if regions is not None:
+            regions.close()

@@ -16,13 +16,14 @@ from .lpips import (
 )
 from .numpy_pickle import UnsafePickleError, load_numpy_pickle
 from .pixel import mse, psnr, ssim
-from .regions import crop_to_mask_bbox, mask_bbox
+from .regions import crop_box, crop_to_mask_bbox, mask_bbox
 
 __all__ = [
     "LPIPS",
     "LPIPSWeights",
     "LPIPSWeightsError",
     "UnsafePickleError",
+    "crop_box",
     "crop_to_mask_bbox",
     "load_lpips_weights",
     "load_numpy_pickle",

@@ -61,16 +61,28 @@ def _grow(lo: int, hi: int, size: int, min_size: int) -> tuple[int, int]:
     return lo, hi
 
 
+def crop_box(mask: Tensor, pad: int = 0, min_size: int = 0) -> tuple[int, int, int, int]:
+    """The crop box ``(x0, y0, x1, y1)`` of a region: the union over the batch of the per-image
+    mask boxes, grown by ``pad`` pixels on every side (clamped to the image), then each side to
+    at least ``min_size`` pixels (or the image size), kept inside the image. mask: ``[B, 1, H, W]``.
+    Raises ValueError for an empty mask."""
+    h, w = mask.shape[-2:]
+    boxes = mask_bbox(mask, pad)
+    x0, y0 = (int(v) for v in boxes[:, :2].amin(dim=0))
+    x1, y1 = (int(v) for v in boxes[:, 2:].amax(dim=0))
+    x0, x1 = _grow(x0, x1, w, min_size)
+    y0, y1 = _grow(y0, y1, h, min_size)
+    return x0, y0, x1, y1
+
+
 def crop_to_mask_bbox(*images: Tensor, mask: Tensor, pad: int = 0, min_size: int = 0) -> tuple[Tensor, ...]:
-    """Crop images to the bounding box of ``mask`` (e.g. a hand region) for region metrics.
+    """Crop images to the :func:`crop_box` of ``mask`` (e.g. a hand region) for region metrics.
 
     images: any number of ``[B, C, H, W]`` tensors (any dtype; pass the mask too to crop it);
     mask: ``[B, 1, H, W]``. The box is the union over the batch of the per-image boxes, so the
-    crops stay batched — crop one image at a time for per-image boxes. ``pad`` grows the box on
-    every side and is clamped to the image; ``min_size`` then grows each side of the box to at
-    least that many pixels (or the image size), keeping it inside the image — e.g. 31 for
-    LPIPS(alex) on small hand crops. Returns the crops ``[B, C, y1 - y0, x1 - x0]`` in order.
-    Raises ValueError for an empty mask.
+    crops stay batched — crop one image at a time for per-image boxes. ``pad`` and ``min_size``
+    as in :func:`crop_box` (e.g. ``min_size=31`` for LPIPS(alex) on small hand crops). Returns
+    the crops ``[B, C, y1 - y0, x1 - x0]`` in order. Raises ValueError for an empty mask.
     """
     if not images:
         raise ValueError("crop_to_mask_bbox needs at least one image")
@@ -78,9 +90,5 @@ def crop_to_mask_bbox(*images: Tensor, mask: Tensor, pad: int = 0, min_size: int
     for img in images:
         if img.ndim != 4 or img.shape[0] != mask.shape[0] or img.shape[-2:] != (h, w):
             raise ValueError(f"image {tuple(img.shape)} does not match mask {tuple(mask.shape)}")
-    boxes = mask_bbox(mask, pad)
-    x0, y0 = (int(v) for v in boxes[:, :2].amin(dim=0))
-    x1, y1 = (int(v) for v in boxes[:, 2:].amax(dim=0))
-    x0, x1 = _grow(x0, x1, w, min_size)
-    y0, y1 = _grow(y0, y1, h, min_size)
+    x0, y0, x1, y1 = crop_box(mask, pad, min_size)
     return tuple(img[..., y0:y1, x0:x1] for img in images)

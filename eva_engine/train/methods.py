@@ -1,8 +1,10 @@
 """The paper's methods and ablations as switches on one ``TrainConfig`` (no copies):
 
 - ``3dgs+body``: the Table-1 baseline, 3DGS on the articulated body: ``DefaultStrategy``
-  (constant threshold, template-distance pruning) and a plain L1 photometric term with the mask
-  term; no SSIM / LPIPS terms (3DGS's and the paper's baseline do not train on LPIPS).
+  (constant threshold, template-distance pruning) and 3DGS's own objective, 0.8 L1 + 0.2 D-SSIM
+  (D-SSIM on the same person crop as EVA's SSIM term), plus the mask term; no LPIPS term (3DGS
+  does not train on LPIPS). Everything else is EVA's: schedule, learning rates, initialisation,
+  LBS weight offsets, pose refiner, pixel normalisation.
 - ``eva``: context-aware density control (``ContextAwareStrategy``, per-Gaussian history) and the
   confidence-aware loss, with the full objective (mask, SSIM, LPIPS; paper eq. 11).
 - ``eva-no-cadc`` / ``eva-no-cl``: Table 2's ablations (``DefaultStrategy`` / plain L1).
@@ -44,5 +46,5 @@ def with_method(config: TrainConfig, method: str) -> TrainConfig:
         strategy = ContextAwareStrategy.from_default(base, history=history)
     loss = dataclasses.replace(config.loss, photometric="confidence" if confidence else "l1")
     if method == "3dgs+body":
-        loss = dataclasses.replace(loss, lambda_ssim=0.0, lambda_lpips=0.0)
+        loss = dataclasses.replace(loss, lambda_photometric=0.8, lambda_ssim=0.2, lambda_lpips=0.0)
     return dataclasses.replace(config, strategy=strategy, loss=loss)
