@@ -238,6 +238,7 @@ class Pipeline:
             "final_loss": result.losses[-1],
             "timings": result.timings,
             "gaussians_per_part": result.gaussians_per_part,
+            "pose_correction": result.pose_correction,
             "metrics": metrics,
             "frames": {"count": len(ds), "image_size": list(ds.meta.image_size), "fps": ds.meta.fps},
             "created_at": time.time(),
@@ -246,8 +247,12 @@ class Pipeline:
         shutil.rmtree(partial, ignore_errors=True)
         save_avatar(result.avatar, partial, info)
         # Each training frame's pose and camera, so a client can render it to compare with the input.
-        frames = {f"params.{k}": v.detach().cpu().float().contiguous()
-                  for k, v in ds.params.tensors().items()}  # fmt: skip
+        # The training frames as trained: their fits with the per-frame pose correction applied.
+        trained = ds.params.map(lambda t: t.detach().cpu().float().clone())
+        rows = torch.tensor(result.train_indices, dtype=torch.int64)
+        for k, v in result.train_params.tensors().items():
+            getattr(trained, k)[rows] = v.float()
+        frames = {f"params.{k}": v.contiguous() for k, v in trained.tensors().items()}
         frames["K"], frames["viewmat"] = ds.K.float().contiguous(), ds.viewmat.float().contiguous()
         frames["timestamps"] = torch.as_tensor(ds.timestamps, dtype=torch.float64)
         save_file(frames, str(partial / FRAMES_NAME))

@@ -86,9 +86,8 @@ def test_expression_is_fitted_to_the_face_points(anny_model, clip):
     assert targets.keypoints[:, 25:29, 2].eq(0).all()  # knees and ankles are off the image
     start = clip.map(lambda t: t.clone())
     start.expression.zero_()
-    face_only = FitConfig(
-        stages=(dataclasses.replace(default_stages()[2], optimize=("expression",), iterations=30),)
-    )
+    face_stage = next(s for s in default_stages() if s.name == "face")
+    face_only = FitConfig(stages=(dataclasses.replace(face_stage, optimize=("expression",), iterations=30),))
     result = fit_sequence(anny_model, targets, init=start, config=face_only)
 
     def worst_face_error(params):

@@ -41,7 +41,7 @@ def test_writes_a_dataset_with_detections_and_fitted_params(signer, preprocessed
     assert ds.meta.source == "video" and ds.meta.camera_source == "estimated"
     assert ds.meta.params_source == "fitted" and ds.meta.keypoints_source == "mediapipe"
     assert ds.meta.body_model == "anny" and ds.params.batch_size == len(frames)
-    assert set(ds.keypoint_extras) == {"hand_depth", "pose_world"}
+    assert set(ds.keypoint_extras) == {"hand_depth", "pose_world", "face_mesh", "hand_confidence"}
     assert ds.splits["test_pose"] == [3, 7, 11] and len(ds.splits["train"]) == 9
     assert report.detection_rates["pose"] == 1.0 and report.detection_rates["face"] == 1.0
     assert min(report.detection_rates["left_hand"], report.detection_rates["right_hand"]) >= 0.5

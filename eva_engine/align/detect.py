@@ -14,6 +14,8 @@ Per frame (image of H x W pixels):
                 z times W: same scale as x; positive = farther from the camera).
     pose_world: [33, 4] metric 3D pose landmarks (x, y, z, visibility), hip-centred, camera-
                 aligned axes (x right, y down, z away from the camera).
+    face_mesh:  [478, 3] all face-mesh landmarks (x px, y px, confidence 1 when the face was
+                found; the 10 iris points 0 without iris refinement), for dense face fitting.
     mask:       [H, W] person probability in [0, 1] (holistic's segmentation).
 """
 
@@ -26,6 +28,7 @@ import numpy as np
 from eva_engine.body import FACE_MESH_INDEX, KEYPOINT_GROUPS, KEYPOINT_NAMES
 
 NUM_KEYPOINTS = len(KEYPOINT_NAMES)
+FACE_MESH_POINTS = 478
 
 
 class DetectorError(RuntimeError):
@@ -53,6 +56,7 @@ class FrameDetection:
     pose_world: np.ndarray
     mask: np.ndarray | None
     found: dict[str, bool] = field(default_factory=dict)
+    face_mesh: np.ndarray = field(default_factory=lambda: np.zeros((FACE_MESH_POINTS, 3), np.float32))
 
     @property
     def has_person(self) -> bool:
@@ -141,7 +145,11 @@ def convert_holistic(result, width: int, height: int) -> FrameDetection:
 
     face = _landmarks(result.face_landmarks, 468)
     found["face"] = face is not None
+    face_mesh = np.zeros((FACE_MESH_POINTS, 3), dtype=np.float32)
     if face is not None:
+        n = min(len(face), FACE_MESH_POINTS)
+        face_mesh[:n, :2] = face[:n, :2] * scale
+        face_mesh[:n, 2] = 1.0
         sl = KEYPOINT_GROUPS["face"]
         index = np.array(list(FACE_MESH_INDEX.values()))
         if len(face) <= index.max():  # no iris refinement: irises are not available
@@ -163,4 +171,4 @@ def convert_holistic(result, width: int, height: int) -> FrameDetection:
         | (keypoints[:, 1] >= height)
     )
     keypoints[outside, 2] *= 0.5
-    return FrameDetection(keypoints, hand_depth, pose_world, mask, found)
+    return FrameDetection(keypoints, hand_depth, pose_world, mask, found, face_mesh)

@@ -48,9 +48,13 @@ def targets_from_params(
         return FitTargets(torch.cat([uv, conf[..., None]], -1), K, viewmat, torch.cat(depth, 1), pose_world)
 
 
-def mpjpe(model: BodyModel, params: BodyParams, truth: BodyParams) -> dict[str, float]:
+def mpjpe(
+    model: BodyModel, params: BodyParams, truth: BodyParams, visible: Tensor | None = None
+) -> dict[str, float]:
     """Root-relative mean per-joint position error in mm: ``body`` (MediaPipe's body joints,
-    hip-centred) and ``hands`` (both hands' 21 points, each wrist-centred)."""
+    hip-centred) and ``hands`` (both hands' 21 points, each wrist-centred). With ``visible``
+    ([F, K] bool, the keypoints inside the image), ``body_in_view`` averages only the body
+    joints in view: a waist-up video says nothing about the legs."""
     with torch.no_grad():
         a, _ = model.posed_keypoints(params)
         b, _ = model.posed_keypoints(truth)
@@ -66,7 +70,32 @@ def mpjpe(model: BodyModel, params: BodyParams, truth: BodyParams) -> dict[str, 
             ]
             return torch.cat(parts, dim=1)
 
-        return {
-            "body": float((body(a) - body(b)).norm(dim=-1).mean() * 1000),
+        body_err = (body(a) - body(b)).norm(dim=-1)
+        out = {
+            "body": float(body_err.mean() * 1000),
             "hands": float((hands(a) - hands(b)).norm(dim=-1).mean() * 1000),
         }
+        if visible is not None:
+            seen = visible[:, list(POSE_BODY)].to(body_err.device)
+            out["body_in_view"] = float(body_err[seen].mean() * 1000) if bool(seen.any()) else float("nan")
+        return out
+
+
+def expression_error(model: BodyModel, params: BodyParams, truth: BodyParams, moved: float = 0.002) -> float:
+    """Mean distance (mm) between the face vertices of the fitted and the true expression, on the
+    true subject's rest face (pose and shape excluded: only what the facial actions do), over
+    the vertices the true expression moves by more than ``moved`` metres. Expression
+    coefficients themselves are not comparable: many facial actions move the face alike."""
+    face = model.part_vertex_ids("face")
+    with torch.no_grad():
+        fitted = BodyParams(
+            truth.root_orient, truth.transl, truth.joints, params.expression.to(truth.expression), truth.shape
+        )
+        neutral = BodyParams(
+            truth.root_orient, truth.transl, truth.joints, torch.zeros_like(truth.expression), truth.shape
+        )
+        a, b, c = (model.canonical(p)[:, face] for p in (fitted, truth, neutral))
+    active = (c - b).norm(dim=-1) > moved
+    if not bool(active.any()):
+        return 0.0
+    return float((a - b).norm(dim=-1)[active].mean() * 1000)

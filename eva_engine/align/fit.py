@@ -15,14 +15,22 @@ Objective over all frames at once (batched body model, shape shared by the clip)
   (the official code's stage 1 term), and (d) temporal smoothness across frames.
 - ``L_hp`` (hand prior): psi_z, the robust term on relative finger depth only, against
   MediaPipe's hand landmark depth (relative to the wrist, converted to metres at the model's
-  wrist depth) -- EVA uses HaMeR's 3D hands the same way.
-- Face: the expression coefficients are fitted through the 16 face points, with a small
-  sparsity prior and the body model's valid range.
+  wrist depth and scaled by ``hand_depth_scale``: MediaPipe's depths are compressed) -- EVA uses
+  HaMeR's 3D hands the same way -- plus an anatomy prior on the finger joints (``hands.
+  articulation_prior``: hinges stay hinges, knuckles do not twist, metacarpals barely move).
+- Face: the expression coefficients are fitted through the 16 face points and, where the body
+  model has a face-mesh correspondence (``face_mesh``), through all of MediaPipe's face-mesh
+  landmarks, with a small sparsity prior and the model's valid range (``clip.fit_clip`` then
+  smooths it over time).
 
-Optimiser: ``torch.optim.LBFGS`` with strong-Wolfe line search, three stages as in the paper's
-appendix (body init; hands with the hand prior; fine-tune with hands and face emphasised).
-Missing detections have confidence 0 and drop out; a frame with nothing detected keeps its
-initial estimate, moved only by the smoothness term.
+Optimiser: ``torch.optim.LBFGS`` with strong-Wolfe line search, in stages as in the paper's
+appendix: body init (the head's pose from the face points no facial action moves); hands with
+the hand prior; the expression on its own (inside a joint stage its small gradients barely
+move); fine-tune with hands and face emphasised. The initial estimate turns each detected
+hand's palm to the detected 3D palm (``orient_hands``), so the fit starts on the right side of
+the palm-in / palm-out ambiguity. Missing detections have confidence 0 and drop out; a frame
+with nothing detected keeps its initial estimate, moved only by the smoothness term
+(``clip.fit_clip`` then fills hands from neighbouring frames).
 """
 
 from __future__ import annotations
@@ -33,10 +41,12 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import roma
 import torch
 from torch import Tensor
 
 from eva_engine.align.camera import MIN_DEPTH, project, to_camera
+from eva_engine.align.hands import HandTrackConfig, articulation_prior
 from eva_engine.align.robust import weighted_gm, z_only_gm
 from eva_engine.body import KEYPOINT_GROUPS, PART_NAMES, BodyModel, BodyParams
 from eva_engine.body.kinematics import axis_angle_to_matrix
@@ -63,6 +73,7 @@ class FitTargets:
     K:          [F, 3, 3] or [3, 3] intrinsics; viewmat: [F, 4, 4] or [4, 4] world->camera.
     hand_depth: [F, 42] MediaPipe hand-landmark depth relative to the wrist, in pixels, or None.
     pose_world: [F, 33, 4] MediaPipe metric pose world landmarks + visibility, or None.
+    face_mesh:  [F, 478, 3] MediaPipe face-mesh landmarks (x px, y px, confidence), or None.
     """
 
     keypoints: Tensor
@@ -70,6 +81,7 @@ class FitTargets:
     viewmat: Tensor
     hand_depth: Tensor | None = None
     pose_world: Tensor | None = None
+    face_mesh: Tensor | None = None
 
     def __post_init__(self) -> None:
         kp = torch.as_tensor(self.keypoints, dtype=torch.float32)
@@ -99,6 +111,12 @@ class FitTargets:
             bad = ~torch.isfinite(pw).all(-1)
             pw = torch.where(bad[..., None], torch.zeros_like(pw), pw)
             self.pose_world = pw
+        if self.face_mesh is not None:
+            fm = torch.as_tensor(self.face_mesh, dtype=torch.float32)
+            if fm.ndim != 3 or fm.shape[0] != f or fm.shape[2] != 3:
+                raise ValueError(f"face_mesh must be [{f}, L, 3], got {tuple(fm.shape)}")
+            ok = torch.isfinite(fm).all(-1) & (fm[..., 2] > 0)
+            self.face_mesh = torch.where(ok[..., None], fm, torch.zeros_like(fm))
 
     @property
     def num_frames(self) -> int:
@@ -138,12 +156,20 @@ class FitStage:
     w_pose: float = 1.0
     w_hand: float = 0.0
     w_face: float = 0.0
+    rigid_face_only: bool = False
+    """Use only the face points that no facial action moves (eye corners, nose): the head's pose
+    is fitted before the expression, so the mouth's points must not turn the head."""
+    w_face_mesh: float = 0.0
     body_3d: float = 0.0
     hand_z: float = 0.0
     init_pull: float = 0.0
+    hand_prior: float = 0.0
     smooth: float = 0.1
     limits: float = 1.0
     expression_reg: float = 0.0
+    expression_smooth: float = 0.0
+    """Weight of the frame-to-frame expression change (off by default: it slows L-BFGS down
+    across the coupled frames; ``clip.fit_clip`` smooths the expression over time instead)."""
     shape_reg: float = 1e-3
 
     def __post_init__(self) -> None:
@@ -155,18 +181,29 @@ class FitStage:
 
 
 def default_stages() -> tuple[FitStage, ...]:
-    """The paper's three stages (appendix): body init, hands, fine-tune on hands and face."""
+    """The paper's three stages (appendix: body init; hands; fine-tune with hands and face
+    emphasised), with the face's expression fitted in a stage of its own before the fine-tune."""
     return (
-        FitStage("body", 60, ("root", "transl", "body", "shape"), w_face=0.3, body_3d=1.0, init_pull=0.05),
-        FitStage("hands", 40, ("hand",), w_hand=1.0, hand_z=1.0, smooth=0.05),
+        FitStage(
+            "body", 60, ("root", "transl", "body", "shape"), w_face=0.3, rigid_face_only=True, body_3d=1.0,
+            init_pull=0.05,
+        ),  # fmt: skip
+        FitStage("hands", 40, ("hand",), w_hand=1.0, hand_z=1.0, hand_prior=1.0, smooth=0.05),
+        # Expression on its own: inside the joint refine stage its small gradients barely move.
+        FitStage(
+            "face", 40, ("face", "expression"), w_pose=0.0, w_face=2.0, w_face_mesh=2.0, smooth=0.05,
+            expression_reg=1e-3,
+        ),  # fmt: skip
         FitStage(
             "refine",
             60,
             PARAM_GROUPS,
             w_hand=2.0,
             w_face=2.0,
+            w_face_mesh=2.0,
             body_3d=0.3,
             hand_z=0.5,
+            hand_prior=1.0,
             init_pull=0.01,
             expression_reg=1e-3,
         ),  # fmt: skip
@@ -179,10 +216,23 @@ class FitConfig:
     metres."""
 
     stages: tuple[FitStage, ...] = field(default_factory=default_stages)
+    hands: HandTrackConfig = field(default_factory=HandTrackConfig)
     ik_iterations: int = 40
     sigma_2d: float = 0.1
     sigma_3d: float = 0.1
     sigma_z: float = 0.03
+    expression_sigma: float = 0.04
+    """Seconds: the Gaussian that smooths the fitted expression over time (``clip.fit_clip``)."""
+    dense_face: bool = True
+    """Fit the face to all of MediaPipe's face-mesh landmarks through the body model's
+    correspondence (``align.face_mesh``), where the model has one."""
+    hand_depth_scale: float = 1.6
+    """MediaPipe's relative hand depths are compressed: on rendered Anny hands (``bench/align.py``)
+    the true depths are 1.6-1.7 x its values (correlation 0.8); they are scaled by this."""
+    orient_hands: bool = True
+    """Start each detected hand's wrist rotation at the rotation that best aligns the model's palm
+    with the detected 3D palm (Kabsch), instead of the rest pose: the fit then starts on the right
+    side of the palm-facing / back-facing ambiguity."""
     history_size: int = 20
 
 
@@ -225,8 +275,24 @@ class _Problem:
             ),
             "face": _mask(kp.shape[1], range(KEYPOINT_GROUPS["face"].start, KEYPOINT_GROUPS["face"].stop)),
         }
+        self.group_mask["face_rigid"] = self.group_mask["face"] * rigid_face_points(model).float()
         limits = torch.tensor([JOINT_LIMITS[p] for p in PART_NAMES])
         self.joint_limit = limits[part]  # [P]
+        uses_prior = any(s.hand_prior > 0 for s in config.stages)
+        self.articulation = articulation_prior(model) if uses_prior else None
+        self.face_mesh = None  # (regressor, landmark indices) of the dense face term
+        dense = config.dense_face and targets.face_mesh is not None
+        if dense and any(s.w_face_mesh > 0 for s in config.stages):
+            from eva_engine.align.face_mesh import load_correspondence
+            from eva_engine.body.keypoints import KeypointRegressor
+
+            corr = load_correspondence(model)
+            if corr is not None:
+                terms = corr.vertex_terms(model.faces.cpu())
+                names = [f"face_mesh_{k}" for k in terms]
+                vertex_terms = dict(zip(names, terms.values(), strict=True))
+                reg = KeypointRegressor(names, vertex_terms, {}, model.num_joints)
+                self.face_mesh = (reg.to(model.device), torch.tensor(list(terms), dtype=torch.int64))
 
     def params(self) -> BodyParams:
         v = self.values
@@ -251,12 +317,19 @@ class _Problem:
             (0.3 * stage.w_pose * (stage.w_face == 0), self.group_mask["pose_face"]),
             (0.3 * stage.w_pose * (stage.w_hand == 0), self.group_mask["pose_hand"]),
             (stage.w_hand, self.group_mask["hand"]),
-            (stage.w_face, self.group_mask["face"]),
+            (stage.w_face, self.group_mask["face_rigid" if stage.rigid_face_only else "face"]),
         )
         total = residual.new_zeros(())
         for gamma, mask in groups:
             if gamma > 0:
                 total = total + gamma * weighted_gm(residual, mask * self.conf, cfg.sigma_2d)
+
+        if stage.w_face_mesh > 0 and self.face_mesh is not None:
+            reg, landmarks = self.face_mesh
+            pts = project(to_camera(self.model.posed_points(params, reg), self.viewmat), self.K)
+            det = t.face_mesh[:, landmarks]
+            res = (pts - det[..., :2]) / self.scale[:, None, None]
+            total = total + stage.w_face_mesh * weighted_gm(res, det[..., 2], cfg.sigma_2d)
 
         if stage.body_3d > 0 and t.pose_world is not None:
             body = kp[:, : KEYPOINT_GROUPS["pose"].stop]
@@ -270,7 +343,8 @@ class _Problem:
                 sl = KEYPOINT_GROUPS[g]
                 hand = cam[:, sl]
                 wrist_z = hand[:, :1, 2].detach().clamp_min(MIN_DEPTH)
-                target_z = t.hand_depth[:, offset : offset + 21] * wrist_z / self.K[:, 0, 0, None]
+                depth = cfg.hand_depth_scale * t.hand_depth[:, offset : offset + 21]
+                target_z = depth * wrist_z / self.K[:, 0, 0, None]
                 target = torch.cat([hand[..., :2].detach(), target_z[..., None]], dim=-1)
                 total = total + stage.hand_z * z_only_gm(hand, target, self.conf[:, sl], cfg.sigma_z)
 
@@ -279,11 +353,18 @@ class _Problem:
         total = total + stage.limits * (angle - self.joint_limit).clamp_min(0).square().mean()
         if stage.init_pull > 0:
             total = total + stage.init_pull * (rotvecs - self.init.joints).square().mean()
+        if stage.hand_prior > 0 and self.articulation is not None:
+            a = self.articulation
+            off_axis = (a.projectors @ rotvecs[:, a.joints, :, None]).squeeze(-1)  # [F, M, 3]
+            total = total + stage.hand_prior * (a.weights * off_axis.square().sum(-1)).mean()
         if stage.smooth > 0 and t.num_frames > 1:
             smooth = (rotvecs[1:] - rotvecs[:-1]).square().mean()
             smooth = smooth + _rotation_distance(params.root_orient[1:], params.root_orient[:-1]).mean()
             smooth = smooth + 10.0 * (params.transl[1:] - params.transl[:-1]).square().mean()
             total = total + stage.smooth * smooth
+        if stage.expression_smooth > 0 and t.num_frames > 1:
+            step = params.expression[1:] - params.expression[:-1]
+            total = total + stage.expression_smooth * step.square().mean()
         total = total + stage.expression_reg * params.expression.square().mean()
         total = total + _box(params.expression, self.model.expression_bounds)
         total = total + stage.shape_reg * (self.values["shape"] - self.init.shape[:1]).square().mean()
@@ -326,6 +407,18 @@ class _Problem:
         with torch.no_grad():
             last = float(self.loss(stage))
         return first, last
+
+
+def rigid_face_points(model: BodyModel, tolerance: float = 0.003) -> Tensor:
+    """[K] bool: the keypoints that no single facial action (at 1) moves by more than
+    ``tolerance`` metres in the rest pose (eye corners and the nose, not lips, lids or chin)."""
+    e = len(model.expression_names)
+    with torch.no_grad():
+        params = model.default_params(e + 1)
+        params.expression[1:] = torch.eye(e, dtype=params.expression.dtype)
+        kp, _ = model.posed_keypoints(params)
+        moved = (kp[1:] - kp[:1]).norm(dim=-1).amax(dim=0)
+    return (moved < tolerance).cpu()
 
 
 def _mask(n: int, indices) -> Tensor:
@@ -402,7 +495,51 @@ def initial_estimate(model: BodyModel, targets: FitTargets, config: FitConfig | 
         problem.run_stage(ik, None)
         params = problem.params().map(lambda t: t.detach().clone())
     params.transl.copy_(solve_translation(model, params, targets))
+    if config.orient_hands and targets.hand_depth is not None:
+        params = orient_hands(model, params, targets, config.hand_depth_scale)
     return params
+
+
+PALM = (0, 5, 9, 13, 17)  # wrist and the four finger knuckles: rigid with the wrist bone
+
+
+def orient_hands(model: BodyModel, params: BodyParams, targets: FitTargets, depth_scale: float) -> BodyParams:
+    """``params`` with each detected hand's wrist joint turned so that the model's palm points
+    (wrist, knuckles; camera frame, relative to the wrist) best align in rotation with the
+    detected palm lifted to 3D by MediaPipe's relative depths (Kabsch). Other frames unchanged."""
+    from eva_engine.align.hands import SIDES, hand_root_joints
+
+    out = params.map(lambda t: t.detach().clone())
+    with torch.no_grad():
+        posed = model(out)
+        kp = model.keypoints(posed)
+        view, K = targets.frame_viewmat(), targets.frame_K()
+        cam = to_camera(kp, view)
+        for side, offset, wrist in zip(SIDES, (0, 21), hand_root_joints(model), strict=True):
+            idx = [KEYPOINT_GROUPS[side].start + i for i in PALM]
+            det = targets.keypoints[:, idx]
+            ok = (det[..., 2] > 0).all(dim=1)
+            if not bool(ok.any()):
+                continue
+            z = cam[:, idx[0], 2:3].clamp_min(MIN_DEPTH)  # [F, 1] the model wrist's depth
+            x = (det[..., 0] - det[:, :1, 0]) / K[:, None, 0, 0] * z
+            y = (det[..., 1] - det[:, :1, 1]) / K[:, None, 1, 1] * z
+            dz = depth_scale * targets.hand_depth[:, [offset + i for i in PALM]] * z / K[:, None, 0, 0]
+            target = torch.stack([x, y, dz], dim=-1).double()  # [F, 5, 3]
+            model_pts = (cam[:, idx] - cam[:, idx[:1]]).double()
+            cov = model_pts.transpose(1, 2) @ target  # [F, 3, 3]
+            u, _, vt = torch.linalg.svd(cov)
+            d = torch.sign(torch.linalg.det(vt.transpose(1, 2) @ u.transpose(1, 2)))
+            fix = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=-1))
+            r_cam = vt.transpose(1, 2) @ fix @ u.transpose(1, 2)  # model -> detected, camera frame
+            v = view[:, :3, :3].double()
+            r_world = v.transpose(1, 2) @ r_cam @ v
+            g = posed.transforms[:, wrist, :3, :3].double()
+            g_parent = posed.transforms[:, int(model.parents[wrist]), :3, :3].double()
+            local = g_parent.transpose(1, 2) @ r_world @ g
+            rotvec = roma.rotmat_to_rotvec(local).to(out.joints.dtype)
+            out.joints[ok, wrist - 1] = rotvec[ok]
+    return out
 
 
 def fit_sequence(

@@ -24,8 +24,9 @@ import numpy as np
 import torch
 
 from eva_engine.align.camera import GUESS_FOV_Y_DEG, guess_camera
+from eva_engine.align.clip import fit_clip
 from eva_engine.align.detect import DetectorConfig, FrameDetection, HolisticDetector
-from eva_engine.align.fit import FitConfig, FitTargets, fit_sequence, initial_estimate, reprojection_error
+from eva_engine.align.fit import FitConfig, FitTargets, reprojection_error
 from eva_engine.body import KEYPOINT_NAMES, BodyModel
 
 Progress = Callable[[str, int, int], None]
@@ -72,6 +73,7 @@ class Detections:
     pose_world: np.ndarray  # [F, 33, 4]
     masks: list[np.ndarray | None]
     found: list[dict[str, bool]]
+    face_mesh: np.ndarray | None = None  # [F, 478, 3]
 
     def targets(self, K: torch.Tensor, viewmat: torch.Tensor) -> FitTargets:
         return FitTargets(
@@ -80,7 +82,16 @@ class Detections:
             viewmat,
             torch.from_numpy(self.hand_depth),
             torch.from_numpy(self.pose_world),
+            torch.from_numpy(self.face_mesh) if self.face_mesh is not None else None,
         )
+
+    def select(self, rows: list[int]) -> Detections:
+        """The detections of frames ``rows``."""
+        return Detections(
+            self.keypoints[rows], self.hand_depth[rows], self.pose_world[rows],
+            [self.masks[i] for i in rows], [self.found[i] for i in rows],
+            self.face_mesh[rows] if self.face_mesh is not None else None,
+        )  # fmt: skip
 
     def regions_found(self) -> np.ndarray:
         """[F, 3] bool per frame: left hand, right hand, face found (``REGION_MASKS`` order)."""
@@ -116,6 +127,7 @@ def detect_frames(
         pose_world=np.stack([r.pose_world for r in results]),
         masks=[r.mask for r in results],
         found=[r.found for r in results],
+        face_mesh=np.stack([r.face_mesh for r in results]),
     )
 
 
@@ -167,25 +179,26 @@ def preprocess_video(
         raise PreprocessError(f"no person was found in any of the {len(clip)} frames of {video}")
     h, w = clip.frames.shape[1:3]
     rates = det.rates()
-    det = Detections(
-        det.keypoints[keep], det.hand_depth[keep], det.pose_world[keep],
-        [det.masks[i] for i in keep], [det.found[i] for i in keep],
-    )  # fmt: skip
+    det = det.select(keep)
     K, viewmat = guess_camera(w, h, config.fov_y_deg)
     targets = det.targets(K, viewmat)
 
-    params = None
+    params = fit = None
     initial = fitted = {"body": math.nan, "hands": math.nan, "face": math.nan}
+    hands = {"rejected": 0, "filled": 0}
     if config.fit:
         started = time.perf_counter()
         model = model or load_body_model("anny")
         if progress is not None:
             progress("align", 0, len(config.fitting.stages))
-        init = initial_estimate(model, targets, config.fitting)
-        initial = reprojection_error(model, init, targets)
-        result = fit_sequence(model, targets, init=init, config=config.fitting)
-        params = result.params
+        times = torch.as_tensor(clip.timestamps[keep], dtype=torch.float64)
+        fit = fit_clip(model, targets, times, config.fitting)
+        targets, params = fit.targets, fit.params
+        initial = reprojection_error(model, fit.initial, targets)
         fitted = reprojection_error(model, params, targets)
+        found = det.regions_found()[:, :2] & ~fit.hands_rejected.numpy()
+        filled = (fit.hand_confidence > 0) & ~torch.from_numpy(found)
+        hands = {"rejected": int(fit.hands_rejected.sum()), "filled": int(filled.sum())}
         seconds["align"] = time.perf_counter() - started
         if progress is not None:
             progress("align", len(config.fitting.stages), len(config.fitting.stages))
@@ -196,7 +209,10 @@ def preprocess_video(
 
         started = time.perf_counter()
         person = [np.ones((h, w), np.float32) if m is None else m for m in det.masks]
-        regions = region_masks(model, params, K, viewmat, (h, w), person, present=det.regions_found())
+        # Scored where the detector found the region (a rejected hand was not found).
+        present = det.regions_found()
+        present[:, :2] &= ~fit.hands_rejected.numpy()
+        regions = region_masks(model, params, K, viewmat, (h, w), person, present=present)
         seconds["regions"] = time.perf_counter() - started
         if progress is not None:
             progress("regions", len(regions), len(regions))
@@ -228,7 +244,11 @@ def preprocess_video(
             keypoints=targets.keypoints,
             keypoint_names=list(KEYPOINT_NAMES),
             keypoints_source="mediapipe",
-            keypoint_extras={"hand_depth": targets.hand_depth, "pose_world": targets.pose_world},
+            keypoint_extras={
+                "hand_depth": targets.hand_depth, "pose_world": targets.pose_world,
+                **({"face_mesh": targets.face_mesh} if targets.face_mesh is not None else {}),
+                **({"hand_confidence": fit.hand_confidence.float()} if fit is not None else {}),
+            },  # fmt: skip
             extra={
                 "video": str(Path(video).name),
                 "detector": {"name": "mediapipe-holistic-0.10.21", **asdict(config.detector)},
@@ -236,6 +256,7 @@ def preprocess_video(
                 "detection_rates": rates,
                 "camera_guess": {"fov_y_deg": config.fov_y_deg},
                 "reprojection_px": {"initial": _nan_to_none(initial), "fitted": _nan_to_none(fitted)},
+                "hands": hands,
             },
         )
     seconds["write"] = time.perf_counter() - started

@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -151,7 +152,8 @@ class AnnyBody(BodyModel):
         self.segment_labels = labels  # [V] index into SEGMENT_LABELS (CPU; for tools and tests)
 
         self.keypoint_regressor = self._build_keypoints(model, labels, any_label)
-        self._kp_space: tuple[torch.Tensor, ...] | None = None
+        # Keypoint-space LBS data per regressor (``posed_points``), dropped with the regressor.
+        self._point_spaces: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
         self.keypoint_names = list(KEYPOINT_NAMES)
 
     # -- BodyModel ---------------------------------------------------------------------------
@@ -207,9 +209,17 @@ class AnnyBody(BodyModel):
         (a few hundred of K x J) are kept, so a 150-frame clip costs O(B * pairs * C) instead of
         posing 13,718 vertices per frame. Built on first use.
         """
-        if self._kp_space is None:
-            self._kp_space = self._build_keypoint_space()
-        pair_k, pair_j, area, p0, pb = self._kp_space
+        return self._keypoint_space_lbs(params, self.keypoint_regressor)
+
+    def posed_points(self, params: BodyParams, regressor) -> torch.Tensor:
+        """``posed_keypoints``' exact fast path for any other regressor (e.g. face-mesh points)."""
+        return self._keypoint_space_lbs(params, regressor)[0]
+
+    def _keypoint_space_lbs(self, params: BodyParams, reg) -> tuple[torch.Tensor, torch.Tensor]:
+        space = self._point_spaces.get(reg)
+        if space is None:  # built on first use, once per regressor
+            space = self._point_spaces[reg] = self._build_keypoint_space(reg)
+        pair_k, pair_j, area, p0, pb = space
         coeffs = self._blendshape_coeffs(params)
         heads = self.anny.template_bone_heads[None] + torch.einsum(
             "cjd,bc->bjd", self.anny.bone_heads_blendshapes, coeffs
@@ -223,13 +233,12 @@ class AnnyBody(BodyModel):
         p = p0 + (coeffs @ pb).view(b, n, 3)  # [B, pairs, 3]
         t = transforms[:, pair_j]  # [B, pairs, 4, 4]
         per_pair = (t[..., :3, :3] @ p[..., None]).squeeze(-1) + area[:, None] * t[..., :3, 3]
-        kp = per_pair.new_zeros(b, len(self.keypoint_names), 3).index_add_(1, pair_k, per_pair)
-        kp = kp + torch.einsum("kj,bjd->bkd", self.keypoint_regressor.joint_weights, joints)
+        kp = per_pair.new_zeros(b, len(reg.names), 3).index_add_(1, pair_k, per_pair)
+        kp = kp + torch.einsum("kj,bjd->bkd", reg.joint_weights.to(joints), joints)
         return kp, joints
 
-    def _build_keypoint_space(self):
+    def _build_keypoint_space(self, reg):
         """(pair_k [N], pair_j [N], A [N], P0 [N, 3], PB [C, N * 3]) over the N weighted pairs."""
-        reg = self.keypoint_regressor
         k, v = len(reg.names), self.num_vertices
         w_v = torch.zeros(k, v, dtype=torch.float64, device=self.device)
         w_v.index_put_((reg.vertex_rows, reg.vertex_cols), reg.vertex_weights.double(), accumulate=True)

@@ -81,6 +81,14 @@ class BodyModel(torch.nn.Module, abc.ABC):
     def keypoints(self, output: BodyOutput) -> torch.Tensor:
         """Keypoints [B, K, 3] in the layout of ``keypoint_names`` (see ``body.keypoints``)."""
 
+    def posed_points(self, params: BodyParams, regressor) -> torch.Tensor:
+        """Points [B, N, 3] of a fixed linear map of the posed mesh (``regressor``: a
+        ``body.keypoints.KeypointRegressor``, e.g. face-mesh landmarks as barycentric vertex
+        combinations) for ``params``. Backends may override it with a path that skips posing the
+        full mesh."""
+        out = self.forward(params)
+        return regressor(out.vertices, out.joints)
+
     def posed_keypoints(self, params: BodyParams) -> tuple[torch.Tensor, torch.Tensor]:
         """Keypoints [B, K, 3] and posed joints [B, J, 3] for ``params``, the same values as
         ``keypoints(forward(params))``. Fitting calls this hundreds of times on whole clips;

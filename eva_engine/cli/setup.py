@@ -17,7 +17,8 @@ def setup(
     force: bool = typer.Option(False, "--force", help="Rebuild the Anny cache even if it is current."),
     cache_dir: Path = typer.Option(None, help="Anny cache folder (default: <data dir>/cache/anny)."),
 ) -> None:
-    """Build the Anny body-model cache (once, ~1 min) and check the offline LPIPS weights."""
+    """Build the Anny body-model cache (once, ~1 min) and its face-mesh correspondence (MediaPipe
+    on rendered faces, ~30 s), and check the offline LPIPS weights."""
     from eva_engine.body import load_body_model, prepare_anny_cache
     from eva_engine.metrics import LPIPSWeightsError, prepare_lpips
 
@@ -31,6 +32,18 @@ def setup(
         f"[green]ok[/] Anny cache {path}: {model.num_vertices} vertices, {model.num_joints} joints, "
         f"{len(model.expression_names)} expressions ({time.perf_counter() - started:.0f} s)"
     )
+    from eva_engine.align.face_mesh import load_correspondence
+
+    started = time.perf_counter()
+    with console.status("face-mesh correspondence (MediaPipe on rendered faces)..."):
+        corr = load_correspondence(model, cache_dir=path)
+    if corr is None:
+        console.print("[yellow]warning[/] no face-mesh correspondence: dense face fitting is off")
+    else:
+        console.print(
+            f"[green]ok[/] face-mesh correspondence: {int(corr.valid.sum())} of {len(corr.valid)} landmarks "
+            f"({time.perf_counter() - started:.0f} s)"
+        )
     try:
         weights = prepare_lpips()
     except LPIPSWeightsError as err:

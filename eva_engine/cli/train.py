@@ -90,6 +90,7 @@ def train(
         "timings": result.timings,
         "refinements": result.refinements,
         "gaussians_per_part": result.gaussians_per_part,
+        "pose_correction": result.pose_correction,
     }
     save_avatar(result.avatar, out, info)
     console.print(

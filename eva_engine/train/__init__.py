@@ -17,6 +17,7 @@ from eva_engine.train.losses import (
     composite_target,
 )
 from eva_engine.train.methods import METHODS, with_method
+from eva_engine.train.pose_correction import PoseCorrection, PoseCorrectionConfig
 from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy, Strategy
 from eva_engine.train.trainer import (
     STAGES,
@@ -43,6 +44,8 @@ __all__ = [
     "LossConfig",
     "OptimConfig",
     "PhotometricLoss",
+    "PoseCorrection",
+    "PoseCorrectionConfig",
     "Strategy",
     "TrainConfig",
     "TrainProgress",

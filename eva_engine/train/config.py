@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 from eva_engine.avatar.config import AvatarConfig
 from eva_engine.train.losses import LossConfig
+from eva_engine.train.pose_correction import PoseCorrectionConfig
 from eva_engine.train.strategy import DefaultStrategy, Strategy
 
 
@@ -76,6 +77,7 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     strategy: Strategy = field(default_factory=DefaultStrategy)
+    pose_correction: PoseCorrectionConfig = field(default_factory=PoseCorrectionConfig)
     sh_degree_interval: int = 1000
     background: tuple[float, float, float] | None = None
     image_scale: float = 1.0
@@ -103,20 +105,21 @@ def preset(name: str, **overrides) -> TrainConfig:
     """A named configuration; ``overrides`` replace top-level ``TrainConfig`` fields.
 
     - ``default``: the paper's schedule (2,000 iterations, densify 400..1,000 every 100), all
-      surface vertices as seeds.
+      surface vertices as seeds, per-frame pose correction from iteration 400.
     - ``fast``: 600 iterations, densify 120..300 every 30, at most 6,000 seeds, 64-wide MLPs,
-      learning rates for the shorter schedule (``OptimConfig.faster``).
+      learning rates for the shorter schedule (``OptimConfig.faster``), pose correction from 120.
     - ``tiny``: for tests: 100 iterations, densify 30..70 every 20, 1,500 seeds, 32-wide MLPs,
-      SH degree 1, learning rates x10 (colours): seconds at ~64 px.
+      SH degree 1, learning rates x10 (colours), no pose correction: seconds at ~64 px.
     """
     if name == "default":
-        cfg = TrainConfig()
+        cfg = TrainConfig(pose_correction=PoseCorrectionConfig(enabled=True, start_iter=400))
     elif name == "fast":
         cfg = TrainConfig(
             iterations=600,
             avatar=AvatarConfig(init_max_gaussians=6000, mlp_width=64),
             optim=OptimConfig().faster(2000 / 600),
             strategy=DefaultStrategy(refine_start_iter=120, refine_stop_iter=300, refine_every=30),
+            pose_correction=PoseCorrectionConfig(enabled=True, start_iter=120, lr=4e-3),
             sh_degree_interval=300,
         )
     elif name == "tiny":

@@ -23,6 +23,7 @@ from eva_engine.body.model import PART_NAMES, BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.train.config import TrainConfig
 from eva_engine.train.losses import AvatarLoss, composite_target
+from eva_engine.train.pose_correction import PoseCorrection
 
 logger = logging.getLogger(__name__)
 
@@ -53,7 +54,10 @@ class TrainResult:
     train_seconds: wall time of the optimisation loop; timings: seconds per stage (``STAGES``);
     refinements: the strategy's reports (step and counts; the last one, with step = iterations,
     is ``finalize``'s if it changed anything); gaussians_per_part: {"before", "after"} ->
-    {part name: count} at the start and the end of training."""
+    {part name: count} at the start and the end of training; train_indices: the dataset frames
+    trained on; train_params: their body parameters as trained (the fit with the per-frame
+    pose correction applied, when it is on); pose_correction: the residuals' mean size per
+    group (empty when off)."""
 
     avatar: Avatar
     losses: list[float]
@@ -61,6 +65,9 @@ class TrainResult:
     timings: dict[str, float]
     refinements: list[dict] = field(default_factory=list)
     gaussians_per_part: dict[str, dict[str, int]] = field(default_factory=dict)
+    train_indices: list[int] = field(default_factory=list)
+    train_params: BodyParams | None = None
+    pose_correction: dict[str, float] = field(default_factory=dict)
 
 
 def part_counts(part_ids: Tensor) -> dict[str, int]:
@@ -193,6 +200,12 @@ def train_avatar(
     loss_fn = AvatarLoss(config.loss).to(device)
     optimizers = make_optimizers(avatar, config)
     extra = make_extra_optimizers(avatar, config, loss_fn)
+    correction, correction_opt = None, None
+    if config.pose_correction.enabled:
+        correction = PoseCorrection(
+            len(train_ids), body.joint_part_ids[1:], params.expression.shape[1], config.pose_correction
+        ).to(device)
+        correction_opt = torch.optim.Adam(correction.parameters(), lr=config.pose_correction.lr)
     strategy = config.strategy
     strategy.check_sanity(avatar.gaussians, optimizers)
     state = strategy.initialize_state()
@@ -226,15 +239,18 @@ def train_avatar(
         cam = frames.cameras[i]
         t = tick("data", t)
 
-        posed = avatar.pose(params[i])
+        correcting = correction is not None and step >= config.pose_correction.start_iter
+        frame_params = correction.apply(params[i], i) if correcting else params[i]
+        posed = avatar.pose(frame_params)
         t = tick("skinning", t)
         render = avatar.rasterize_posed(posed, cam, background)
         t = tick("rasterize", t)
         terms = loss_fn(render, targets[i], masks[i])
+        total = (terms["total"] + correction.prior(i)) if correcting else terms["total"]
         t = tick("losses", t)
-        terms["total"].backward()
+        total.backward()
         t = tick("backward", t)
-        for opt in (*optimizers.values(), *extra):
+        for opt in (*optimizers.values(), *extra, *([correction_opt] if correcting else [])):
             opt.step()
             opt.zero_grad(set_to_none=True)
         t = tick("optimizer", t)
@@ -267,4 +283,8 @@ def train_avatar(
         progress(TrainProgress("done", config.iterations, config.iterations, losses[-1],
                                len(avatar.gaussians), train_seconds, 0.0))  # fmt: skip
     per_part = {"before": parts_before, "after": part_counts(avatar.gaussians.part_ids)}
-    return TrainResult(avatar, losses, train_seconds, timings, refinements, per_part)
+    trained = (correction.corrected(params) if correction is not None else params).to("cpu")
+    return TrainResult(
+        avatar, losses, train_seconds, timings, refinements, per_part, train_ids, trained,
+        correction.magnitudes() if correction is not None else {},
+    )  # fmt: skip

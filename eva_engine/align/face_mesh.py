@@ -1,0 +1,252 @@
+"""Dense face fitting: a fixed correspondence between MediaPipe's 478 face-mesh landmarks and
+points on the body model's face surface, computed by the project itself.
+
+How the correspondence is made (:func:`build_correspondence`, once, then cached beside the
+Anny cache): the neutral subject is rendered with the synthetic benchmark's painted face (eyes,
+brows, lids, lips: what the face mesh needs to lock on) by the triangle-mesh renderer, seen head
+on and turned up to 20 degrees; MediaPipe FaceMesh (static images, refined irises) runs on each
+render; each landmark's pixel gives the triangle seen there and the barycentric coordinates of
+that pixel in the triangle's projection, i.e. a point on the rest surface. Per landmark the
+views are combined by the median 3D point, and the view's candidate nearest to it is kept. A
+landmark is kept (``valid``) when it was found in most views, the views agree to within
+``max_spread`` metres, it lies on a face triangle, and it is not on the face's silhouette oval
+(those points slide along the outline as the head turns, so no surface point matches them), and
+it is not one of the ten iris points (gaze is not what the painted eyes pin down).
+
+Fitting then uses, per frame, the detected landmarks against the projected correspondence
+points (``BodyModel.posed_points``), which moves the expression (jaw, lips, lids, brows through
+the facial actions) where 16 sparse points could not.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from eva_engine.body.model import SIDED_PART_NAMES, BodyModel
+
+logger = logging.getLogger(__name__)
+
+NUM_LANDMARKS = 478
+IRIS_START = 468  # the refined iris points: gaze, which the painted eyes do not pin down
+VERSION = 1
+FILE_NAME = "face_mesh_correspondence.json"
+VIEWS_DEG = tuple((yaw, pitch) for yaw in (-20.0, -10.0, 0.0, 10.0, 20.0) for pitch in (-10.0, 0.0, 10.0))
+
+
+@dataclass(frozen=True)
+class FaceMeshCorrespondence:
+    """Per MediaPipe landmark: ``faces [478]`` triangle index, ``barycentric [478, 3]``, ``valid
+    [478]`` (use it in fitting), ``spread [478]`` metres between views."""
+
+    faces: Tensor
+    barycentric: Tensor
+    valid: Tensor
+    spread: Tensor
+
+    def vertex_terms(self, model_faces: Tensor) -> dict[int, dict[int, float]]:
+        """{landmark: {vertex: weight}} for the valid landmarks (weights sum to 1)."""
+        out: dict[int, dict[int, float]] = {}
+        for k in torch.nonzero(self.valid).squeeze(1).tolist():
+            tri = model_faces[self.faces[k]].tolist()
+            terms: dict[int, float] = {}
+            for v, w in zip(tri, self.barycentric[k].tolist(), strict=True):
+                terms[int(v)] = terms.get(int(v), 0.0) + float(w)
+            out[k] = terms
+        return out
+
+    def to_json(self) -> dict:
+        return {
+            "version": VERSION,
+            "faces": self.faces.tolist(),
+            "barycentric": self.barycentric.tolist(),
+            "valid": self.valid.tolist(),
+            "spread": self.spread.tolist(),
+        }
+
+    @classmethod
+    def from_json(cls, d: dict) -> FaceMeshCorrespondence:
+        return cls(
+            torch.tensor(d["faces"], dtype=torch.int64),
+            torch.tensor(d["barycentric"], dtype=torch.float32),
+            torch.tensor(d["valid"], dtype=torch.bool),
+            torch.tensor(d["spread"], dtype=torch.float32),
+        )
+
+
+def face_oval() -> set[int]:
+    """MediaPipe's face-oval (silhouette) landmark indices."""
+    from mediapipe.python.solutions import face_mesh
+
+    return {i for edge in face_mesh.FACEMESH_FACE_OVAL for i in edge}
+
+
+def head_camera(model: BodyModel, yaw_deg: float, pitch_deg: float, size: int) -> tuple[Tensor, Tensor]:
+    """(K, viewmat) of a close-up of the rest-pose face: 0.6 m away, turned by yaw / pitch about
+    the face's centre, the head filling most of the image."""
+    from eva_engine.render import intrinsics, look_at
+
+    with torch.no_grad():
+        kp = model.keypoints(model(model.default_params(1)))[0]
+    names = list(model.keypoint_names)
+    eyes = 0.5 * (kp[names.index("face_left_iris")] + kp[names.index("face_right_iris")])
+    mouth = 0.5 * (kp[names.index("face_mouth_left")] + kp[names.index("face_mouth_right")])
+    centre = (0.5 * (eyes + mouth)).double()
+    yaw, pitch = math.radians(yaw_deg), math.radians(pitch_deg)
+    direction = torch.tensor(
+        [math.sin(yaw) * math.cos(pitch), math.sin(pitch), math.cos(yaw) * math.cos(pitch)]
+    )
+    eye = centre + 0.6 * direction.double()
+    return intrinsics(size, size, 28.0), look_at(eye.tolist(), centre.tolist())
+
+
+def render_face(model: BodyModel, views: tuple[tuple[float, float], ...], size: int = 512) -> list[dict]:
+    """The painted neutral face from each (yaw, pitch) view: dicts with rgb [H, W, 3] uint8,
+    face_id [H, W], K, viewmat and the rest vertices [V, 3]."""
+    from eva_engine.data.look import Look, bake_texture, face_segments
+    from eva_engine.data.mesh_render import MeshRenderConfig, MeshRenderer
+
+    params = model.default_params(1)
+    with torch.no_grad():
+        vertices = model(params).vertices[0]
+    look = Look.random(np.random.default_rng([0, 1]))
+    config = MeshRenderConfig(width=size, height=size, supersample=2)
+    out = []
+    with MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer:
+        texture = bake_texture(model, params, look, renderer, 2048, face_label=face_segments(model))
+        renderer.set_surface(
+            texture=texture,
+            uv=model.anny.texture_coordinates.cpu().numpy(),
+            face_uv=model.anny.face_texture_coordinate_indices.cpu().numpy(),
+        )
+        for yaw, pitch in views:
+            K, view = head_camera(model, yaw, pitch, size)
+            r = renderer.render(vertices, view, K)
+            rgb = (r.rgb.numpy() * 255 + 0.5).astype(np.uint8)
+            out.append({"rgb": rgb, "face_id": r.face_id, "K": K, "viewmat": view, "vertices": vertices})
+    return out
+
+
+def detect_face_mesh(rgb: np.ndarray) -> np.ndarray | None:
+    """MediaPipe FaceMesh on one RGB uint8 image: [478, 2] pixel coordinates, or None."""
+    from mediapipe.python.solutions import face_mesh
+
+    with face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=True) as fm:
+        result = fm.process(np.ascontiguousarray(rgb))
+    if not result.multi_face_landmarks:
+        return None
+    h, w = rgb.shape[:2]
+    pts = np.array([(p.x * w, p.y * h) for p in result.multi_face_landmarks[0].landmark], dtype=np.float64)
+    return pts if len(pts) == NUM_LANDMARKS else None
+
+
+def _barycentric(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates [3] of 2D point p in 2D triangle tri [3, 2] (clamped inside)."""
+    a, b, c = tri
+    m = np.array([b - a, c - a]).T
+    if abs(np.linalg.det(m)) < 1e-12:
+        return np.array([1 / 3, 1 / 3, 1 / 3])
+    u, v = np.linalg.solve(m, p - a)
+    bary = np.clip(np.array([1 - u - v, u, v]), 0.0, 1.0)
+    return bary / bary.sum()
+
+
+def build_correspondence(
+    model: BodyModel, views: tuple[tuple[float, float], ...] = VIEWS_DEG, max_spread: float = 0.004
+) -> FaceMeshCorrespondence:
+    """The correspondence of ``model`` (module docstring). Needs the mesh renderer (EGL) and
+    MediaPipe; takes a few seconds."""
+    from eva_engine.align.camera import project, to_camera
+
+    faces = model.faces.cpu().numpy()
+    face_part = model.sided_part_ids.cpu().numpy()
+    face_index = SIDED_PART_NAMES.index("face")
+    candidates: list[list[tuple[int, np.ndarray, np.ndarray]]] = [[] for _ in range(NUM_LANDMARKS)]
+    for r in render_face(model, views):
+        pts = detect_face_mesh(r["rgb"])
+        if pts is None:
+            continue
+        uv = project(to_camera(r["vertices"][None].double(), r["viewmat"].double()), r["K"].double())[
+            0
+        ].numpy()
+        face_id = r["face_id"].numpy()
+        h, w = face_id.shape
+        rest = r["vertices"].double().numpy()
+        for k, (x, y) in enumerate(pts):
+            col, row = int(np.floor(x)), int(np.floor(y))
+            if not (0 <= col < w and 0 <= row < h) or face_id[row, col] < 0:
+                continue
+            f = int(face_id[row, col])
+            bary = _barycentric(np.array([x, y]), uv[faces[f]])
+            candidates[k].append((f, bary, bary @ rest[faces[f]]))
+    oval = face_oval()
+    tri = torch.zeros(NUM_LANDMARKS, dtype=torch.int64)
+    bary_out = torch.full((NUM_LANDMARKS, 3), 1 / 3)
+    valid = torch.zeros(NUM_LANDMARKS, dtype=torch.bool)
+    spread = torch.full((NUM_LANDMARKS,), float("inf"))
+    for k, cands in enumerate(candidates):
+        if not cands:
+            continue
+        points = np.stack([c[2] for c in cands])
+        median = np.median(points, axis=0)
+        dist = np.linalg.norm(points - median, axis=1)
+        best = int(dist.argmin())
+        f, bary, _ = cands[best]
+        tri[k], bary_out[k] = f, torch.from_numpy(bary).float()
+        spread[k] = float(np.median(dist))
+        on_face = bool((face_part[faces[f]] == face_index).all())
+        valid[k] = (
+            len(cands) >= 0.6 * len(views) and spread[k] <= max_spread and on_face
+            and k not in oval and k < IRIS_START
+        )  # fmt: skip
+    logger.info("face-mesh correspondence: %d of %d landmarks valid", int(valid.sum()), NUM_LANDMARKS)
+    return FaceMeshCorrespondence(tri, bary_out, valid, spread)
+
+
+def _cache_key(model: BodyModel) -> str:
+    """Changes with the body model's mesh, the MediaPipe version and this module's VERSION."""
+    import mediapipe
+
+    h = hashlib.sha256()
+    h.update(model.faces.cpu().numpy().tobytes())
+    h.update(model.canonical(model.default_params(1))[0].detach().cpu().numpy().round(5).tobytes())
+    h.update(f"{mediapipe.__version__}/{VERSION}".encode())
+    return h.hexdigest()[:16]
+
+
+def load_correspondence(model: BodyModel, cache_dir: Path | None = None) -> FaceMeshCorrespondence | None:
+    """The cached correspondence of ``model`` (built and cached on first use), or None where it
+    cannot be made (a model without the painted-face renderer, i.e. not Anny; no MediaPipe)."""
+    from eva_engine import paths
+
+    if model.name != "anny":
+        return None
+    own = getattr(getattr(model, "config", None), "cache_dir", None)  # where this model's cache is
+    folder = Path(cache_dir or own or paths.cache_dir("anny"))
+    path = folder / FILE_NAME
+    key = _cache_key(model)
+    if path.is_file():
+        try:
+            doc = json.loads(path.read_text())
+            if doc.get("key") == key:
+                return FaceMeshCorrespondence.from_json(doc)
+        except (OSError, ValueError, KeyError) as err:
+            logger.warning("unreadable face-mesh correspondence %s (%s); rebuilding it", path, err)
+    try:
+        corr = build_correspondence(model)
+    except ImportError as err:  # pragma: no cover - install problem
+        logger.warning("no face-mesh correspondence (%s): dense face fitting is off", err)
+        return None
+    folder.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".partial")
+    tmp.write_text(json.dumps({"key": key, **corr.to_json()}))
+    tmp.replace(path)
+    return corr
