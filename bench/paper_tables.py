@@ -5,6 +5,9 @@ std over several seeds, LPIPS-VGG (held out: no method trains on it) as the head
     .venv/bin/python bench/paper_tables.py                  # the committed tables (3 seeds; hours on 2 cores)
     .venv/bin/python bench/paper_tables.py --size tiny --preset tiny --seeds 0 1 --name smoke
                                                             # a smoke run (minutes)
+    # one process per seed (the seeds run side by side), then one table:
+    .venv/bin/python bench/paper_tables.py --seeds 1 --name paper_tables_seed1   # etc.
+    .venv/bin/python bench/paper_tables.py --merge paper_tables_seed0 paper_tables_seed1 paper_tables_seed2
 
 Seed s is a subject and its motions (``eva synth --preset controlled --size bench --seed s``:
 train on one take, test on 20 frames of each of two other takes with unseen motions and facial
@@ -106,6 +109,35 @@ def aggregate(runs: list[dict]) -> dict:
     return out
 
 
+def merge(docs: list[dict]) -> dict:
+    """One result document from several of the same settings (e.g. one process per seed): the
+    union of their runs (a seed run twice keeps its first run), re-aggregated."""
+    if not docs:
+        raise ValueError("nothing to merge")
+    base = {k: v for k, v in docs[0]["config"].items() if k != "seeds"}
+    for doc in docs[1:]:
+        other = {k: v for k, v in doc["config"].items() if k != "seeds"}
+        if other != base:
+            changed = sorted(k for k in base.keys() | other.keys() if base.get(k) != other.get(k))
+            raise ValueError(f"cannot merge results of different settings: {changed}")
+    runs: dict[str, dict[int, dict]] = {}
+    for doc in docs:
+        for method, entry in doc["methods"].items():
+            for run in entry["runs"]:
+                runs.setdefault(method, {}).setdefault(run["seed"], run)
+    seeds = sorted({s for by_seed in runs.values() for s in by_seed})
+    return {
+        "date": max(d["date"] for d in docs),
+        "command": " && ".join(d["command"] for d in docs),
+        "machine": docs[0]["machine"],
+        "load_average": [max(x) for x in zip(*(d["load_average"] for d in docs), strict=True)],
+        "total_seconds": sum(d["total_seconds"] for d in docs),
+        "wall_seconds": max(d["total_seconds"] for d in docs),
+        "config": {**docs[0]["config"], "seeds": seeds},
+        "methods": {m: aggregate([by_seed[s] for s in sorted(by_seed)]) for m, by_seed in runs.items()},
+    }
+
+
 def findings(methods: dict) -> list[str]:
     """Each comparison, per region, on LPIPS-VGG (headline), PSNR and SSIM: better / worse /
     no difference by the combined-std rule."""
@@ -130,11 +162,14 @@ def findings(methods: dict) -> list[str]:
 
 def markdown(doc: dict) -> str:
     cfg = doc["config"]
+    wall = doc.get("wall_seconds")
+    wall = f" ({wall / 3600:.1f} h of wall time, seeds side by side)" if wall else ""
     lines = [
         "# The paper's Tables 1 and 2 on the synthetic controlled benchmark",
         "",
         f"- date: {doc['date']}; command: `{doc['command']}`",
-        f"- machine: {doc['machine']}",
+        f"- machine: {doc['machine']}; load average at the last run {doc.get('load_average')} "
+        "(other jobs shared the 2 cores: Train (s) compares methods only roughly)",
         f"- data: `eva synth --preset controlled --size {cfg['size']} --seed s` for s in {cfg['seeds']} "
         f"({cfg['image_size'][1]}x{cfg['image_size'][0]} px; "
         f"train on one take of {cfg['train_frames']} frames, "
@@ -143,7 +178,7 @@ def markdown(doc: dict) -> str:
         f"- training: preset `{cfg['preset']}` ({cfg['iterations']} iterations, densification "
         f"{cfg['refine'][0]}..{cfg['refine'][1]} every {cfg['refine'][2]}), training seed = data seed, "
         f"{cfg['threads']} threads, pixel loss terms normalised per `{cfg.get('pixel_norm', 'person_box')}`; "
-        f"wall time so far {doc['total_seconds'] / 3600:.1f} h",
+        f"compute time {doc['total_seconds'] / 3600:.1f} h{wall}",
         "",
         "Every cell is the mean ± std over the seeds. LPIPS ×1000: **LPIPS-VGG is the headline and held "
         "out** (no method trains on it); the EVA rows train on LPIPS-Alex (a loss term), 3dgs+body on "
@@ -222,12 +257,21 @@ def main() -> None:
     ap.add_argument("--pixel-norm", default="person_box", choices=["person_box", "frame"],
                     help="normalisation of the pixel loss terms (a densification check)")  # fmt: skip
     ap.add_argument("--replot", action="store_true", help="only rewrite the .md from the .json")
+    ap.add_argument(
+        "--merge", nargs="+", metavar="NAME", help="only combine the runs of result files of one setting"
+    )
     ap.add_argument("--out", type=Path, default=RESULTS, help="results folder")
     args = ap.parse_args()
     path = args.out / f"{args.name}.json"
     if args.replot:
         doc = json.loads(path.read_text())
         (args.out / f"{args.name}.md").write_text(markdown(doc))
+        return
+    if args.merge:
+        doc = merge([json.loads((args.out / f"{n}.json").read_text()) for n in args.merge])
+        path.write_text(json.dumps(doc, indent=1, default=str))
+        (args.out / f"{args.name}.md").write_text(markdown(doc))
+        print(markdown(doc))
         return
 
     from eva_engine.data import load_dataset
@@ -247,9 +291,10 @@ def main() -> None:
         "train_config": {m: with_method(base, m).to_dict() for m in args.methods},
     }  # fmt: skip
     doc = json.loads(path.read_text()) if path.is_file() else {}
-    same = {k: v for k, v in doc.get("config", {}).items() if k in config} == {
-        k: v for k, v in config.items() if k != "seeds"
-    }
+    wanted = json.loads(json.dumps({k: v for k, v in config.items() if k != "seeds"}, default=str))
+    same = {
+        k: v for k, v in doc.get("config", {}).items() if k in wanted
+    } == wanted  # as JSON: tuples are lists
     runs: dict[str, list[dict]] = (
         {m: list(e["runs"]) for m, e in doc.get("methods", {}).items()} if same else {}
     )  # resume only a run of the same settings
