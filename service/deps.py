@@ -1,15 +1,15 @@
-"""Request dependencies: the app's context, the API key, and ids resolved to records (404s)."""
+"""Request dependencies: the app's context and ids resolved to records (404s). The API key is
+checked before routing, by ``service.guard``."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from fastapi import Depends, HTTPException, Request, Security
-from fastapi.security import APIKeyHeader
+from fastapi import Depends, HTTPException, Request
 
 from jobs.queue import JobQueue
 from jobs.store import JobRecord, is_valid_id
-from service.rendering import AvatarCache
+from service.rendering import AvatarCache, RenderGate
 from service.settings import ServiceSettings
 
 
@@ -20,19 +20,11 @@ class ServiceContext:
     settings: ServiceSettings
     queue: JobQueue
     avatars: AvatarCache
+    renders: RenderGate
 
 
 def context(request: Request) -> ServiceContext:
     return request.app.state.context
-
-
-_api_key = APIKeyHeader(name="X-API-Key", auto_error=False, description="Needed when the service has a key.")
-
-
-def require_api_key(key: str | None = Security(_api_key), ctx: ServiceContext = Depends(context)) -> None:
-    expected = ctx.settings.api_key
-    if expected is not None and key != expected:
-        raise HTTPException(401, "missing or wrong API key (header X-API-Key)")
 
 
 def _check_id(value: str, what: str) -> None:

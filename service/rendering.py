@@ -1,11 +1,14 @@
-"""Loaded avatars and what the render and export endpoints do with them: build the camera,
-render through ``Avatar.render``, encode PNG/JPEG, and write the posed body mesh as GLB."""
+"""Loaded avatars and what the render and export endpoints do with them: check the size and the
+pose against the limits and the body model, build the camera, render through ``Avatar.render``
+(at most ``RenderGate.slots`` at once), encode PNG/JPEG, and write the posed body mesh as GLB."""
 
 from __future__ import annotations
 
+import asyncio
 import io
 import threading
-from collections import OrderedDict
+from collections import OrderedDict, deque
+from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,7 +16,7 @@ import numpy as np
 import torch
 
 from eva_engine.avatar import Avatar, load_avatar
-from eva_engine.body import BodyModel, BodyParams, load_body_model
+from eva_engine.body import BodyModel, BodyParams, BodyPose, load_body_model
 from eva_engine.render.camera import Camera, intrinsics, orbit_camera
 from eva_engine.render.sh import SH_C0
 from jobs.storage import FRAMES_NAME
@@ -21,7 +24,55 @@ from service.schemas import DEFAULT_DISTANCE, DEFAULT_FOV_Y, DEFAULT_SIZE, Camer
 
 
 class RenderInputError(ValueError):
-    """A render request that names something the avatar does not have (answered 422)."""
+    """A render request that names something the avatar does not have, or asks for more than
+    the limits (answered 422)."""
+
+
+class RenderBusy(Exception):
+    """Every render slot is taken and the waiting line is full or did not move in time (503)."""
+
+
+class RenderGate:
+    """At most ``slots`` renders at once; up to ``waiting`` more wait (first come, first served)
+    at most ``wait_s`` seconds, in the event loop (not in threads); beyond that ``RenderBusy``."""
+
+    def __init__(self, slots: int, waiting: int, wait_s: float) -> None:
+        self.slots, self.waiting, self.wait_s = slots, waiting, wait_s
+        self.running = 0
+        self._line: deque[asyncio.Future] = deque()
+
+    @property
+    def queued(self) -> int:
+        return len(self._line)
+
+    @asynccontextmanager
+    async def slot(self):
+        if self.running < self.slots and not self._line:
+            self.running += 1
+        else:
+            if len(self._line) >= self.waiting:
+                raise RenderBusy(f"{self.running} renders are running and {len(self._line)} waiting")
+            turn = asyncio.get_running_loop().create_future()
+            self._line.append(turn)
+            try:
+                await asyncio.wait_for(turn, self.wait_s)  # the releasing render hands its slot over
+            except TimeoutError:
+                raise RenderBusy(f"no render slot came free within {self.wait_s:.0f} s") from None
+            finally:
+                if turn in self._line:
+                    self._line.remove(turn)
+        try:
+            yield
+        finally:
+            self._release()
+
+    def _release(self) -> None:
+        while self._line:
+            turn = self._line.popleft()
+            if not turn.done():
+                turn.set_result(None)  # the slot passes on: ``running`` stays
+                return
+        self.running -= 1
 
 
 @dataclass
@@ -46,16 +97,20 @@ class LoadedAvatar:
 
 
 class AvatarCache:
-    """Up to ``capacity`` avatars kept loaded (LRU), and one body model per name (loaded once)."""
+    """Up to ``capacity`` avatars kept loaded (LRU), and one body model per name (loaded once).
+    Concurrent first requests for one avatar wait for a single load (``loads`` counts them)."""
 
     def __init__(self, capacity: int) -> None:
         self.capacity = capacity
+        self.loads = 0
         self._avatars: OrderedDict[tuple[str, float], LoadedAvatar] = OrderedDict()
+        self._loading: dict[tuple[str, float], threading.Lock] = {}
         self._bodies: dict[str, BodyModel] = {}
         self._lock = threading.Lock()
+        self._body_lock = threading.Lock()
 
     def body(self, name: str) -> BodyModel:
-        with self._lock:
+        with self._body_lock:
             if name not in self._bodies:
                 self._bodies[name] = load_body_model(name)
             return self._bodies[name]
@@ -66,14 +121,21 @@ class AvatarCache:
             if key in self._avatars:
                 self._avatars.move_to_end(key)
                 return self._avatars[key]
-        from eva_engine.avatar import read_avatar_info
+            loading = self._loading.setdefault(key, threading.Lock())
+        with loading:  # one thread loads; the others wait here and then find it cached
+            with self._lock:
+                if key in self._avatars:
+                    return self._avatars[key]
+            from eva_engine.avatar import read_avatar_info
 
-        body = self.body(read_avatar_info(path)["body_model"])
-        loaded = LoadedAvatar(load_avatar(path, body=body).eval(), _read_frames(path), threading.Lock())
-        with self._lock:
-            self._avatars[key] = loaded
-            while len(self._avatars) > self.capacity:
-                self._avatars.popitem(last=False)
+            body = self.body(read_avatar_info(path)["body_model"])
+            loaded = LoadedAvatar(load_avatar(path, body=body).eval(), _read_frames(path), threading.Lock())
+            with self._lock:
+                self.loads += 1
+                self._avatars[key] = loaded
+                self._loading.pop(key, None)
+                while len(self._avatars) > self.capacity:
+                    self._avatars.popitem(last=False)
         return loaded
 
     def forget(self, avatar_id: str) -> None:
@@ -97,16 +159,49 @@ def _read_frames(path: Path) -> TrainingFrames | None:
 
 
 # -- render ----------------------------------------------------------------------------------------
-def resolve_size(req: RenderRequest, frames: TrainingFrames | None) -> tuple[int, int]:
-    """(width, height): as asked, else the training frame's (for ``frame``), else 512."""
-    if req.frame is not None and frames is not None and frames.size[0] > 0:
-        h, w = frames.size
+def resolve_size(req: RenderRequest, frame_size: tuple[int, int] | None) -> tuple[int, int]:
+    """(width, height): as asked, else the training frames' (for ``frame``; ``frame_size`` is
+    their (height, width) from ``avatar.json``), else 512."""
+    if req.frame is not None and frame_size is not None and frame_size[0] > 0 and frame_size[1] > 0:
+        h, w = frame_size
         if req.width is not None and req.height is None:
             return req.width, max(16, round(req.width * h / w))
         if req.height is not None and req.width is None:
             return max(16, round(req.height * w / h)), req.height
         return req.width or w, req.height or h
     return req.width or DEFAULT_SIZE, req.height or DEFAULT_SIZE
+
+
+def checked_size(req: RenderRequest, folder: Path, max_side: int, max_pixels: int) -> tuple[int, int]:
+    """The render's (width, height), from the request and the avatar's ``avatar.json`` (no model
+    load), or ``RenderInputError`` when it is over ``max_side`` a side or ``max_pixels`` in all."""
+    from eva_engine.avatar import read_avatar_info
+
+    size = read_avatar_info(folder).get("frames", {}).get("image_size") if req.frame is not None else None
+    width, height = resolve_size(req, (int(size[0]), int(size[1])) if size else None)
+    if width > max_side or height > max_side or width * height > max_pixels:
+        raise RenderInputError(
+            f"render size {width}x{height} is over the limit ({max_side} pixels a side, "
+            f"{max_pixels} pixels in all); pass a smaller width / height"
+        )
+    return width, height
+
+
+def pose_params(loaded: LoadedAvatar, pose: BodyPose) -> BodyParams:
+    """``pose`` as the avatar's body model's params, after checking its values against the
+    model's own ranges (e.g. Anny's expressions and phenotypes in [0, 1])."""
+    body = loaded.avatar.body
+    for kind, values, bounds in (("expression", pose.expression, body.expression_bounds),
+                                 ("shape", pose.shape, body.shape_bounds)):  # fmt: skip
+        if bounds is None:
+            continue
+        lo, hi = bounds
+        outside = [name for name, v in values.items() if not lo <= v <= hi]
+        if outside:
+            raise RenderInputError(
+                f"{kind} value(s) of {outside[:8]} outside the {body.name} model's range [{lo}, {hi}]"
+            )
+    return body.params_from_pose(pose)
 
 
 def frame_params(loaded: LoadedAvatar, index: int) -> BodyParams:

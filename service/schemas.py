@@ -6,14 +6,50 @@ import math
 from datetime import UTC, datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    field_validator,
+    model_validator,
+)
 
 from eva_engine.body import BodyPose
 from jobs.options import JobOptions
 from jobs.store import JobRecord
 
-Vec3 = tuple[float, float, float]
-Vec4 = tuple[float, float, float, float]
+# Physical bounds of what a client may ask for: finite is not enough (1e300 becomes inf in
+# float32 and renders a blank image), and a bounded request has a bounded cost.
+MAX_POSE_KEYS = 256
+MAX_ROTATION = 2.0 * math.pi  # radians: every rotation has an axis-angle of norm <= pi
+MAX_TRANSLATION_M = 10.0
+MAX_CAMERA_DISTANCE_M = 100.0
+MAX_PIXELS_COORD = 1e5  # K's entries
+EXPRESSION_RANGE = 3.0  # SMPL-X's coefficients are standard deviations; Anny's [0, 1] is the model's own
+SHAPE_RANGE = 5.0
+MAX_SIDE = 4096
+MAX_FRAME_INDEX = 100_000
+
+
+def _rotation(value: tuple[float, float, float]) -> tuple[float, float, float]:
+    if math.hypot(*value) > MAX_ROTATION:
+        raise ValueError(
+            f"an axis-angle rotation must have a norm of at most 2 pi ({MAX_ROTATION:.4f}) radians"
+        )
+    return value
+
+
+Name = Annotated[str, StringConstraints(min_length=1, max_length=64)]
+Angle = Annotated[float, Field(ge=-MAX_ROTATION, le=MAX_ROTATION)]
+AxisAngle = Annotated[tuple[Angle, Angle, Angle], AfterValidator(_rotation)]
+Metres = Annotated[float, Field(ge=-MAX_TRANSLATION_M, le=MAX_TRANSLATION_M)]
+Position = tuple[Metres, Metres, Metres]
+Pixels = Annotated[float, Field(ge=-MAX_PIXELS_COORD, le=MAX_PIXELS_COORD)]
+Vec3 = tuple[Pixels, Pixels, Pixels]
+ViewEntry = Annotated[float, Field(ge=-MAX_CAMERA_DISTANCE_M, le=MAX_CAMERA_DISTANCE_M)]
+Vec4 = tuple[ViewEntry, ViewEntry, ViewEntry, ViewEntry]
 Unit = Annotated[float, Field(ge=0.0, le=1.0)]
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
@@ -46,6 +82,7 @@ class Health(BaseModel):
     version: str
     queue: str = Field(description="sqlite or redis")
     jobs: dict[str, int] = Field(description="Job count per state.")
+    renders: dict[str, int] = Field(default_factory=dict, description="Renders running and waiting.")
 
 
 class AvatarCreated(BaseModel):
@@ -122,6 +159,26 @@ class AvatarList(BaseModel):
     avatars: list[AvatarInfo]
 
 
+class RenderPose(BodyPose):
+    """``BodyPose`` with the bounds a render request must keep: at most 256 names per dict (of at
+    most 64 characters), axis-angles of norm <= 2 pi, translation within 10 m, expression within
+    +-3 and shape within +-5 (and within the body model's own range, checked when rendering)."""
+
+    joints: dict[Name, AxisAngle] = Field(
+        default_factory=dict,
+        max_length=MAX_POSE_KEYS,
+        description="Axis-angle [rx, ry, rz] (radians) per joint name.",
+    )
+    root_orient: AxisAngle = Field((0.0, 0.0, 0.0), description="Root axis-angle (radians), world axes.")
+    transl: Position = Field((0.0, 0.0, 0.0), description="Root translation in metres, world axes.")
+    expression: dict[Name, Annotated[float, Field(ge=-EXPRESSION_RANGE, le=EXPRESSION_RANGE)]] = Field(
+        default_factory=dict, max_length=MAX_POSE_KEYS, description="Facial expression coefficient per name."
+    )
+    shape: dict[Name, Annotated[float, Field(ge=-SHAPE_RANGE, le=SHAPE_RANGE)]] = Field(
+        default_factory=dict, max_length=MAX_POSE_KEYS, description="Shape parameter per name."
+    )
+
+
 class CameraSpec(BaseModel):
     """Either an orbit around ``target`` (yaw, pitch in degrees; distance in metres; vertical field
     of view ``fov_y`` in degrees) or explicit OpenCV ``K`` [3x3] (pixels, for the requested size)
@@ -131,8 +188,8 @@ class CameraSpec(BaseModel):
 
     yaw: float | None = Field(None, ge=-360.0, le=360.0)
     pitch: float | None = Field(None, gt=-90.0, lt=90.0)
-    distance: float | None = Field(None, gt=0.0, le=100.0)
-    target: Vec3 | None = None
+    distance: float | None = Field(None, gt=0.0, le=MAX_CAMERA_DISTANCE_M)
+    target: Position | None = None
     fov_y: float | None = Field(None, gt=1.0, lt=170.0)
     K: tuple[Vec3, Vec3, Vec3] | None = None
     viewmat: tuple[Vec4, Vec4, Vec4, Vec4] | None = None
@@ -147,8 +204,8 @@ class CameraSpec(BaseModel):
         if orbit:
             raise ValueError(f"{orbit} cannot be combined with 'K' and 'viewmat'")
         k = self.K
-        if not (k[0][0] > 0 and k[1][1] > 0 and k[1][0] == 0 and k[2] == (0.0, 0.0, 1.0)):
-            raise ValueError("K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+        if not (k[0][0] >= 1.0 and k[1][1] >= 1.0 and k[1][0] == 0 and k[2] == (0.0, 0.0, 1.0)):
+            raise ValueError("K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy >= 1 pixel")
         v = self.viewmat
         if v[3] != (0.0, 0.0, 0.0, 1.0):
             raise ValueError("viewmat's last row must be [0, 0, 0, 1]")
@@ -180,13 +237,15 @@ class RenderRequest(BaseModel):
         ]},
     )  # fmt: skip
 
-    pose: BodyPose | None = Field(None, description="Body pose JSON (see BodyPose); default: rest pose.")
-    frame: int | None = Field(None, ge=0, description="Render training frame i (its fitted pose).")
+    pose: RenderPose | None = Field(None, description="Body pose JSON (see BodyPose); default: rest pose.")
+    frame: int | None = Field(
+        None, ge=0, le=MAX_FRAME_INDEX, description="Render training frame i (its fitted pose)."
+    )
     camera: CameraSpec | None = Field(
         None, description=f"Orbit or K/viewmat, or a preset name: {list(CAMERA_PRESETS)}."
     )
-    width: int | None = Field(None, ge=16, description="Pixels (default 512, or the frame's).")
-    height: int | None = Field(None, ge=16, description="Pixels (default 512, or the frame's).")
+    width: int | None = Field(None, ge=16, le=MAX_SIDE, description="Pixels (default 512, or the frame's).")
+    height: int | None = Field(None, ge=16, le=MAX_SIDE, description="Pixels (default 512, or the frame's).")
     background: tuple[Unit, Unit, Unit] = Field((1.0, 1.0, 1.0), description="RGB in [0, 1].")
     format: Literal["png", "jpeg"] = "png"
 

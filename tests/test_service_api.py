@@ -17,7 +17,7 @@ signer_video = helpers.signer_video  # a fixture
 def make_client(tmp_path, **overrides) -> TestClient:
     jobs = JobsConfig(data_dir=tmp_path / "data")
     settings = ServiceSettings(jobs=jobs, preload_body_models=(), **overrides)
-    return TestClient(create_app(settings))
+    return TestClient(create_app(settings), base_url="http://127.0.0.1")
 
 
 @pytest.fixture
