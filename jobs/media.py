@@ -179,6 +179,16 @@ def probe_in_subprocess(path: Path, max_side: int = 4096, timeout_s: float = 30.
     return VideoInfo(**answer["info"])
 
 
+def _peak_rss_mb() -> float | None:
+    """This process's peak resident memory (VmHWM; not ru_maxrss, which keeps the parent's from
+    before exec)."""
+    try:
+        status = Path("/proc/self/status").read_text()
+    except OSError:
+        return None
+    return int(status.split("VmHWM:")[1].split()[0]) / 1024 if "VmHWM:" in status else None
+
+
 def _limit_memory(memory_mb: int) -> None:
     import resource
 
@@ -196,8 +206,9 @@ def main(argv: list[str] | None = None) -> int:
         _limit_memory(args.memory_mb)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     try:
-        answer = {"info": dataclasses.asdict(probe_video(args.path, args.max_side))}
+        answer: dict = {"info": dataclasses.asdict(probe_video(args.path, args.max_side))}
     except VideoRejected as err:
         answer = {"error": str(err)}
+    answer["peak_rss_mb"] = _peak_rss_mb()
     print(json.dumps(answer), flush=True)
     return 0

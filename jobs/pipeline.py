@@ -125,10 +125,13 @@ class JobRun:
             state, fields = "failed", {"error": reason}
         else:
             state, fields = "succeeded", {"message": "avatar ready"}
+        # Its files go first, so a finished job never has any; a crash in between is retried and
+        # finds the published avatar (or fails again). Only while the job is still ours.
+        if self.store.update(job.id, owner=self.worker, message=f"{state}: cleaning up"):
+            self.storage.remove_work(job.id)
         if not self.store.finish(job.id, state, owner=self.worker, **fields):
             logger.warning("job %s: lost before it could be marked %s", job.id, state)
             return None
-        self.storage.remove_work(job.id)
         return state
 
     def _stages(self, job: JobRecord, report: Reporter) -> None:
