@@ -224,3 +224,11 @@ def test_no_open_api_on_a_network_address(tmp_path):
     result = CliRunner().invoke(app, ["serve", "--host", "0.0.0.0", "--data-dir", str(tmp_path / "data")],
                                 env={"EVA_API_KEY": ""})  # fmt: skip
     assert result.exit_code == 2 and "without an API key" in result.output
+
+
+def test_the_container_health_check_reaches_the_api(server):
+    from service import healthcheck
+
+    _, base, _, _ = server
+    assert healthcheck.check_api(int(base.rsplit(":", 1)[1])) is None  # /healthz needs no key
+    assert "did not answer" in healthcheck.check_api(free_port())
