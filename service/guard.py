@@ -4,7 +4,8 @@ of its body or routes it, in this order:
 1. the API key (``X-API-Key``, compared in constant time) unless the path is public: 401;
 2. a browser's cross-site write (``Origin`` / ``Sec-Fetch-Site`` of another site on a POST,
    PUT, PATCH or DELETE, e.g. a web page posting a form to the loopback service): 403;
-3. requests in flight over ``max_requests``: 503 with ``Retry-After``;
+3. requests in flight over ``max_requests`` (public paths, i.e. ``/healthz``, are always
+   answered): 503 with ``Retry-After``;
 4. the body limit of the route (``BodyRule``: per method and path pattern, else
    ``default_max_bytes``): 413 at once from ``Content-Length``, or as soon as the streamed body
    crosses it; the rule's own cap on concurrent requests (uploads): 503 with ``Retry-After``;
@@ -89,7 +90,7 @@ class RequestGuard:
             await refusal(scope, receive, send)
             return
         counters, cfg = self._counters, self.config
-        if counters.in_flight >= cfg.max_requests:
+        if counters.in_flight >= cfg.max_requests and path not in cfg.public_paths:  # health stays visible
             await _reply(503, "the service is busy; retry shortly", retry_after=True)(scope, receive, send)
             return
         index, rule = next(((i, r) for i, r in enumerate(cfg.rules) if r.matches(method, path)), (None, None))

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from eva_engine.avatar import Avatar, load_avatar
+from eva_engine.avatar import Avatar, AvatarFileError, load_avatar
 from eva_engine.body import BodyModel, BodyParams, BodyPose, load_body_model
 from eva_engine.render.camera import Camera, intrinsics, orbit_camera
 from eva_engine.render.sh import SH_C0
@@ -116,7 +116,10 @@ class AvatarCache:
             return self._bodies[name]
 
     def get(self, avatar_id: str, path: Path) -> LoadedAvatar:
-        key = (avatar_id, path.stat().st_mtime)
+        try:
+            key = (avatar_id, path.stat().st_mtime)
+        except FileNotFoundError as err:  # deleted since the request was checked
+            raise AvatarFileError(f"avatar {avatar_id} has no files on disk") from err
         with self._lock:
             if key in self._avatars:
                 self._avatars.move_to_end(key)

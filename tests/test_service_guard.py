@@ -232,3 +232,32 @@ def test_the_container_health_check_reaches_the_api(server):
     _, base, _, _ = server
     assert healthcheck.check_api(int(base.rsplit(":", 1)[1])) is None  # /healthz needs no key
     assert "did not answer" in healthcheck.check_api(free_port())
+
+
+def test_requests_in_flight_are_capped_but_health_answers(tmp_path):
+    import asyncio
+
+    jobs = JobsConfig(data_dir=tmp_path / "data")
+    app = create_app(ServiceSettings(jobs=jobs, preload_body_models=(), max_requests=1))
+
+    async def scenario():
+        release = asyncio.Event()
+
+        async def slow_body():  # an upload that holds the only slot until released
+            yield b"--x\r\n"
+            await release.wait()
+            yield b"--x--\r\n"
+
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1") as c:
+            headers = {"content-type": "multipart/form-data; boundary=x"}
+            held = asyncio.create_task(c.post("/avatars", content=slow_body(), headers=headers))
+            await asyncio.sleep(0.2)
+            busy, health = await c.get("/avatars"), await c.get("/healthz")
+            release.set()
+            await held
+            return busy, health, await c.get("/avatars")
+
+    busy, health, after = asyncio.run(scenario())
+    assert busy.status_code == 503 and busy.headers["retry-after"] == "1", busy.text
+    assert health.status_code == 200 and after.status_code == 200
