@@ -137,9 +137,12 @@ def ready_avatar(base: str, headers: dict) -> dict:
 
 
 def pose_body(k: int, size: int) -> dict:
-    angle = 0.05 * (k % 30)
+    angle = 0.05 * (k % 30)  # radians; jawOpen stays within Anny's [0, 1]
     return {
-        "pose": {"joints": {"upperarm01.L": [0.0, 0.0, -0.6 - angle]}, "expression": {"jawOpen": angle}},
+        "pose": {
+            "joints": {"upperarm01.L": [0.0, 0.0, -0.6 - angle]},
+            "expression": {"jawOpen": angle / 1.5},
+        },
         "camera": {"yaw": 10.0 * angle},
         "width": size,
         "height": size,
@@ -433,6 +436,7 @@ def run_load(args) -> None:
             "peak_during": max((m for _, m in memory), default=rss_start),
             "end": rss_end,
             "process_peak": rss_peak,
+            "every_5s": [round(m) for _, m in memory[::10]],
         },
         "server_alive_at_end": alive,
         "server_log_tail": log_tail if result["errors"] else "",
@@ -471,7 +475,7 @@ def run_load(args) -> None:
         f"- server memory (RSS): {m['start']:.0f} MB after loading the avatar, at most "
         f"{m['peak_during']:.0f} MB "
         f"during the load (sampled every 0.5 s), {m['end']:.0f} MB at the end; the process's own peak "
-        f"{m['process_peak']:.0f} MB; server alive at the end: {alive}",
+        f"{m['process_peak']:.0f} MB; server alive at the end: {alive}; every 5 s: {m['every_5s']}",
     ]
     write_report("service_load", report, lines, args.out)
 

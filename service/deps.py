@@ -3,14 +3,39 @@ checked before routing, by ``service.guard``."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import asyncio
+import time
+from dataclasses import dataclass, field
 
 from fastapi import Depends, HTTPException, Request
+from fastapi.concurrency import run_in_threadpool
 
 from jobs.queue import JobQueue
 from jobs.store import JobRecord, is_valid_id
 from service.rendering import AvatarCache, RenderGate
 from service.settings import ServiceSettings
+
+
+@dataclass
+class JobCounts:
+    """Jobs per state for ``/healthz``, which is polled often and must answer at once: it gets
+    the last counts read; when they are older than ``max_age_s``, a background task reads them
+    again from the store (in a thread)."""
+
+    max_age_s: float = 1.0
+    _value: dict[str, int] | None = None
+    _at: float = field(default=float("-inf"))
+    _refresh: asyncio.Task | None = None
+
+    async def get(self, queue: JobQueue) -> dict[str, int]:
+        if self._value is None:
+            await self._read(queue)
+        elif time.monotonic() - self._at > self.max_age_s and (self._refresh is None or self._refresh.done()):
+            self._refresh = asyncio.create_task(self._read(queue))
+        return self._value
+
+    async def _read(self, queue: JobQueue) -> None:
+        self._value, self._at = await run_in_threadpool(queue.store.counts), time.monotonic()
 
 
 @dataclass
@@ -21,10 +46,17 @@ class ServiceContext:
     queue: JobQueue
     avatars: AvatarCache
     renders: RenderGate
+    job_counts: JobCounts = field(default_factory=JobCounts)
 
 
-def context(request: Request) -> ServiceContext:
+async def context(request: Request) -> ServiceContext:  # async: no thread hop for a lookup
     return request.app.state.context
+
+
+async def render_admission(ctx: ServiceContext = Depends(context)) -> None:
+    """Refuse a render (503) before its body is validated or its avatar looked up, when the
+    render gate could not even let it wait."""
+    ctx.renders.admit()
 
 
 def _check_id(value: str, what: str) -> None:

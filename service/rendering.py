@@ -45,6 +45,12 @@ class RenderGate:
     def queued(self) -> int:
         return len(self._line)
 
+    def admit(self) -> None:
+        """``RenderBusy`` at once when every slot is taken and the line is full: a request that
+        could not even wait is refused before anything is read or looked up for it."""
+        if self.running >= self.slots and len(self._line) >= self.waiting:
+            raise RenderBusy(f"{self.running} renders are running and {len(self._line)} waiting")
+
     @asynccontextmanager
     async def slot(self):
         if self.running < self.slots and not self._line:

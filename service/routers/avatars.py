@@ -11,7 +11,7 @@ from eva_engine.avatar import read_avatar_info
 from jobs.options import MAX_FRAMES, MAX_ITERATIONS, MAX_SIZE, MIN_SIZE, JobOptions, Method
 from jobs.store import JobRecord, new_id
 from service import rendering
-from service.deps import ServiceContext, avatar_record, context, ready_avatar
+from service.deps import ServiceContext, avatar_record, context, ready_avatar, render_admission
 from service.guard import RETRY_AFTER_S
 from service.schemas import AvatarCreated, AvatarInfo, AvatarList, ErrorMessage, RenderPose, RenderRequest
 from service.uploads import check_video, remove_tree, safe_suffix, save_upload
@@ -144,6 +144,7 @@ def delete_avatar(
         **NOT_FOUND, **NOT_READY, **BUSY,
         422: {"description": "Unknown names, values out of range, wrong lengths, size over the limit"},
     },
+    dependencies=[Depends(render_admission)],  # first: a refusal costs no validation or lookup
 )  # fmt: skip
 async def render_avatar(
     req: RenderRequest | None = None,
