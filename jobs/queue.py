@@ -33,11 +33,13 @@ class QueueUnavailable(RuntimeError):
 
 
 def make_huey(config: JobsConfig, immediate: bool = False):
+    # results=False: the job record is the result; huey would keep every task's return value.
     if config.uses_redis:
-        return RedisHuey(config.queue_name, url=config.queue_url, immediate=immediate)
+        return RedisHuey(config.queue_name, url=config.queue_url, immediate=immediate, results=False)
     path = config.sqlite_queue_path
     path.parent.mkdir(parents=True, exist_ok=True)
-    return SqliteHuey(config.queue_name, filename=str(path), immediate=immediate, immediate_use_memory=False)
+    return SqliteHuey(config.queue_name, filename=str(path), immediate=immediate, immediate_use_memory=False,
+                      results=False)  # fmt: skip
 
 
 def _transient_queue_errors() -> tuple[type[BaseException], ...]:
