@@ -110,7 +110,14 @@ class JobQueue:
 
     # -- consumer side (worker) ------------------------------------------------------------------
     def _run(self, job_id: str) -> str | None:
-        outcome = self.runner.run(job_id)
+        try:
+            outcome = self.runner.run(job_id)
+        except Exception:  # never leave a job running under a worker that is alive but done with it
+            logger.exception("job %s: the worker failed while running it", job_id)
+            job = self.store.get(job_id)
+            if job is None or job.state != "running" or job.worker != self.runner.worker:
+                return None
+            outcome = Crashed(job, "the worker hit an internal error while running the job")
         if isinstance(outcome, Crashed):
             logger.warning("job %s: %s", job_id, outcome.reason)
             return self._give_back(outcome.job, outcome.reason, owner=self.runner.worker)

@@ -121,12 +121,15 @@ class JobRunner:
             return None
         logger.info("job %s: attempt %d on %s", job.id, job.attempts, self.worker)
         spec = {"config": self.config.model_dump(mode="json"), "worker": self.worker, "parent": os.getpid()}
-        child = subprocess.Popen(
-            [sys.executable, "-m", "jobs", "run", job.id],
-            env={**os.environ, SPEC_ENV: json.dumps(spec)},
-            stdin=subprocess.DEVNULL,
-            start_new_session=True,  # a terminal's Ctrl-C goes to the worker, which decides
-        )
+        try:
+            child = subprocess.Popen(
+                [sys.executable, "-m", "jobs", "run", job.id],
+                env={**os.environ, SPEC_ENV: json.dumps(spec)},
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,  # a terminal's Ctrl-C goes to the worker, which decides
+            )
+        except OSError as err:  # out of processes or memory: the job goes back to the queue
+            return Crashed(job, f"the job's process could not start ({err.strerror})")
         ended = self._watch(job, child)
         if ended is not None:
             return ended
@@ -169,7 +172,7 @@ class JobRunner:
                     return "cancelled"
             if now - started > self.config.job_timeout_s:
                 _stop(child)
-                limit = f"{self.config.job_timeout_s / 60:.0f} min"
+                limit = _duration(self.config.job_timeout_s)
                 self._end(
                     job,
                     "failed",
@@ -180,6 +183,16 @@ class JobRunner:
     def _end(self, job: JobRecord, state: str, **fields) -> None:
         if self.store.finish(job.id, state, owner=self.worker, **fields):
             self.storage.remove_work(job.id)
+
+
+def _duration(seconds: float) -> str:
+    return (
+        f"{seconds / 3600:.1f} h"
+        if seconds >= 7200
+        else f"{seconds / 60:.0f} min"
+        if seconds >= 120
+        else f"{seconds:.0f} s"
+    )
 
 
 def _stop(child: subprocess.Popen, grace: float = 10.0) -> None:
