@@ -11,12 +11,11 @@ from jobs.config import JobsConfig
 from jobs.options import JobOptions
 from jobs.pipeline import STAGE_SPANS, JobCancelled, Pipeline
 from jobs.queue import JobQueue, Recovery, make_huey
-from jobs.storage import FRAMES_NAME, InvalidIdError, Storage
+from jobs.storage import InvalidIdError, Storage
 from jobs.store import STAGES, STATES, TERMINAL, JobRecord, JobStore, is_valid_id, new_id
 from jobs.worker import run_worker
 
 __all__ = [
-    "FRAMES_NAME",
     "STAGES",
     "STAGE_SPANS",
     "STATES",

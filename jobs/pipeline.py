@@ -25,7 +25,7 @@ from pathlib import Path
 
 from jobs.config import JobsConfig
 from jobs.options import JobOptions
-from jobs.storage import FRAMES_NAME, Storage
+from jobs.storage import Storage
 from jobs.store import STAGES, JobRecord, JobStore
 
 logger = logging.getLogger("eva.jobs")
@@ -198,10 +198,8 @@ class Pipeline:
 
     def _train(self, job: JobRecord, dataset_dir: Path, out: Path, options: JobOptions,
                report: Reporter) -> None:  # fmt: skip
-        import torch
-        from safetensors.torch import save_file
-
         from eva_engine.avatar import save_avatar
+        from eva_engine.avatar.frames import save_avatar_frames
         from eva_engine.data import load_dataset
         from eva_engine.train import preset, train_avatar, with_method
 
@@ -239,18 +237,14 @@ class Pipeline:
             "timings": result.timings,
             "gaussians_per_part": result.gaussians_per_part,
             "metrics": metrics,
-            "frames": {"count": len(ds), "image_size": list(ds.meta.image_size), "fps": ds.meta.fps},
             "created_at": time.time(),
         }
         partial = out.with_name(out.name + ".partial")
         shutil.rmtree(partial, ignore_errors=True)
-        save_avatar(result.avatar, partial, info)
+        partial.mkdir(parents=True)
         # Each training frame's pose and camera, so a client can render it to compare with the input.
-        frames = {f"params.{k}": v.detach().cpu().float().contiguous()
-                  for k, v in ds.params.tensors().items()}  # fmt: skip
-        frames["K"], frames["viewmat"] = ds.K.float().contiguous(), ds.viewmat.float().contiguous()
-        frames["timestamps"] = torch.as_tensor(ds.timestamps, dtype=torch.float64)
-        save_file(frames, str(partial / FRAMES_NAME))
+        info["frames"] = save_avatar_frames(partial, ds)
+        save_avatar(result.avatar, partial, info)
         os.replace(partial, out)
 
 

@@ -11,8 +11,6 @@ from pathlib import Path
 from jobs.config import JobsConfig
 from jobs.store import is_valid_id
 
-FRAMES_NAME = "frames.safetensors"
-
 
 class InvalidIdError(ValueError):
     """An id that is not 32 lowercase hex characters (e.g. one that tries path traversal)."""

@@ -11,12 +11,13 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 import eva_engine
+from eva_engine.avatar.render_spec import RenderInputError
 from eva_engine.body import InvalidPoseError
 from eva_engine.data import VideoError
 from jobs.queue import JobQueue
 from jobs.storage import InvalidIdError
 from service.deps import ServiceContext, require_api_key
-from service.rendering import AvatarCache, RenderInputError
+from service.rendering import AvatarCache
 from service.routers import avatars, health, jobs
 from service.settings import ServiceSettings
 from service.uploads import UploadLimit, UploadTooLarge

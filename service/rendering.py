@@ -1,5 +1,6 @@
-"""Loaded avatars and what the render and export endpoints do with them: build the camera,
-render through ``Avatar.render``, encode PNG/JPEG, and write the posed body mesh as GLB."""
+"""Loaded avatars and what the render and export endpoints do with them: render through
+``Avatar.render`` (the request's pose, camera and size: ``eva_engine.avatar.render_spec``), encode
+PNG/JPEG, and write the posed body mesh as GLB."""
 
 from __future__ import annotations
 
@@ -13,35 +14,17 @@ import numpy as np
 import torch
 
 from eva_engine.avatar import Avatar, load_avatar
+from eva_engine.avatar.frames import AvatarFrames, load_avatar_frames
+from eva_engine.avatar.render_spec import render_image as _render_image
 from eva_engine.body import BodyModel, BodyParams, load_body_model
-from eva_engine.render.camera import Camera, intrinsics, orbit_camera
+from eva_engine.render.camera import Camera
 from eva_engine.render.sh import SH_C0
-from jobs.storage import FRAMES_NAME
-from service.schemas import DEFAULT_DISTANCE, DEFAULT_FOV_Y, DEFAULT_SIZE, CameraSpec, RenderRequest
-
-
-class RenderInputError(ValueError):
-    """A render request that names something the avatar does not have (answered 422)."""
-
-
-@dataclass
-class TrainingFrames:
-    """The training frames' fitted params (batch F), cameras K [F, 3, 3], viewmat [F, 4, 4] and
-    image size (height, width)."""
-
-    params: BodyParams
-    K: torch.Tensor
-    viewmat: torch.Tensor
-    size: tuple[int, int]
-
-    def __len__(self) -> int:
-        return self.params.batch_size
 
 
 @dataclass
 class LoadedAvatar:
     avatar: Avatar
-    frames: TrainingFrames | None
+    frames: AvatarFrames | None
     lock: threading.Lock
 
 
@@ -69,7 +52,7 @@ class AvatarCache:
         from eva_engine.avatar import read_avatar_info
 
         body = self.body(read_avatar_info(path)["body_model"])
-        loaded = LoadedAvatar(load_avatar(path, body=body).eval(), _read_frames(path), threading.Lock())
+        loaded = LoadedAvatar(load_avatar(path, body=body).eval(), load_avatar_frames(path), threading.Lock())
         with self._lock:
             self._avatars[key] = loaded
             while len(self._avatars) > self.capacity:
@@ -82,68 +65,11 @@ class AvatarCache:
                 del self._avatars[key]
 
 
-def _read_frames(path: Path) -> TrainingFrames | None:
-    from safetensors.torch import load_file
-
-    from eva_engine.avatar import read_avatar_info
-
-    file = path / FRAMES_NAME
-    if not file.is_file():
-        return None
-    t = load_file(str(file))
-    params = BodyParams(**{k.removeprefix("params."): v for k, v in t.items() if k.startswith("params.")})
-    h, w = read_avatar_info(path).get("frames", {}).get("image_size", (0, 0))
-    return TrainingFrames(params, t["K"], t["viewmat"], (int(h), int(w)))
-
-
-# -- render ----------------------------------------------------------------------------------------
-def resolve_size(req: RenderRequest, frames: TrainingFrames | None) -> tuple[int, int]:
-    """(width, height): as asked, else the training frame's (for ``frame``), else 512."""
-    if req.frame is not None and frames is not None and frames.size[0] > 0:
-        h, w = frames.size
-        if req.width is not None and req.height is None:
-            return req.width, max(16, round(req.width * h / w))
-        if req.height is not None and req.width is None:
-            return max(16, round(req.height * w / h)), req.height
-        return req.width or w, req.height or h
-    return req.width or DEFAULT_SIZE, req.height or DEFAULT_SIZE
-
-
-def frame_params(loaded: LoadedAvatar, index: int) -> BodyParams:
-    frames = loaded.frames
-    if frames is None:
-        raise RenderInputError("this avatar keeps no training frames")
-    if index >= len(frames):
-        raise RenderInputError(f"frame {index} is out of range: the avatar has {len(frames)} training frames")
-    return frames.params[index]
-
-
-def make_camera(req: RenderRequest, width: int, height: int, frames: TrainingFrames | None) -> Camera:
-    spec = req.camera
-    if spec is None and req.frame is not None and frames is not None:
-        # The training frame's own camera, with K scaled to the requested size.
-        h0, w0 = frames.size
-        K = frames.K[req.frame].clone().float()
-        K[0] *= width / w0
-        K[1] *= height / h0
-        return Camera(K, frames.viewmat[req.frame].float(), width, height)
-    spec = spec or CameraSpec()
-    if spec.K is not None and spec.viewmat is not None:
-        return Camera(torch.tensor(spec.K), torch.tensor(spec.viewmat), width, height)
-    view = orbit_camera(
-        spec.yaw or 0.0,
-        spec.pitch or 0.0,
-        spec.distance or DEFAULT_DISTANCE,
-        spec.target or (0.0, 0.0, 0.0),
-    )
-    return Camera(intrinsics(width, height, spec.fov_y or DEFAULT_FOV_Y), view, width, height)
-
-
+# -- render (pose, camera and size come from eva_engine.avatar.render_spec) ------------------------
 def render_image(loaded: LoadedAvatar, params: BodyParams, camera: Camera, background) -> np.ndarray:
-    """[H, W, 3] uint8."""
-    with loaded.lock, torch.no_grad():
-        image = loaded.avatar.render(params, camera, torch.tensor(background, dtype=torch.float32))
-    return (image.cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+    """[H, W, 3] uint8 (one render at a time per loaded avatar)."""
+    with loaded.lock:
+        return _render_image(loaded.avatar, params, camera, background)
 
 
 def encode_image(image: np.ndarray, fmt: str) -> bytes:

@@ -8,7 +8,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
 from eva_engine.avatar import read_avatar_info
-from eva_engine.body import BodyPose
+from eva_engine.avatar.render_spec import frame_params, resolve_size, spec_camera, spec_params
 from jobs.options import JobOptions, Method
 from jobs.store import JobRecord, new_id
 from service import rendering
@@ -135,15 +135,12 @@ def render_avatar(
 ) -> Response:
     req = req or RenderRequest()
     loaded = ctx.avatars.get(job.avatar_id, ctx.queue.storage.avatar_dir(job.avatar_id))
-    width, height = rendering.resolve_size(req, loaded.frames)
+    width, height = resolve_size(req, loaded.frames)
     limit = ctx.settings.max_render_pixels
     if width > limit or height > limit:
         raise HTTPException(422, f"render size {width}x{height} is over the limit of {limit} pixels a side")
-    if req.frame is not None:
-        params = rendering.frame_params(loaded, req.frame)
-    else:
-        params = loaded.avatar.body.params_from_pose(req.pose or BodyPose())
-    camera = rendering.make_camera(req, width, height, loaded.frames)
+    params = spec_params(loaded.avatar, req, loaded.frames)
+    camera = spec_camera(req, width, height, loaded.frames)
     image = rendering.render_image(loaded, params, camera, req.background)
     media = "image/png" if req.format == "png" else "image/jpeg"
     return Response(rendering.encode_image(image, req.format), media_type=media)
@@ -173,7 +170,7 @@ def export_avatar(
         return FileResponse(folder / PLY_NAME, media_type="application/octet-stream",
                             filename=f"avatar-{job.avatar_id}.ply")  # fmt: skip
     loaded = ctx.avatars.get(job.avatar_id, folder)
-    params = rendering.frame_params(loaded, frame) if frame is not None else rendering.rest_params(loaded)
+    params = frame_params(loaded.frames, frame) if frame is not None else rendering.rest_params(loaded)
     data = rendering.posed_mesh_glb(loaded, params)
     disposition = f'attachment; filename="avatar-{job.avatar_id}.glb"'
     return Response(data, media_type="model/gltf-binary", headers={"Content-Disposition": disposition})
