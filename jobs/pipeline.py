@@ -53,8 +53,10 @@ def input_file(work: Path) -> Path | None:
 class Reporter:
     """Turns engine callbacks into job-record updates (throttled), heartbeats and cancellation."""
 
-    def __init__(self, store: JobStore, job: JobRecord, worker: str, interval: float = 0.5) -> None:
+    def __init__(self, store: JobStore, job: JobRecord, worker: str, interval: float = 0.5,
+                 spans: dict[str, tuple[float, float]] | None = None) -> None:  # fmt: skip
         self.store, self.job, self.worker, self.interval = store, job, worker, interval
+        self.spans = spans or STAGE_SPANS
         self._last = 0.0
         self._stage: str | None = None
 
@@ -64,7 +66,7 @@ class Reporter:
         if not force and stage == self._stage and now - self._last < self.interval:
             return
         self._stage, self._last = stage, now
-        lo, hi = STAGE_SPANS[stage]
+        lo, hi = self.spans[stage]
         progress = lo + (hi - lo) * min(max(fraction, 0.0), 1.0)
         eta = eta if eta is not None and math.isfinite(eta) else None
         self.store.update(self.job.id, where_state=("running",), stage=stage, progress=progress, eta_s=eta,
@@ -130,11 +132,16 @@ class Pipeline:
         if job is None:
             return None
         logger.info("job %s: attempt %d on %s", job.id, job.attempts, self.worker)
-        report = Reporter(self.store, job, self.worker)
+        stages, spans = self._stages, STAGE_SPANS
+        if job.kind == "animation":
+            from jobs.animation import ANIMATION_STAGE_SPANS, animation_stages
+
+            stages, spans = (lambda j, r: animation_stages(self, j, r)), ANIMATION_STAGE_SPANS
+        report = Reporter(self.store, job, self.worker, spans=spans)
         stage = job.completed_stage
         try:
             with Heartbeat(self.store, job.id, self.worker, self.config.heartbeat_s):
-                self._stages(job, report)
+                stages(job, report)
         except JobCancelled:
             self.store.finish(job.id, "cancelled", message="cancelled on request")
             state = "cancelled"
@@ -146,7 +153,7 @@ class Pipeline:
             logger.warning("job %s failed in stage %s", job.id, stage, exc_info=not _is_input_error(err))
             state = "failed"
         else:
-            self.store.finish(job.id, "succeeded", message="avatar ready")
+            self.store.finish(job.id, "succeeded", message=f"{job.kind} ready")
             state = "succeeded"
         current = self.store.get(job.id)
         if current is None or current.finished:
@@ -267,10 +274,14 @@ def _training_metrics(avatar, ds) -> dict:
 
 def _is_input_error(err: Exception) -> bool:
     from eva_engine.align import PreprocessError
+    from eva_engine.animate import AnimationError, DrivingError
+    from eva_engine.avatar import AvatarFileError
     from eva_engine.data import DatasetError, VideoError
     from eva_engine.train import TrainingError
 
-    return isinstance(err, VideoError | PreprocessError | DatasetError | TrainingError | FileNotFoundError)
+    inputs = (VideoError, PreprocessError, DatasetError, TrainingError, FileNotFoundError, DrivingError,
+              AnimationError, AvatarFileError)  # fmt: skip
+    return isinstance(err, inputs)
 
 
 def _reason(err: Exception, stage: str | None) -> str:

@@ -112,7 +112,7 @@ class JobQueue:
                     self.storage.remove_work(job.id)
                     failed.append(job.id)
                 continue
-            resume = _next_stage(job.completed_stage)
+            resume = _next_stage(job.completed_stage, job.kind)
             changed = self.store.update(
                 job.id, where_state=("running",), state="queued", worker=None, stage=resume, eta_s=None,
                 message=f"worker stopped during stage {stage!r}; retrying from stage {resume!r}",
@@ -139,13 +139,14 @@ class JobQueue:
         return not _pid_alive(int(pid))
 
 
-def _next_stage(completed: str | None) -> str:
-    from jobs.store import STAGES
+def _next_stage(completed: str | None, kind: str = "avatar") -> str:
+    from jobs.store import STAGES_OF
 
+    stages = STAGES_OF[kind]
     if completed is None:
-        return STAGES[0]
-    index = STAGES.index(completed)
-    return STAGES[min(index + 1, len(STAGES) - 1)]
+        return stages[0]
+    index = stages.index(completed)
+    return stages[min(index + 1, len(stages) - 1)]
 
 
 def _pid_alive(pid: int) -> bool:

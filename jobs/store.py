@@ -5,6 +5,12 @@ States: ``queued`` -> ``running`` -> ``succeeded`` | ``failed`` | ``cancelled`` 
 can be cancelled directly; a worker found dead sends a running job back to ``queued``).
 Stages, in order: ``preprocess`` (decode + detect), ``align`` (body-model fit), ``train``,
 ``export`` (publish the avatar). ``completed_stage`` is the last one whose result is on disk.
+
+Kinds: an ``avatar`` job makes the avatar ``avatar_id`` from a video; an ``animation`` job makes
+an animation of an existing avatar (``jobs.animation``): its ``avatar_id`` column holds the id of
+the animation it makes (the column is the job's unique output id) and ``options["avatar_id"]``
+the avatar it animates. Its stages: ``preprocess``, ``align`` (the driving video), ``render``,
+``export``.
 """
 
 from __future__ import annotations
@@ -22,6 +28,8 @@ from typing import Any
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 TERMINAL = ("succeeded", "failed", "cancelled")
 STAGES = ("preprocess", "align", "train", "export")
+KINDS = ("avatar", "animation")
+STAGES_OF = {"avatar": STAGES, "animation": ("preprocess", "align", "render", "export")}
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS jobs (
@@ -44,7 +52,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     started_at REAL,
     finished_at REAL,
     updated_at REAL NOT NULL,
-    heartbeat_at REAL
+    heartbeat_at REAL,
+    kind TEXT NOT NULL DEFAULT 'avatar'
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state);
 """
@@ -83,6 +92,7 @@ class JobRecord:
     started_at: float | None = None
     finished_at: float | None = None
     heartbeat_at: float | None = None
+    kind: str = "avatar"
 
     @property
     def finished(self) -> bool:
@@ -106,6 +116,9 @@ class JobStore:
         with self._connect() as db:
             db.execute("PRAGMA journal_mode=WAL")
             db.executescript(_SCHEMA)
+            columns = {row["name"] for row in db.execute("PRAGMA table_info(jobs)")}
+            if "kind" not in columns:  # a table made before animation jobs
+                db.execute("ALTER TABLE jobs ADD COLUMN kind TEXT NOT NULL DEFAULT 'avatar'")
 
     @contextmanager
     def _connect(self) -> Iterator[sqlite3.Connection]:
@@ -122,15 +135,21 @@ class JobStore:
             row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return JobRecord.from_row(row) if row else None
 
-    def by_avatar(self, avatar_id: str) -> JobRecord | None:
+    def by_avatar(self, avatar_id: str, kind: str = "avatar") -> JobRecord | None:
+        """The job that made ``avatar_id`` (for ``kind="animation"``: the animation with that id)."""
         with self._connect() as db:
             row = db.execute(
-                "SELECT * FROM jobs WHERE avatar_id = ? AND avatar_deleted = 0", (avatar_id,)
+                "SELECT * FROM jobs WHERE avatar_id = ? AND avatar_deleted = 0 AND kind = ?",
+                (avatar_id, kind),
             ).fetchone()
         return JobRecord.from_row(row) if row else None
 
-    def list(self, states: tuple[str, ...] | None = None, with_deleted: bool = False) -> list[JobRecord]:
+    def list(self, states: tuple[str, ...] | None = None, with_deleted: bool = False,
+             kind: str | None = None) -> list[JobRecord]:  # fmt: skip
         query, args = "SELECT * FROM jobs WHERE 1 = 1", []
+        if kind is not None:
+            query += " AND kind = ?"
+            args.append(kind)
         if states:
             query += f" AND state IN ({','.join('?' * len(states))})"
             args += list(states)
@@ -142,17 +161,21 @@ class JobStore:
 
     # -- writes --------------------------------------------------------------------------------
     def create(self, options: dict[str, Any], filename: str | None = None,
-               job_id: str | None = None, avatar_id: str | None = None) -> JobRecord:  # fmt: skip
+               job_id: str | None = None, avatar_id: str | None = None,
+               kind: str = "avatar") -> JobRecord:  # fmt: skip
+        if kind not in KINDS:
+            raise ValueError(f"unknown job kind {kind!r}; choose one of {KINDS}")
         now = time.time()
         job = JobRecord(
             id=job_id or new_id(), avatar_id=avatar_id or new_id(), state="queued", options=options,
-            created_at=now, updated_at=now, filename=filename, message="waiting for a worker",
+            created_at=now, updated_at=now, filename=filename, message="waiting for a worker", kind=kind,
         )  # fmt: skip
         with self._connect() as db:
             db.execute(
-                "INSERT INTO jobs (id, avatar_id, state, options, filename, message, created_at, updated_at)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                (job.id, job.avatar_id, job.state, json.dumps(options), filename, job.message, now, now),
+                "INSERT INTO jobs (id, avatar_id, kind, state, options, filename, message, created_at,"
+                " updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (job.id, job.avatar_id, kind, job.state, json.dumps(options), filename, job.message, now,
+                 now),  # fmt: skip
             )
         return job
 

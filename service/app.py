@@ -9,6 +9,7 @@ from contextlib import asynccontextmanager
 from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
 
 import eva_engine
 from eva_engine.avatar.render_spec import RenderInputError
@@ -18,7 +19,7 @@ from jobs.queue import JobQueue
 from jobs.storage import InvalidIdError
 from service.deps import ServiceContext, require_api_key
 from service.rendering import AvatarCache
-from service.routers import avatars, health, jobs
+from service.routers import animations, avatars, health, jobs, page
 from service.settings import ServiceSettings
 from service.uploads import UploadLimit, UploadTooLarge
 
@@ -27,7 +28,10 @@ DESCRIPTION = """Learn a drivable 3D Gaussian avatar (body, fingers, face) from 
 
 1. `POST /avatars` with a video -> `{avatar_id, job_id}`;
 2. poll `GET /jobs/{job_id}` until `state` is `succeeded`;
-3. `POST /avatars/{avatar_id}/render` with a pose -> an image.
+3. `POST /avatars/{avatar_id}/render` with a pose -> an image;
+4. `POST /avatars/{avatar_id}/animations` with a driving video -> an mp4 of the avatar performing it.
+
+A web page at `/` does all of this in a browser.
 """
 
 
@@ -69,7 +73,8 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
         queue=queue or JobQueue(settings.jobs),
         avatars=AvatarCache(settings.avatar_cache),
     )
-    app.add_middleware(UploadLimit, path="/avatars", max_bytes=settings.max_upload_bytes)
+    # Uploads: a video for an avatar, a driving video (or poses) for an animation.
+    app.add_middleware(UploadLimit, path=r"/avatars(/[^/]+/animations)?", max_bytes=settings.max_upload_bytes)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -88,5 +93,8 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
     secured = [Depends(require_api_key)]
     app.include_router(health.router)
     app.include_router(avatars.router, dependencies=secured)
+    app.include_router(animations.router, dependencies=secured)
     app.include_router(jobs.router, dependencies=secured)
+    app.include_router(page.router)
+    app.mount("/static", StaticFiles(directory=page.STATIC_DIR), name="static")
     return app

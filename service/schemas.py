@@ -8,11 +8,12 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from eva_engine.avatar.render_spec import RenderSpec
+from jobs.animation import AnimationOptions
 from jobs.options import JobOptions
 from jobs.store import JobRecord
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-JobStage = Literal["preprocess", "align", "train", "export"]
+JobStage = Literal["preprocess", "align", "train", "render", "export"]
 AvatarStatus = Literal["pending", "ready", "failed", "cancelled"]
 
 
@@ -39,7 +40,10 @@ class AvatarCreated(BaseModel):
 
 
 class JobInfo(BaseModel):
-    """A job's state; ``progress`` runs 0..1 over all stages, ``eta_seconds`` while training."""
+    """A job's state; ``progress`` runs 0..1 over all stages, ``eta_seconds`` while training (or
+    rendering). ``kind``: ``avatar`` (makes ``avatar_id`` from a video: stages preprocess, align,
+    train, export) or ``animation`` (makes ``animation_id``, an mp4 of the avatar ``avatar_id``
+    performing a driving video: stages preprocess, align, render, export)."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [{
         "job_id": "0a1b2c3d4e5f60718293a4b5c6d7e8f9", "avatar_id": "9f1c2b7e4a5d4c3b8e7f6a5b4c3d2e1f",
@@ -51,7 +55,9 @@ class JobInfo(BaseModel):
     }]})  # fmt: skip
 
     job_id: str
+    kind: Literal["avatar", "animation"] = "avatar"
     avatar_id: str
+    animation_id: str | None = None
     state: JobState
     stage: JobStage | None
     progress: float
@@ -61,7 +67,7 @@ class JobInfo(BaseModel):
     attempts: int
     cancel_requested: bool
     filename: str | None
-    options: JobOptions
+    options: JobOptions | AnimationOptions
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
@@ -69,11 +75,16 @@ class JobInfo(BaseModel):
 
     @classmethod
     def of(cls, job: JobRecord) -> JobInfo:
+        if job.kind == "animation":  # its avatar_id column is the animation's id (see jobs.store)
+            options = AnimationOptions.model_validate(job.options)
+            ids = {"kind": "animation", "avatar_id": options.avatar_id, "animation_id": job.avatar_id}
+        else:
+            options, ids = JobOptions.model_validate(job.options), {"avatar_id": job.avatar_id}
         return cls(
-            job_id=job.id, avatar_id=job.avatar_id, state=job.state, stage=job.stage,  # type: ignore[arg-type]
+            job_id=job.id, **ids, state=job.state, stage=job.stage,  # type: ignore[arg-type]
             progress=round(job.progress, 4), eta_seconds=job.eta_s, message=job.message, error=job.error,
             attempts=job.attempts, cancel_requested=job.cancel_requested, filename=job.filename,
-            options=JobOptions.model_validate(job.options), created_at=_time(job.created_at),
+            options=options, created_at=_time(job.created_at),
             started_at=_time(job.started_at), finished_at=_time(job.finished_at),
             updated_at=_time(job.updated_at),
         )  # fmt: skip

@@ -23,14 +23,16 @@ class UploadTooLarge(Exception):
 
 
 class UploadLimit:
-    """Stops a ``POST`` to ``path`` whose body exceeds ``max_bytes`` (+ form overhead): at once
-    from ``Content-Length``, else as soon as the streamed body crosses it."""
+    """Stops a ``POST`` to a path matching ``path`` (a regular expression, whole path) whose body
+    exceeds ``max_bytes`` (+ form overhead): at once from ``Content-Length``, else as soon as the
+    streamed body crosses it."""
 
     def __init__(self, app: ASGIApp, path: str, max_bytes: int) -> None:
-        self.app, self.path, self.max_bytes = app, path, max_bytes
+        self.app, self.path, self.max_bytes = app, re.compile(path), max_bytes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["method"] != "POST" or scope["path"].rstrip("/") != self.path:
+        if (scope["type"] != "http" or scope["method"] != "POST"
+                or not self.path.fullmatch(scope["path"].rstrip("/"))):  # fmt: skip
             await self.app(scope, receive, send)
             return
         limit = self.max_bytes + FORM_OVERHEAD

@@ -91,7 +91,7 @@ def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
 
 @router.get("", response_model=AvatarList, summary="All avatars, oldest first")
 def list_avatars(ctx: ServiceContext = Depends(context)) -> AvatarList:
-    return AvatarList(avatars=[_info(job, ctx) for job in ctx.queue.store.list()])
+    return AvatarList(avatars=[_info(job, ctx) for job in ctx.queue.store.list(kind="avatar")])
 
 
 @router.get("/{avatar_id}", response_model=AvatarInfo, responses=NOT_FOUND, summary="An avatar's metadata")
