@@ -46,7 +46,8 @@ def save_avatar_frames(folder: str | Path, dataset) -> dict:
     tensors["viewmat"] = dataset.viewmat.float().contiguous()
     tensors["timestamps"] = torch.as_tensor(dataset.timestamps, dtype=torch.float64)
     save_file(tensors, str(Path(folder) / FRAMES_NAME))
-    return {"count": len(dataset), "image_size": list(dataset.meta.image_size), "fps": dataset.meta.fps}
+    meta = dataset.meta
+    return {"count": dataset.params.batch_size, "image_size": list(meta.image_size), "fps": meta.fps}
 
 
 def load_avatar_frames(folder: str | Path) -> AvatarFrames | None:

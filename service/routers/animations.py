@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from fastapi import APIRouter, Depends, File, Form, HTTPException, Response, UploadFile
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Response, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
@@ -197,14 +197,18 @@ def list_animations(avatar: JobRecord = Depends(avatar_record), ctx: ServiceCont
     responses={**NOT_FOUND, 409: {"model": ErrorMessage, "description": "The avatar is not ready"}},
     summary="Sliders for posing the avatar (joints, fingers, face) and a camera that frames it",
 )  # fmt: skip
-def pose_controls(avatar: JobRecord = Depends(ready_avatar), ctx: ServiceContext = Depends(context)):
+def pose_controls(
+    aspect: float = Query(1.0, gt=0.1, le=10.0, description="Width / height of the picture to frame."),
+    avatar: JobRecord = Depends(ready_avatar),
+    ctx: ServiceContext = Depends(context),
+):
     from eva_engine.animate.controls import pose_controls as controls_of
     from eva_engine.avatar.framing import framing
 
     loaded = ctx.avatars.get(avatar.avatar_id, ctx.queue.storage.avatar_dir(avatar.avatar_id))
     with loaded.lock:
         controls = controls_of(loaded.avatar.body, loaded.avatar.shape)
-        fit = framing(loaded.avatar)
+        fit = framing(loaded.avatar, aspect=aspect)
     framed = Framing(target=fit.target, distance=fit.distance, fov_y=fit.fov_y)
     return PoseControls(body_model=loaded.avatar.body.name, controls=controls, framing=framed)
 

@@ -109,7 +109,7 @@ function showJobs() {
     li.className = `job ${info.state}`;
     li.dataset.jobId = jobId;
     const eta = info.state === "running" && info.eta_seconds ? ` · about ${formatSeconds(info.eta_seconds)} left` : "";
-    const stage = info.stage ? ` · ${info.stage}` : "";
+    const stage = info.stage && info.state === "running" ? ` · ${info.stage}` : "";
     li.innerHTML = `<div class="what"><span class="label"></span><span class="state">${info.state}${stage}</span></div>
       <progress max="1"></progress>
       <div class="message"><span class="percent">${Math.round(100 * (info.progress || 0))}%</span>${eta} <span class="text"></span></div>`;
@@ -190,8 +190,16 @@ async function loadThumbnail(avatar) {
     method: "POST", headers: { "content-type": "application/json" }, body: JSON.stringify({ ...body, format: "jpeg" }),
   });
   if (!res.ok) return;
-  state.thumbnails.set(avatar.avatar_id, URL.createObjectURL(await res.blob()));
-  showAvatars();
+  const url = URL.createObjectURL(await res.blob());
+  state.thumbnails.set(avatar.avatar_id, url);
+  // In place: rebuilding the list would pull a card from under a click.
+  const placeholder = document.querySelector(`.avatar-card[data-avatar-id="${avatar.avatar_id}"] .placeholder`);
+  if (placeholder) {
+    const img = document.createElement("img");
+    img.alt = "";
+    img.src = url;
+    placeholder.replaceWith(img);
+  }
 }
 
 async function selectAvatar(avatarId) {
@@ -200,7 +208,7 @@ async function selectAvatar(avatarId) {
   const avatar = state.avatars.find((a) => a.avatar_id === avatarId);
   $("pose-title").textContent = `(${avatar ? avatar.source_video || avatarId.slice(0, 8) : avatarId.slice(0, 8)})`;
   $("pose-status").textContent = "Loading the sliders...";
-  const res = await api(`/avatars/${avatarId}/controls`);
+  const res = await api(`/avatars/${avatarId}/controls?aspect=${POSE_SIZE.width / POSE_SIZE.height}`);
   if (!res.ok) {
     $("pose-status").textContent = await errorText(res);
     return;
@@ -291,12 +299,22 @@ function poseFromSliders() {
   return { joints, expression };
 }
 
+function zoom() {
+  return 2 ** Number($("camera-zoom").value); // -1..1: half to twice as close
+}
+
 function cameraFromSliders() {
-  return {
-    yaw: Number($("camera-yaw").value),
-    pitch: Number($("camera-pitch").value),
-    ...(state.framing ? { target: state.framing.target, distance: state.framing.distance, fov_y: state.framing.fov_y } : {}),
-  };
+  const camera = { yaw: Number($("camera-yaw").value), pitch: Number($("camera-pitch").value) };
+  if (state.framing) {
+    Object.assign(camera, { target: state.framing.target, distance: state.framing.distance / zoom(), fov_y: state.framing.fov_y });
+  }
+  return camera;
+}
+
+function showCamera() {
+  $("camera-yaw").nextElementSibling.textContent = `${$("camera-yaw").value}°`;
+  $("camera-pitch").nextElementSibling.textContent = `${$("camera-pitch").value}°`;
+  $("camera-zoom").nextElementSibling.textContent = `${zoom().toFixed(2)}×`;
 }
 
 function scheduleRender() {
@@ -442,10 +460,8 @@ function resetPose() {
     input.value = 0;
     input.nextElementSibling.textContent = "0.00";
   }
-  for (const id of ["camera-yaw", "camera-pitch"]) {
-    $(id).value = 0;
-    $(id).nextElementSibling.textContent = "0°";
-  }
+  for (const id of ["camera-yaw", "camera-pitch", "camera-zoom"]) $(id).value = 0;
+  showCamera();
   scheduleRender();
 }
 
@@ -453,9 +469,9 @@ function init() {
   $("upload-form").addEventListener("submit", uploadVideo);
   $("animate-form").addEventListener("submit", animateAvatar);
   $("reset-pose").addEventListener("click", resetPose);
-  for (const id of ["camera-yaw", "camera-pitch"]) {
+  for (const id of ["camera-yaw", "camera-pitch", "camera-zoom"]) {
     $(id).addEventListener("input", () => {
-      $(id).nextElementSibling.textContent = `${$(id).value}°`;
+      showCamera();
       scheduleRender();
     });
   }
