@@ -11,7 +11,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import torch
+import test_service_helpers as helpers
 from PIL import Image
 from test_avatar_scenes import front_camera, random_params, teacher_avatar
 from typer.testing import CliRunner
@@ -20,6 +20,7 @@ from eva_engine.avatar import read_avatar_info, save_avatar, save_avatar_frames
 from eva_engine.cli import app
 from eva_engine.data import read_video, write_video
 
+other_signer_video = helpers.other_signer_video  # a fixture
 RAISED = {"joints": {"upperarm01.L": [0.0, 0.0, 1.2], "lowerarm01.L": [0.0, -1.0, 0.0]},
           "expression": {"jawOpen": 0.6}}  # fmt: skip
 
@@ -171,25 +172,10 @@ def test_animate_bad_driving_input_is_a_clear_error(avatar_dir, tmp_path):
     assert res.code == 2 and ".mp4" in res.out
 
 
-@pytest.fixture(scope="module")
-def other_person_video(anny_model, tmp_path_factory):
-    """8 frames of the synthetic wild signer with seed 1: another body shape, face, clothes and
-    motion than seed 0's (the demo's), at 256 px and 2 fps."""
-    from eva_engine.data import load_dataset
-    from eva_engine.data.synthetic import generate
-
-    folder = tmp_path_factory.mktemp("driving")
-    ds = load_dataset(generate("wild", "small", 1, folder / "ds", model=anny_model))
-    order = sorted(ds.splits["train"] + ds.splits["test_pose"])[:8]
-    assert not torch.allclose(ds.gt_params.shape[0], anny_model.shape_defaults)
-    frames = (ds.images(order).numpy() * 255 + 0.5).astype(np.uint8)
-    return write_video(folder / "someone_else.mp4", frames, fps=ds.meta.fps)
-
-
 @pytest.mark.slow
-def test_animate_with_a_video_of_someone_else(avatar_dir, other_person_video, tmp_path):
+def test_animate_with_a_video_of_someone_else(avatar_dir, other_signer_video, tmp_path):
     out = tmp_path / "side.mp4"
-    res = _run("animate", avatar_dir, other_person_video, "--out", out, "--side-by-side",
+    res = _run("animate", avatar_dir, other_signer_video, "--out", out, "--side-by-side",
                "--camera", "driving", "--fit-scale", "0.1", "--smooth", 0)  # fmt: skip
     assert res.code == 0, res.out
     f = _frames(out)
@@ -205,7 +191,7 @@ def test_animate_with_a_video_of_someone_else(avatar_dir, other_person_video, tm
     assert moves.min() > 0.5, moves
     # From the front, framed on the avatar (an orbit camera), at the driving frame's height.
     front = tmp_path / "front.mp4"
-    res = _run("animate", avatar_dir, other_person_video, "--out", front, "--fit-scale", "0.1", "--fps", 4)
+    res = _run("animate", avatar_dir, other_signer_video, "--out", front, "--fit-scale", "0.1", "--fps", 4)
     assert res.code == 0, res.out
     g = _frames(front)
     assert g.shape == (15, 256, 256, 3)  # 3.5 s at 4 fps

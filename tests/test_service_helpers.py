@@ -41,6 +41,25 @@ def signer_video(anny_model, tmp_path_factory) -> Path:
     return video
 
 
+@pytest.fixture(scope="session")
+def other_signer_video(anny_model, tmp_path_factory) -> Path:
+    """Someone else: 8 frames (2 fps) of the synthetic wild signer with seed 1 -- another body shape,
+    face, clothes and motion than seed 0's (the demo's) -- at 256 px; made once."""
+    from eva_engine.data import load_dataset, write_video
+    from eva_engine.data.synthetic import generate
+
+    folder = tmp_path_factory.getbasetemp() / "other-signer"
+    video = folder / "someone_else.mp4"
+    if not video.is_file():
+        folder.mkdir(exist_ok=True)
+        ds = load_dataset(generate("wild", "small", 1, folder / "ds", model=anny_model))
+        order = sorted(ds.splits["train"] + ds.splits["test_pose"])[:8]
+        frames = (ds.images(order).numpy() * 255 + 0.5).astype(np.uint8)
+        write_video(folder / "partial.mp4", frames, fps=ds.meta.fps)
+        os.replace(folder / "partial.mp4", video)
+    return video
+
+
 def no_person_video(path: Path, frames: int = 3) -> Path:
     """A valid video of a grey gradient: decodes fine, holds nobody."""
     from eva_engine.data import write_video
