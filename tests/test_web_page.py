@@ -229,3 +229,46 @@ def test_eva_render_and_animate_on_the_service_avatar(site, avatar, tmp_path):
     from eva_engine.data import read_video
 
     assert read_video(tmp_path / "wave.mp4").frames.shape == (4, 128, 96, 3)
+
+
+def test_the_page_asks_for_the_key_once_and_sends_it(tmp_path):
+    """A service with a key: the page asks for it, then every call carries it."""
+    port = free_port()
+    log = tmp_path / "serve.log"
+    args = [EVA, "serve", "--port", str(port), "--data-dir", str(tmp_path), "--api-key", "s3cret"]
+    server = start_process(args, log)
+    driver = profile = None
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30.0) as api:
+
+            def healthy():
+                try:
+                    return api.get("/healthz").status_code == 200
+                except httpx.TransportError:
+                    assert server.poll() is None, log_tail(log)
+                    return False
+
+            wait_for(healthy, 90, "eva serve to answer /healthz")
+        driver, profile = _browser()
+        d = driver
+        d.get(f"http://127.0.0.1:{port}/")
+        dialog = "return document.getElementById('key-dialog').open"
+        wait_for(lambda: d.execute_script(dialog), 30, "the page to ask for the key")
+        d.find_element(*_by("#key-input")).send_keys("wrong")
+        d.find_element(*_by("#key-form button")).click()
+        wait_for(lambda: d.execute_script(dialog) and d.find_element(*_by("#key-error")).is_displayed(), 30,
+                 "the page to say the key was refused")  # fmt: skip
+        d.find_element(*_by("#key-input")).send_keys("s3cret")
+        d.find_element(*_by("#key-form button")).click()
+        empty = "return document.getElementById('avatars').textContent"
+        wait_for(lambda: "No avatar yet" in d.execute_script(empty) and not d.execute_script(dialog), 30,
+                 "the avatar list, fetched with the key")  # fmt: skip
+        assert d.execute_script("return sessionStorage.getItem('eva-api-key')") == "s3cret"
+        OUT.mkdir(exist_ok=True)
+        d.save_screenshot(str(OUT / "web_page_key.png"))
+    finally:
+        if driver is not None:
+            driver.quit()
+        if profile:
+            shutil.rmtree(profile, ignore_errors=True)
+        stop(server)
