@@ -1,6 +1,6 @@
 """The job queue and worker: huey (SQLite or Redis) carries job ids, SQLite holds the job records,
 ``JobRunner`` runs each job in its own process, where ``JobRun`` runs its stages in ``eva_engine``;
-``Storage`` keeps avatars and work folders, ``jobs.sweep`` what crashes leave behind.
+``Storage`` keeps avatars, animations and work folders, ``jobs.sweep`` what crashes leave behind.
 
     from jobs import JobQueue, JobsConfig
     queue = JobQueue(JobsConfig.from_env())
@@ -14,7 +14,7 @@ from jobs.options import JobOptions
 from jobs.pipeline import STAGE_SPANS, JobCancelled, JobRun
 from jobs.queue import JobQueue, QueueUnavailable, Recovery, make_huey
 from jobs.runner import Crashed, JobRunner
-from jobs.storage import FRAMES_NAME, InvalidIdError, Storage
+from jobs.storage import InvalidIdError, Storage
 from jobs.store import (
     STAGES,
     STATES,
@@ -30,7 +30,6 @@ from jobs.sweep import Sweep, sweep
 from jobs.worker import run_worker
 
 __all__ = [
-    "FRAMES_NAME",
     "STAGES",
     "STAGE_SPANS",
     "STATES",

@@ -3,6 +3,7 @@
 Layout under ``data_dir`` (a shared folder when workers run on several machines):
 
 - ``avatars/<avatar_id>/``: finished avatars (``eva_engine.avatar`` files + ``frames.safetensors``);
+- ``animations/<animation_id>/``: finished animations (``animation.mp4`` + ``animation.json``);
 - ``jobs/jobs.db``: the job records (SQLite); ``jobs/queue.db``: huey's SQLite queue (default mode);
 - ``jobs/work/<job_id>/``: a job's upload and intermediate results, removed when it ends.
 """
@@ -82,6 +83,10 @@ class JobsConfig(BaseModel):
     @property
     def avatars_dir(self) -> Path:
         return self.data_dir / "avatars"
+
+    @property
+    def animations_dir(self) -> Path:
+        return self.data_dir / "animations"
 
     @property
     def jobs_dir(self) -> Path:

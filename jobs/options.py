@@ -38,14 +38,6 @@ class JobOptions(BaseModel):
 
     def fit_config(self):
         """The alignment's ``FitConfig`` with ``fit_scale`` applied."""
-        import dataclasses
+        from eva_engine.align import scaled_fit_config
 
-        from eva_engine.align import FitConfig
-
-        base = FitConfig()
-        if self.fit_scale == 1.0:
-            return base
-        scaled = tuple(dataclasses.replace(s, iterations=max(1, round(s.iterations * self.fit_scale)))
-                       for s in base.stages)  # fmt: skip
-        ik = max(1, round(base.ik_iterations * self.fit_scale))
-        return dataclasses.replace(base, stages=scaled, ik_iterations=ik)
+        return scaled_fit_config(self.fit_scale)

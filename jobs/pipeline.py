@@ -1,5 +1,6 @@
 """One avatar job, stage by stage, resumable, run inside the job's own process (``jobs.runner``
-starts it): video -> dataset (preprocess + align) -> trained avatar -> published avatar. Every
+starts it; an animation job runs the stages of ``jobs.animation`` the same way): video ->
+dataset (preprocess + align) -> trained avatar -> published avatar. Every
 stage's result lands in the job's work folder by an atomic rename, so a process killed at any
 moment leaves either the previous stage's result or the next one, and a retry starts after the
 last completed stage.
@@ -30,7 +31,7 @@ from pathlib import Path
 
 from jobs.config import JobsConfig
 from jobs.options import JobOptions
-from jobs.storage import FRAMES_NAME, Storage
+from jobs.storage import Storage
 from jobs.store import STAGES, JobLost, JobRecord, JobStore
 
 logger = logging.getLogger("eva.jobs")
@@ -53,8 +54,10 @@ class Reporter:
     """Turns engine callbacks into job-record updates (throttled) and stops the stage when the
     job was cancelled (``JobCancelled``) or this attempt no longer owns it (``JobLost``)."""
 
-    def __init__(self, store: JobStore, job: JobRecord, worker: str, interval: float = 0.5) -> None:
+    def __init__(self, store: JobStore, job: JobRecord, worker: str, interval: float = 0.5,
+                 spans: dict[str, tuple[float, float]] | None = None) -> None:  # fmt: skip
         self.store, self.job, self.worker, self.interval = store, job, worker, interval
+        self.spans = spans or STAGE_SPANS
         self._last = 0.0
         self._stage: str | None = None
 
@@ -64,7 +67,7 @@ class Reporter:
         if not force and stage == self._stage and now - self._last < self.interval:
             return
         self._stage, self._last = stage, now
-        lo, hi = STAGE_SPANS[stage]
+        lo, hi = self.spans[stage]
         progress = lo + (hi - lo) * min(max(fraction, 0.0), 1.0)
         eta = eta if eta is not None and math.isfinite(eta) else None
         if not self.store.update(self.job.id, owner=self.worker, stage=stage, progress=progress, eta_s=eta,
@@ -103,13 +106,19 @@ class JobRun:
         return self._models[name]
 
     def execute(self) -> str | None:
-        """Run the stages and end the job with its outcome; returns the final state, or None
-        when this attempt lost the job (it then leaves the record and the files alone)."""
+        """Run the stages of the job's kind (an avatar, or an animation: ``jobs.animation``) and
+        end the job with its outcome; returns the final state, or None when this attempt lost
+        the job (it then leaves the record and the files alone)."""
         job = self.job
-        report = Reporter(self.store, job, self.worker)
+        stages, spans = self._stages, STAGE_SPANS
+        if job.kind == "animation":
+            from jobs.animation import ANIMATION_STAGE_SPANS, animation_stages
+
+            stages, spans = (lambda j, r: animation_stages(self, j, r)), ANIMATION_STAGE_SPANS
+        report = Reporter(self.store, job, self.worker, spans=spans)
         stage = job.completed_stage
         try:
-            self._stages(job, report)
+            stages(job, report)
         except JobLost:
             logger.warning("job %s: %s no longer owns it; this attempt stops", job.id, self.worker)
             return None
@@ -124,9 +133,9 @@ class JobRun:
                            exc_info=not is_input_error(err))  # fmt: skip
             state, fields = "failed", {"error": reason}
         else:
-            state, fields = "succeeded", {"message": "avatar ready"}
+            state, fields = "succeeded", {"message": f"{job.kind} ready"}
         # Its files go first, so a finished job never has any; a crash in between is retried and
-        # finds the published avatar (or fails again). Only while the job is still ours.
+        # finds the published result (or fails again). Only while the job is still ours.
         if self.store.update(job.id, owner=self.worker, message=f"{state}: cleaning up"):
             self.storage.remove_work(job.id)
         if not self.store.finish(job.id, state, owner=self.worker, **fields):
@@ -192,10 +201,8 @@ class JobRun:
                report: Reporter) -> None:  # fmt: skip
         import dataclasses
 
-        import torch
-        from safetensors.torch import save_file
-
         from eva_engine.avatar import save_avatar
+        from eva_engine.avatar.frames import save_avatar_frames
         from eva_engine.data import load_dataset
         from eva_engine.train import preset, train_avatar, with_method
 
@@ -236,17 +243,13 @@ class JobRun:
             "timings": result.timings,
             "gaussians_per_part": result.gaussians_per_part,
             "metrics": metrics,
-            "frames": {"count": len(ds), "image_size": list(ds.meta.image_size), "fps": ds.meta.fps},
             "created_at": time.time(),
         }
         partial = out.with_name(f"{out.name}.partial-{self.attempt}")
-        save_avatar(result.avatar, partial, info)
+        partial.mkdir(parents=True)
         # Each training frame's pose and camera, so a client can render it to compare with the input.
-        frames = {f"params.{k}": v.detach().cpu().float().contiguous()
-                  for k, v in ds.params.tensors().items()}  # fmt: skip
-        frames["K"], frames["viewmat"] = ds.K.float().contiguous(), ds.viewmat.float().contiguous()
-        frames["timestamps"] = torch.as_tensor(ds.timestamps, dtype=torch.float64)
-        save_file(frames, str(partial / FRAMES_NAME))
+        info["frames"] = save_avatar_frames(partial, ds)
+        save_avatar(result.avatar, partial, info)
         report("train", 1.0, message="avatar trained", force=True)  # still ours: put it in place
         _move_into_place(partial, out)
 
@@ -281,12 +284,15 @@ def _training_metrics(avatar, ds) -> dict:
 
 def is_input_error(err: Exception) -> bool:
     from eva_engine.align import PreprocessError
+    from eva_engine.animate import AnimationError, DrivingError
+    from eva_engine.avatar import AvatarFileError
     from eva_engine.data import DatasetError, VideoError
     from eva_engine.train import TrainingError
     from jobs.media import VideoRejected
 
-    kinds = VideoError | VideoRejected | PreprocessError | DatasetError | TrainingError | FileNotFoundError
-    return isinstance(err, kinds)
+    inputs = (VideoError, VideoRejected, PreprocessError, DatasetError, TrainingError, FileNotFoundError,
+              DrivingError, AnimationError, AvatarFileError)  # fmt: skip
+    return isinstance(err, inputs)
 
 
 def _address_space_peak_mb() -> float | None:

@@ -20,7 +20,7 @@ from huey import RedisHuey, SqliteHuey, crontab
 from jobs.config import JobsConfig
 from jobs.runner import Crashed, JobRunner, WorkerId
 from jobs.storage import Storage
-from jobs.store import STAGES, JobRecord, JobStore
+from jobs.store import STAGES, STAGES_OF, JobRecord, JobStore
 
 logger = logging.getLogger("eva.jobs")
 
@@ -183,7 +183,7 @@ class JobQueue:
             fields = {"error": f"{why} during stage {stage!r}, {job.attempts} time(s); giving up after "
                                f"{self.config.max_attempts} attempts"}  # fmt: skip
         else:
-            resume = _next_stage(job.completed_stage)
+            resume = _next_stage(job.completed_stage, job.kind)
             changed = self.store.update(
                 job.id, **condition, state="queued", worker=None, stage=resume, eta_s=None,
                 message=f"{why} during stage {stage!r}; retrying from stage {resume!r}",
@@ -209,8 +209,9 @@ class JobQueue:
         return now - beat > self.config.stale_after_s
 
 
-def _next_stage(completed: str | None) -> str:
+def _next_stage(completed: str | None, kind: str = "avatar") -> str:
+    stages = STAGES_OF[kind]
     if completed is None:
-        return STAGES[0]
-    index = STAGES.index(completed)
-    return STAGES[min(index + 1, len(STAGES) - 1)]
+        return stages[0]
+    index = stages.index(completed)
+    return stages[min(index + 1, len(stages) - 1)]

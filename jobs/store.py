@@ -8,6 +8,12 @@ can be cancelled directly; a worker found dead sends a running job back to ``que
 Stages, in order: ``preprocess`` (decode + detect), ``align`` (body-model fit), ``train``,
 ``export`` (publish the avatar). ``completed_stage`` is the last one whose result is on disk.
 
+Kinds: an ``avatar`` job makes the avatar ``avatar_id`` from a video; an ``animation`` job makes
+an animation of an existing avatar (``jobs.animation``): its ``avatar_id`` column holds the id of
+the animation it makes (the column is the job's unique output id) and ``options["avatar_id"]``
+the avatar it animates. Its stages: ``preprocess``, ``align`` (the driving video), ``render``,
+``export``.
+
 Ownership: a running job belongs to the worker that claimed it (``worker``). Every write a worker
 makes is conditional on still owning it (``owner=``), and recovery's writes are conditional on the
 exact record it judged (``expect=``: state, worker and heartbeat), so a worker that lost its job
@@ -33,6 +39,8 @@ logger = logging.getLogger("eva.jobs")
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 TERMINAL = ("succeeded", "failed", "cancelled")
 STAGES = ("preprocess", "align", "train", "export")
+KINDS = ("avatar", "animation")
+STAGES_OF = {"avatar": STAGES, "animation": ("preprocess", "align", "render", "export")}
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS jobs (
@@ -56,12 +64,13 @@ CREATE TABLE IF NOT EXISTS jobs (
     finished_at REAL,
     updated_at REAL NOT NULL,
     heartbeat_at REAL,
-    enqueued_at REAL
+    enqueued_at REAL,
+    kind TEXT NOT NULL DEFAULT 'avatar'
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state);
 """
 # Columns added since the first release: added to an older file when it is opened.
-_ADDED_COLUMNS = {"enqueued_at": "REAL"}
+_ADDED_COLUMNS = {"enqueued_at": "REAL", "kind": "TEXT NOT NULL DEFAULT 'avatar'"}
 # File systems where SQLite's WAL (shared-memory index, POSIX locks) is unsafe.
 NETWORK_FILESYSTEMS = frozenset({
     "nfs", "nfs4", "cifs", "smb3", "smbfs", "ceph", "glusterfs", "fuse.glusterfs", "fuse.sshfs",
@@ -112,6 +121,7 @@ class JobRecord:
     finished_at: float | None = None
     heartbeat_at: float | None = None
     enqueued_at: float | None = None
+    kind: str = "avatar"
 
     @property
     def finished(self) -> bool:
@@ -208,15 +218,27 @@ class JobStore:
         return JobRecord.from_row(row) if row else None
 
     @_retry_busy
-    def by_avatar(self, avatar_id: str, with_deleted: bool = False) -> JobRecord | None:
-        query = "SELECT * FROM jobs WHERE avatar_id = ?" + ("" if with_deleted else " AND avatar_deleted = 0")
+    def by_avatar(self, avatar_id: str, with_deleted: bool = False,
+                  kind: str | None = "avatar") -> JobRecord | None:  # fmt: skip
+        """The job that made ``avatar_id`` (for ``kind="animation"``: the animation with that id;
+        ``kind=None``: either)."""
+        query, args = "SELECT * FROM jobs WHERE avatar_id = ?", [avatar_id]
+        if not with_deleted:
+            query += " AND avatar_deleted = 0"
+        if kind is not None:
+            query += " AND kind = ?"
+            args.append(kind)
         with self._connect() as db:
-            row = db.execute(query, (avatar_id,)).fetchone()
+            row = db.execute(query, args).fetchone()
         return JobRecord.from_row(row) if row else None
 
     @_retry_busy
-    def list(self, states: tuple[str, ...] | None = None, with_deleted: bool = False) -> list[JobRecord]:
+    def list(self, states: tuple[str, ...] | None = None, with_deleted: bool = False,
+             kind: str | None = None) -> list[JobRecord]:  # fmt: skip
         query, args = "SELECT * FROM jobs WHERE 1 = 1", []
+        if kind is not None:
+            query += " AND kind = ?"
+            args.append(kind)
         if states:
             query += f" AND state IN ({','.join('?' * len(states))})"
             args += list(states)
@@ -238,17 +260,21 @@ class JobStore:
     # -- writes --------------------------------------------------------------------------------
     @_retry_busy
     def create(self, options: dict[str, Any], filename: str | None = None,
-               job_id: str | None = None, avatar_id: str | None = None) -> JobRecord:  # fmt: skip
+               job_id: str | None = None, avatar_id: str | None = None,
+               kind: str = "avatar") -> JobRecord:  # fmt: skip
+        if kind not in KINDS:
+            raise ValueError(f"unknown job kind {kind!r}; choose one of {KINDS}")
         now = time.time()
         job = JobRecord(
             id=job_id or new_id(), avatar_id=avatar_id or new_id(), state="queued", options=options,
-            created_at=now, updated_at=now, filename=filename, message="waiting for a worker",
+            created_at=now, updated_at=now, filename=filename, message="waiting for a worker", kind=kind,
         )  # fmt: skip
+        row = (job.id, job.avatar_id, kind, job.state, json.dumps(options), filename, job.message, now, now)
         with self._connect() as db:
             db.execute(
-                "INSERT INTO jobs (id, avatar_id, state, options, filename, message, created_at, updated_at)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                (job.id, job.avatar_id, job.state, json.dumps(options), filename, job.message, now, now),
+                "INSERT INTO jobs (id, avatar_id, kind, state, options, filename, message, created_at,"
+                " updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                row,
             )
         return job
 

@@ -18,6 +18,7 @@ from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.security import APIKeyHeader
+from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
@@ -31,7 +32,7 @@ from jobs.store import JobStoreError
 from service.deps import ServiceContext
 from service.guard import RETRY_AFTER_S, BodyRule, GuardConfig, RequestGuard
 from service.rendering import AvatarCache, RenderBusy, RenderGate, RenderInputError
-from service.routers import avatars, health, jobs
+from service.routers import animations, avatars, health, jobs, page
 from service.settings import ServiceSettings
 from service.uploads import UploadTooLarge
 
@@ -42,18 +43,26 @@ DESCRIPTION = """Learn a drivable 3D Gaussian avatar (body, fingers, face) from 
 
 1. `POST /avatars` with a video -> `{avatar_id, job_id}`;
 2. poll `GET /jobs/{job_id}` until `state` is `succeeded`;
-3. `POST /avatars/{avatar_id}/render` with a pose -> an image.
+3. `POST /avatars/{avatar_id}/render` with a pose -> an image;
+4. `POST /avatars/{avatar_id}/animations` with a driving video -> an mp4 of the avatar performing it.
 
-When the service has a key, every call but `/healthz` (these docs included) needs the header
-`X-API-Key`. Busy answers are 503 with `Retry-After`.
+A web page at `/` does all of this in a browser.
+
+When the service has a key, every call but `/healthz` and the page (these docs included) needs the
+header `X-API-Key`. Busy answers are 503 with `Retry-After`.
 """
 PUBLIC_PATHS = frozenset({"/healthz"})
+# The web page and its files hold no secret: served without the key (the page asks for it).
+OPEN_PATHS, OPEN_PREFIXES = frozenset({"/"}), ("/static/",)
 FORM_OVERHEAD = 64 * 1024  # multipart boundaries and the option fields around the video
+# Uploads: a video for an avatar (POST /avatars), a driving video or JSON poses for an animation
+# (POST /avatars/{id}/animations); one rule, so they share the cap on uploads at once.
+UPLOAD_PATHS = r"/avatars(/[^/]+/animations)?/?"
 
 
 def body_rules(settings: ServiceSettings) -> tuple[BodyRule, ...]:
     """The routes whose body may exceed ``max_json_kb`` (every other body is capped at it)."""
-    upload = BodyRule("POST", "/avatars/?", settings.max_upload_bytes + FORM_OVERHEAD, settings.max_uploads)
+    upload = BodyRule("POST", UPLOAD_PATHS, settings.max_upload_bytes + FORM_OVERHEAD, settings.max_uploads)
     return (upload,)
 
 
@@ -163,6 +172,7 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
         api_key=settings.api_key, public_paths=PUBLIC_PATHS, trusted_hosts=tuple(settings.trusted_hosts),
         rules=body_rules(settings), default_max_bytes=settings.max_json_bytes,
         max_requests=settings.max_requests, body_timeout_s=settings.body_timeout_s,
+        open_paths=OPEN_PATHS, open_prefixes=OPEN_PREFIXES,
     )  # fmt: skip
     app.add_middleware(RequestGuard, config=guard)
     app.add_middleware(TrustedHostMiddleware, allowed_hosts=settings.trusted_hosts)  # outermost
@@ -174,5 +184,8 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
     ]
     app.include_router(health.router)
     app.include_router(avatars.router, dependencies=documented_key)
+    app.include_router(animations.router, dependencies=documented_key)
     app.include_router(jobs.router, dependencies=documented_key)
+    app.include_router(page.router)
+    app.mount("/static", StaticFiles(directory=page.STATIC_DIR), name="static")
     return app

@@ -1,7 +1,8 @@
 """``RequestGuard``: an ASGI middleware that decides about a request before the app reads a byte
 of its body or routes it, in this order:
 
-1. the API key (``X-API-Key``, compared in constant time) unless the path is public: 401;
+1. the API key (``X-API-Key``, compared in constant time) unless the path is public (``/healthz``)
+   or open (the web page and its static files, which hold no secret): 401;
 2. a browser's cross-site write (``Origin`` / ``Sec-Fetch-Site`` of another site on a POST,
    PUT, PATCH or DELETE, e.g. a web page posting a form to the loopback service): 403;
 3. requests in flight over ``max_requests`` (public paths, i.e. ``/healthz``, are always
@@ -47,7 +48,9 @@ class BodyRule:
 
 @dataclass(frozen=True)
 class GuardConfig:
-    """api_key: None for no key; public_paths: paths that need no key (exact match)."""
+    """api_key: None for no key; public_paths: paths that need no key and are answered whatever
+    the load (exact match: health); open_paths / open_prefixes: paths (exact, or starting with a
+    prefix) that need no key but count against ``max_requests`` like any other (the web page)."""
 
     api_key: str | None
     public_paths: frozenset[str]
@@ -56,6 +59,13 @@ class GuardConfig:
     default_max_bytes: int
     max_requests: int
     body_timeout_s: float
+    open_paths: frozenset[str] = frozenset()
+    open_prefixes: tuple[str, ...] = ()
+
+    def needs_key(self, path: str) -> bool:
+        if path in self.public_paths or path in self.open_paths:
+            return False
+        return ".." in path or not any(path.startswith(prefix) for prefix in self.open_prefixes)
 
 
 class BodyRejected(HTTPException):
@@ -119,7 +129,7 @@ class RequestGuard:
                 counters.per_rule[index] -= 1
 
     def _refuse(self, method: str, path: str, headers: dict[str, str]) -> JSONResponse | None:
-        if self._key is not None and path not in self.config.public_paths:
+        if self._key is not None and self.config.needs_key(path):
             given = headers.get("x-api-key", "").encode("latin-1")
             if not hmac.compare_digest(given, self._key):
                 return _reply(401, "missing or wrong API key (header X-API-Key)")

@@ -1,6 +1,7 @@
-"""Loaded avatars and what the render and export endpoints do with them: check the size and the
-pose against the limits and the body model, build the camera, render through ``Avatar.render``
-(at most ``RenderGate.slots`` at once), encode PNG/JPEG, and write the posed body mesh as GLB."""
+"""Loaded avatars and what the render and export endpoints do with them: check the size against
+the limits before the avatar loads, render through ``Avatar.render`` (the request's pose, camera
+and size, checked against the body model: ``eva_engine.avatar.render_spec``; at most
+``RenderGate.slots`` at once), encode PNG/JPEG, and write the posed body mesh as GLB."""
 
 from __future__ import annotations
 
@@ -16,16 +17,12 @@ import numpy as np
 import torch
 
 from eva_engine.avatar import Avatar, AvatarFileError, load_avatar
-from eva_engine.body import BodyModel, BodyParams, BodyPose, load_body_model
-from eva_engine.render.camera import Camera, intrinsics, orbit_camera
+from eva_engine.avatar.frames import AvatarFrames, load_avatar_frames
+from eva_engine.avatar.render_spec import RenderInputError, RenderSpec, resolve_size
+from eva_engine.avatar.render_spec import render_image as _render_image
+from eva_engine.body import BodyModel, BodyParams, load_body_model
+from eva_engine.render.camera import Camera
 from eva_engine.render.sh import SH_C0
-from jobs.storage import FRAMES_NAME
-from service.schemas import DEFAULT_DISTANCE, DEFAULT_FOV_Y, DEFAULT_SIZE, CameraSpec, RenderRequest
-
-
-class RenderInputError(ValueError):
-    """A render request that names something the avatar does not have, or asks for more than
-    the limits (answered 422)."""
 
 
 class RenderBusy(Exception):
@@ -82,23 +79,9 @@ class RenderGate:
 
 
 @dataclass
-class TrainingFrames:
-    """The training frames' fitted params (batch F), cameras K [F, 3, 3], viewmat [F, 4, 4] and
-    image size (height, width)."""
-
-    params: BodyParams
-    K: torch.Tensor
-    viewmat: torch.Tensor
-    size: tuple[int, int]
-
-    def __len__(self) -> int:
-        return self.params.batch_size
-
-
-@dataclass
 class LoadedAvatar:
     avatar: Avatar
-    frames: TrainingFrames | None
+    frames: AvatarFrames | None
     lock: threading.Lock
 
 
@@ -138,7 +121,8 @@ class AvatarCache:
             from eva_engine.avatar import read_avatar_info
 
             body = self.body(read_avatar_info(path)["body_model"])
-            loaded = LoadedAvatar(load_avatar(path, body=body).eval(), _read_frames(path), threading.Lock())
+            avatar = load_avatar(path, body=body).eval()
+            loaded = LoadedAvatar(avatar, load_avatar_frames(path), threading.Lock())
             with self._lock:
                 self.loads += 1
                 self._avatars[key] = loaded
@@ -153,41 +137,14 @@ class AvatarCache:
                 del self._avatars[key]
 
 
-def _read_frames(path: Path) -> TrainingFrames | None:
-    from safetensors.torch import load_file
-
-    from eva_engine.avatar import read_avatar_info
-
-    file = path / FRAMES_NAME
-    if not file.is_file():
-        return None
-    t = load_file(str(file))
-    params = BodyParams(**{k.removeprefix("params."): v for k, v in t.items() if k.startswith("params.")})
-    h, w = read_avatar_info(path).get("frames", {}).get("image_size", (0, 0))
-    return TrainingFrames(params, t["K"], t["viewmat"], (int(h), int(w)))
-
-
-# -- render ----------------------------------------------------------------------------------------
-def resolve_size(req: RenderRequest, frame_size: tuple[int, int] | None) -> tuple[int, int]:
-    """(width, height): as asked, else the training frames' (for ``frame``; ``frame_size`` is
-    their (height, width) from ``avatar.json``), else 512."""
-    if req.frame is not None and frame_size is not None and frame_size[0] > 0 and frame_size[1] > 0:
-        h, w = frame_size
-        if req.width is not None and req.height is None:
-            return req.width, max(16, round(req.width * h / w))
-        if req.height is not None and req.width is None:
-            return max(16, round(req.height * w / h)), req.height
-        return req.width or w, req.height or h
-    return req.width or DEFAULT_SIZE, req.height or DEFAULT_SIZE
-
-
-def checked_size(req: RenderRequest, folder: Path, max_side: int, max_pixels: int) -> tuple[int, int]:
+# -- render (pose, camera and size come from eva_engine.avatar.render_spec) ------------------------
+def checked_size(spec: RenderSpec, folder: Path, max_side: int, max_pixels: int) -> tuple[int, int]:
     """The render's (width, height), from the request and the avatar's ``avatar.json`` (no model
     load), or ``RenderInputError`` when it is over ``max_side`` a side or ``max_pixels`` in all."""
     from eva_engine.avatar import read_avatar_info
 
-    size = read_avatar_info(folder).get("frames", {}).get("image_size") if req.frame is not None else None
-    width, height = resolve_size(req, (int(size[0]), int(size[1])) if size else None)
+    size = read_avatar_info(folder).get("frames", {}).get("image_size") if spec.frame is not None else None
+    width, height = resolve_size(spec, (int(size[0]), int(size[1])) if size else None)
     if width > max_side or height > max_side or width * height > max_pixels:
         raise RenderInputError(
             f"render size {width}x{height} is over the limit ({max_side} pixels a side, "
@@ -196,58 +153,10 @@ def checked_size(req: RenderRequest, folder: Path, max_side: int, max_pixels: in
     return width, height
 
 
-def pose_params(loaded: LoadedAvatar, pose: BodyPose) -> BodyParams:
-    """``pose`` as the avatar's body model's params, after checking its values against the
-    model's own ranges (e.g. Anny's expressions and phenotypes in [0, 1])."""
-    body = loaded.avatar.body
-    for kind, values, bounds in (("expression", pose.expression, body.expression_bounds),
-                                 ("shape", pose.shape, body.shape_bounds)):  # fmt: skip
-        if bounds is None:
-            continue
-        lo, hi = bounds
-        outside = [name for name, v in values.items() if not lo <= v <= hi]
-        if outside:
-            raise RenderInputError(
-                f"{kind} value(s) of {outside[:8]} outside the {body.name} model's range [{lo}, {hi}]"
-            )
-    return body.params_from_pose(pose)
-
-
-def frame_params(loaded: LoadedAvatar, index: int) -> BodyParams:
-    frames = loaded.frames
-    if frames is None:
-        raise RenderInputError("this avatar keeps no training frames")
-    if index >= len(frames):
-        raise RenderInputError(f"frame {index} is out of range: the avatar has {len(frames)} training frames")
-    return frames.params[index]
-
-
-def make_camera(req: RenderRequest, width: int, height: int, frames: TrainingFrames | None) -> Camera:
-    spec = req.camera
-    if spec is None and req.frame is not None and frames is not None:
-        # The training frame's own camera, with K scaled to the requested size.
-        h0, w0 = frames.size
-        K = frames.K[req.frame].clone().float()
-        K[0] *= width / w0
-        K[1] *= height / h0
-        return Camera(K, frames.viewmat[req.frame].float(), width, height)
-    spec = spec or CameraSpec()
-    if spec.K is not None and spec.viewmat is not None:
-        return Camera(torch.tensor(spec.K), torch.tensor(spec.viewmat), width, height)
-    view = orbit_camera(
-        spec.yaw or 0.0,
-        spec.pitch or 0.0,
-        spec.distance or DEFAULT_DISTANCE,
-        spec.target or (0.0, 0.0, 0.0),
-    )
-    return Camera(intrinsics(width, height, spec.fov_y or DEFAULT_FOV_Y), view, width, height)
-
-
 def render_image(loaded: LoadedAvatar, params: BodyParams, camera: Camera, background) -> np.ndarray:
-    """[H, W, 3] uint8."""
-    with loaded.lock, torch.no_grad():
-        image = loaded.avatar.render(params, camera, torch.tensor(background, dtype=torch.float32))
-    return (image.cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+    """[H, W, 3] uint8 (one render at a time per loaded avatar)."""
+    with loaded.lock:
+        return _render_image(loaded.avatar, params, camera, background)
 
 
 def encode_image(image: np.ndarray, fmt: str) -> bytes:

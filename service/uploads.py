@@ -7,11 +7,14 @@ from __future__ import annotations
 import re
 import shutil
 from pathlib import Path
-from typing import BinaryIO
+from typing import TYPE_CHECKING, BinaryIO
 
 from jobs.config import JobsConfig
 from jobs.media import VideoInfo, VideoRejected, check_frame_budget, probe_in_subprocess
 from jobs.options import JobOptions
+
+if TYPE_CHECKING:
+    from jobs.animation import AnimationOptions
 
 CHUNK = 1024 * 1024
 _SUFFIX = re.compile(r"^\.[a-z0-9]{1,5}$")
@@ -43,11 +46,13 @@ def save_upload(source: BinaryIO, dest: Path, max_bytes: int) -> int:
     return size
 
 
-def check_video(path: Path, options: JobOptions, jobs: JobsConfig, max_seconds: float, timeout_s: float,
-                memory_mb: int) -> VideoInfo:  # fmt: skip
+def check_video(path: Path, options: JobOptions | AnimationOptions, jobs: JobsConfig, max_seconds: float,
+                timeout_s: float, memory_mb: int) -> VideoInfo:  # fmt: skip
     """The upload's headers, probed in a child process: a safe container, frames of at most
     ``jobs.max_video_side``, at most ``max_seconds`` long, one decodable frame, and decoded
-    frames within ``jobs.max_frame_pixels``. Raises ``VideoRejected`` with the reason."""
+    frames (``options.max_frames`` of at most ``options.max_size``: an avatar's video or an
+    animation's driving video) within ``jobs.max_frame_pixels``. Raises ``VideoRejected`` with
+    the reason."""
     info = probe_in_subprocess(path, jobs.max_video_side, timeout_s, memory_mb)
     if info.duration_s is not None and info.duration_s > max_seconds:
         raise VideoRejected(f"the video is {info.duration_s:.1f} s long; the limit is {max_seconds:.0f} s")

@@ -19,8 +19,13 @@ import pytest
 EVA = str(Path(sys.executable).parent / "eva")
 SIGNER_FRAMES = 4
 # The pipeline at its smallest: 4 frames of 256 px, a few tiny-preset iterations at 1/4 scale.
-FAST_OPTIONS = {"preset": "tiny", "iterations": "6", "image_scale": "0.25", "max_frames": str(SIGNER_FRAMES),
-                "fit_scale": "0.1"}
+FAST_OPTIONS = {
+    "preset": "tiny",
+    "iterations": "6",
+    "image_scale": "0.25",
+    "max_frames": str(SIGNER_FRAMES),
+    "fit_scale": "0.1",
+}
 
 
 @pytest.fixture(scope="session")
@@ -37,6 +42,25 @@ def signer_video(anny_model, tmp_path_factory) -> Path:
         order = sorted(ds.splits["train"] + ds.splits["test_pose"])[:SIGNER_FRAMES]
         frames = (ds.images(order).numpy() * 255 + 0.5).astype(np.uint8)
         write_video(folder / "partial.mp4", frames, fps=10)
+        os.replace(folder / "partial.mp4", video)
+    return video
+
+
+@pytest.fixture(scope="session")
+def other_signer_video(anny_model, tmp_path_factory) -> Path:
+    """Someone else: 8 frames (2 fps) of the synthetic wild signer with seed 1 -- another body shape,
+    face, clothes and motion than seed 0's (the demo's) -- at 256 px; made once."""
+    from eva_engine.data import load_dataset, write_video
+    from eva_engine.data.synthetic import generate
+
+    folder = tmp_path_factory.getbasetemp() / "other-signer"
+    video = folder / "someone_else.mp4"
+    if not video.is_file():
+        folder.mkdir(exist_ok=True)
+        ds = load_dataset(generate("wild", "small", 1, folder / "ds", model=anny_model))
+        order = sorted(ds.splits["train"] + ds.splits["test_pose"])[:8]
+        frames = (ds.images(order).numpy() * 255 + 0.5).astype(np.uint8)
+        write_video(folder / "partial.mp4", frames, fps=ds.meta.fps)
         os.replace(folder / "partial.mp4", video)
     return video
 
@@ -103,9 +127,9 @@ def publish_seeded_avatar(queue, model, frames: int = 3, size: tuple[int, int] =
     import torch
     from safetensors.torch import save_file
 
-    from eva_engine.avatar import Avatar, AvatarConfig, save_avatar
+    from eva_engine.avatar import FRAMES_NAME, Avatar, AvatarConfig, save_avatar
     from eva_engine.render.camera import intrinsics, orbit_camera
-    from jobs import FRAMES_NAME, JobOptions
+    from jobs import JobOptions
 
     job = queue.store.create(JobOptions(preset="tiny").model_dump(), filename="seeded.mp4")
     worker = "tests:0:0:0:seeded"
@@ -122,6 +146,19 @@ def publish_seeded_avatar(queue, model, frames: int = 3, size: tuple[int, int] =
     save_file(tensors, str(folder / FRAMES_NAME))
     assert queue.store.finish(job.id, "succeeded", owner=worker)
     return queue.store.get(job.id)
+
+
+def run_job_here(queue, job_id: str, *models) -> str | None:
+    """Claim the job and run it in this process, as its own process would (``jobs.runner``
+    starts ``JobRun`` there), with already loaded body ``models``; returns its final state."""
+    from jobs import JobRun
+
+    job = queue.store.claim(job_id, f"tests:0:{os.getpid()}:0:here")
+    assert job is not None, f"job {job_id} could not be claimed"
+    run = JobRun(queue.config, queue.store, queue.storage, job, job.worker)
+    for model in models:
+        run.add_body_model(model)
+    return run.execute()
 
 
 SERVE_CODE = (

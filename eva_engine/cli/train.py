@@ -31,7 +31,7 @@ def train(
     """Train an avatar on the dataset's training frames (EVA: 2,000 iterations)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from eva_engine.avatar import save_avatar
+    from eva_engine.avatar import save_avatar, save_avatar_frames
     from eva_engine.data import DatasetError, load_dataset
     from eva_engine.train import METHODS, PRESETS, TrainingError, train_avatar, with_method
     from eva_engine.train import preset as make_preset
@@ -91,6 +91,8 @@ def train(
         "refinements": result.refinements,
         "gaussians_per_part": result.gaussians_per_part,
     }
+    out.mkdir(parents=True, exist_ok=True)
+    info["frames"] = save_avatar_frames(out, ds)  # training poses and cameras: `eva render --pose frame:N`
     save_avatar(result.avatar, out, info)
     console.print(
         f"[green]wrote[/] {out}: {len(result.avatar.gaussians):,} Gaussians, "

@@ -8,12 +8,13 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
 from eva_engine.avatar import read_avatar_info
+from eva_engine.avatar.render_spec import frame_params, spec_camera, spec_params
 from jobs.options import MAX_FRAMES, MAX_ITERATIONS, MAX_SIZE, MIN_SIZE, JobOptions, Method
 from jobs.store import JobRecord, new_id
 from service import rendering
 from service.deps import ServiceContext, avatar_record, context, ready_avatar, render_admission
 from service.guard import RETRY_AFTER_S
-from service.schemas import AvatarCreated, AvatarInfo, AvatarList, ErrorMessage, RenderPose, RenderRequest
+from service.schemas import AvatarCreated, AvatarInfo, AvatarList, ErrorMessage, RenderRequest
 from service.uploads import check_video, remove_tree, safe_suffix, save_upload
 
 router = APIRouter(prefix="/avatars", tags=["avatars"])
@@ -107,7 +108,7 @@ def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
 
 @router.get("", response_model=AvatarList, summary="All avatars, oldest first")
 def list_avatars(ctx: ServiceContext = Depends(context)) -> AvatarList:
-    return AvatarList(avatars=[_info(job, ctx) for job in ctx.queue.store.list()])
+    return AvatarList(avatars=[_info(job, ctx) for job in ctx.queue.store.list(kind="avatar")])
 
 
 @router.get("/{avatar_id}", response_model=AvatarInfo, responses=NOT_FOUND, summary="An avatar's metadata")
@@ -164,11 +165,8 @@ def _render(
     ctx: ServiceContext, avatar_id: str, folder: Path, req: RenderRequest, width: int, height: int
 ) -> bytes:
     loaded = ctx.avatars.get(avatar_id, folder)
-    if req.frame is not None:
-        params = rendering.frame_params(loaded, req.frame)
-    else:
-        params = rendering.pose_params(loaded, req.pose or RenderPose())
-    camera = rendering.make_camera(req, width, height, loaded.frames)
+    params = spec_params(loaded.avatar, req, loaded.frames)  # checked against the body model's ranges
+    camera = spec_camera(req, width, height, loaded.frames)
     image = rendering.render_image(loaded, params, camera, req.background)
     return rendering.encode_image(image, req.format)
 
@@ -206,5 +204,5 @@ async def export_avatar(
 
 def _glb(ctx: ServiceContext, avatar_id: str, folder: Path, frame: int | None) -> bytes:
     loaded = ctx.avatars.get(avatar_id, folder)
-    params = rendering.frame_params(loaded, frame) if frame is not None else rendering.rest_params(loaded)
+    params = frame_params(loaded.frames, frame) if frame is not None else rendering.rest_params(loaded)
     return rendering.posed_mesh_glb(loaded, params)
