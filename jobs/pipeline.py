@@ -194,7 +194,7 @@ class JobRun:
         partial = out.with_name(f"{out.name}.partial-{self.attempt}")
         preprocess_video(video, partial, config, model=model, progress=progress, overwrite=True)
         report("align", 1.0, message="dataset ready", force=True)  # still ours: put it in place
-        _move_into_place(partial, out)
+        move_into_place(partial, out)
         video.unlink(missing_ok=True)  # the dataset holds the frames now
 
     def _train(self, job: JobRecord, dataset_dir: Path, out: Path, options: JobOptions,
@@ -251,10 +251,10 @@ class JobRun:
         info["frames"] = save_avatar_frames(partial, ds)
         save_avatar(result.avatar, partial, info)
         report("train", 1.0, message="avatar trained", force=True)  # still ours: put it in place
-        _move_into_place(partial, out)
+        move_into_place(partial, out)
 
 
-def _move_into_place(partial: Path, dest: Path) -> None:
+def move_into_place(partial: Path, dest: Path) -> None:
     """Rename this attempt's complete folder to ``dest``; if another attempt got there first
     (its folder is just as complete), keep that one."""
     try:
@@ -328,4 +328,4 @@ def failure_reason(err: Exception, stage: str | None, config: JobsConfig) -> str
     return f"internal error{where}: {type(err).__name__} (details in the worker's log)"
 
 
-__all__ = ["STAGES", "STAGE_SPANS", "JobCancelled", "JobRun", "Reporter", "failure_reason"]
+__all__ = ["STAGES", "STAGE_SPANS", "JobCancelled", "JobRun", "Reporter", "failure_reason", "move_into_place"]

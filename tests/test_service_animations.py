@@ -2,7 +2,7 @@
 process by the worker's ``JobRunner``, or here by ``JobRun`` as that process would): an avatar
 performs a JSON motion and a video; every bad input (no upload, a video without a person, an
 avatar that does not exist or is not ready, bad poses and options, over the size limit), the API
-key, and the pose controls the page uses.
+key, an attempt that lost its job, and the pose controls the page uses.
 
 The avatar is the part-coloured teacher avatar published into the service's storage with a
 finished job record, as the worker leaves it (the real pipeline runs in the e2e and browser tests).
@@ -21,7 +21,7 @@ from test_service_helpers import no_person_video, run_job_here
 
 from eva_engine.avatar import save_avatar
 from eva_engine.data import read_video
-from jobs import JobQueue, JobsConfig
+from jobs import JobQueue, JobRun, JobsConfig
 from service import ServiceSettings, create_app
 
 signer_video = helpers.signer_video  # a fixture
@@ -241,3 +241,24 @@ def test_cancel_a_queued_animation(service):
     assert client.get(created["animation_url"]).json()["state"] == "cancelled"
     assert not (queue.config.work_dir / created["job_id"]).exists()
 
+
+def test_an_attempt_that_lost_its_animation_job_writes_nothing(service):
+    """Recovery gave the job to another worker while this attempt ran: none of its writes land,
+    nothing is published, and the new owner's run publishes the animation once."""
+    client, queue, avatar_id = service
+    res = client.post(f"/avatars/{avatar_id}/animations", files={"poses": poses_file([{}, RAISED])},
+                      data={"width": "32", "height": "32"})  # fmt: skip
+    created = res.json()
+    store = queue.store
+    lost = store.claim(created["job_id"], "elsewhere:1:10:100:a")
+    store.update(lost.id, worker="elsewhere:1:11:101:b")  # taken over (as recovery + a claim would)
+    run = JobRun(queue.config, store, queue.storage, lost, lost.worker)
+    run.add_body_model(queue.test_body_model)
+    assert run.execute() is None  # it stopped at its first write
+    job = store.get(lost.id)
+    assert job.state == "running" and job.worker.endswith(":b") and job.completed_stage is None
+    assert not queue.storage.animation_exists(created["animation_id"])
+    assert not store.update(lost.id, owner=lost.worker, progress=0.5)
+    store.update(lost.id, state="queued", worker=None)
+    assert run_job(queue, lost.id) == "succeeded"
+    assert queue.storage.animation_exists(created["animation_id"])

@@ -110,17 +110,30 @@ def _nearest(driving: DrivingSequence, times: torch.Tensor) -> torch.Tensor:
     return (times[:, None] - driving.times[None, :]).abs().argmin(dim=1)
 
 
-def _size(driving: DrivingSequence, config: AnimationConfig) -> tuple[int, int]:
-    """(width, height) of the avatar's picture."""
-    if config.camera == "driving":
-        h0, w0 = driving.image_size  # type: ignore[misc]
+def output_size(config: AnimationConfig, image_size: tuple[int, int] | None) -> tuple[int, int]:
+    """(width, height) of the avatar's picture for driving frames of ``image_size`` (height,
+    width; None for a pose sequence, which has no frames)."""
+    if config.camera == "driving" and image_size is not None:
+        h0, w0 = image_size
         if config.width and not config.height:
             return config.width, max(16, round(config.width * h0 / w0))
         if config.height and not config.width:
             return max(16, round(config.height * w0 / h0)), config.height
         return config.width or w0, config.height or h0
-    side = driving.image_size[0] if driving.image_size else DEFAULT_SIZE
+    side = image_size[0] if image_size else DEFAULT_SIZE
     return config.width or config.height or side, config.height or config.width or side
+
+
+def output_frames(frames: int, fps: float, config: AnimationConfig) -> int:
+    """Frames of the animation of ``frames`` driving frames at ``fps`` (resampled at
+    ``config.fps``)."""
+    span = max(frames - 1, 0) / fps
+    return int(span * (config.fps or fps) + 1e-6) + 1
+
+
+def _size(driving: DrivingSequence, config: AnimationConfig) -> tuple[int, int]:
+    """(width, height) of the avatar's picture."""
+    return output_size(config, driving.image_size)
 
 
 def _resize(frame: np.ndarray, height: int) -> np.ndarray:
