@@ -3,10 +3,12 @@
 - ``jobs/work/<id>/`` of a job that has ended (its finisher removes it; a crash in between, or an
   attempt that lost its job and wrote on, can leave it), after ``FINISHED_GRACE_S``; of a job with
   no record (the API died during an upload), after ``orphan_ttl_s``;
-- ``avatars/.deleted-*`` (a deletion that stopped between its rename and its removal);
-- ``avatars/<id>/`` whose job failed, was cancelled or has no record, after ``orphan_ttl_s``;
-- the records of failed and cancelled jobs, and of deleted avatars, ``keep_records_days`` after
-  they ended.
+- ``avatars/.deleted-*`` and ``animations/.deleted-*`` (a deletion that stopped between its
+  rename and its removal);
+- ``avatars/<id>/`` and ``animations/<id>/`` whose job failed, was cancelled or has no record,
+  after ``orphan_ttl_s``;
+- the records of failed and cancelled jobs, and of deleted avatars and animations,
+  ``keep_records_days`` after they ended.
 
 A worker sweeps at start and every ten minutes (``JobQueue``).
 """
@@ -62,14 +64,15 @@ def sweep(config: JobsConfig, store: JobStore, storage: Storage, now: float | No
             remove(path, f"work folder of a {job.state} job")
         elif job is None and age > config.orphan_ttl_s:
             remove(path, "work folder without a job")
-    for path in sorted(config.avatars_dir.iterdir()) if config.avatars_dir.is_dir() else []:
-        age = _age(path, now)
-        if path.name.startswith(".deleted-") and age > FINISHED_GRACE_S:
-            remove(path, "a deleted avatar's leftovers")
-        elif is_valid_id(path.name) and age > config.orphan_ttl_s:
-            job = store.by_avatar(path.name, with_deleted=True)
-            if job is None or job.state in ("failed", "cancelled") or job.avatar_deleted:
-                remove(path, "avatar without a finished job")
+    for kind, folder in (("avatar", config.avatars_dir), ("animation", config.animations_dir)):
+        for path in sorted(folder.iterdir()) if folder.is_dir() else []:
+            age = _age(path, now)
+            if path.name.startswith(".deleted-") and age > FINISHED_GRACE_S:
+                remove(path, f"a deleted {kind}'s leftovers")
+            elif is_valid_id(path.name) and age > config.orphan_ttl_s:
+                job = store.by_avatar(path.name, with_deleted=True, kind=kind)
+                if job is None or job.state in ("failed", "cancelled") or job.avatar_deleted:
+                    remove(path, f"{kind} without a finished job")
     purged = store.purge(finished_before=now - config.keep_records_days * 86400.0)
     done.records = [job.id for job in purged]
     for job in purged:

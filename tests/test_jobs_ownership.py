@@ -215,8 +215,23 @@ def test_the_sweeper_removes_what_crashes_leave(queue, signer_video):
     aged(storage.work_dir(live))  # queued for long, but its job is alive: kept
     kept = store.create(OPTIONS.model_dump())
     store.finish(kept.id, "failed", error="recent")
+    # Animations: a deletion's leftovers, one whose job was cancelled, one whose job succeeded.
+    animation_trash = config.animations_dir / ".deleted-abc"
+    animation_trash.mkdir()
+    aged(animation_trash)
+    cancelled = store.create({"avatar_id": kept.avatar_id}, kind="animation")
+    store.finish(cancelled.id, "cancelled")
+    stray_animation = config.animations_dir / cancelled.avatar_id
+    stray_animation.mkdir()
+    aged(stray_animation)
+    made = store.create({"avatar_id": kept.avatar_id}, kind="animation")
+    store.update(made.id, state="succeeded")
+    published = config.animations_dir / made.avatar_id
+    published.mkdir()
+    aged(published)
     swept = sweep(config, store, storage)
-    assert sorted(swept.folders) == sorted([orphan, leftover, trash, stray])
+    assert sorted(swept.folders) == sorted([orphan, leftover, trash, stray, animation_trash, stray_animation])
+    assert published.exists()
     assert swept.records == [done.id] and store.get(done.id) is None and store.get(kept.id) is not None
     assert uploading.exists() and storage.work_dir(live).exists()
 
