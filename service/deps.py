@@ -12,6 +12,7 @@ from fastapi.concurrency import run_in_threadpool
 
 from jobs.queue import JobQueue
 from jobs.store import JobRecord, is_valid_id
+from service.guard import RETRY_AFTER_S
 from service.rendering import AvatarCache, RenderGate
 from service.settings import ServiceSettings
 
@@ -96,3 +97,12 @@ def ready_avatar(
     if not ctx.queue.storage.avatar_exists(job.avatar_id):
         raise HTTPException(409, f"avatar {job.avatar_id} has no files on disk (deleted?)")
     return job
+
+
+def check_job_quota(ctx: ServiceContext) -> None:
+    """503 with ``Retry-After`` when ``max_queued_jobs`` jobs (avatars and animations) already wait
+    for a worker. Blocking (reads the store): call it from a thread."""
+    queued = ctx.queue.store.counts()["queued"]
+    if queued >= ctx.settings.max_queued_jobs:
+        raise HTTPException(503, f"{queued} jobs are waiting for a worker (the quota); retry later",
+                            headers={"Retry-After": str(30 * RETRY_AFTER_S)})  # fmt: skip

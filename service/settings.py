@@ -27,14 +27,16 @@ class ServiceSettings(BaseModel):
     header ``X-API-Key``; allowed_hosts: accepted ``Host`` headers (default: the loopback names
     without a key, any with one; DNS rebinding cannot supply the key).
 
-    Limits, all enforced before a request reaches its endpoint: max_upload_mb, the video upload's
-    body; max_json_kb, every other body; max_uploads, uploads at once; body_timeout_s, longest
+    Limits, all enforced before a request reaches its endpoint: max_upload_mb, the body of an
+    upload (a video for an avatar, a driving video or poses for an animation); max_json_kb, every
+    other body; max_uploads, uploads of either kind at once; body_timeout_s, longest
     pause while a body streams in (a slow sender is cut off with 408); max_requests, requests in
     flight (connections: ``max_requests`` x 2, uvicorn's own limit behind it). Past a limit of
     concurrency the answer is 503 with ``Retry-After``.
 
     Videos: max_video_seconds; probe_timeout_s / probe_memory_mb, the child process that reads an
-    upload's headers. Jobs: max_queued_jobs, quota of jobs waiting for a worker.
+    upload's headers; max_poses_mb, a JSON pose sequence uploaded for an animation (parsed in the
+    API). Jobs: max_queued_jobs, quota of jobs (of either kind) waiting for a worker.
 
     Renders: max_render_side, largest width or height; max_render_pixels, width x height;
     max_renders at once, up to render_queue more waiting at most render_wait_s; avatar_cache:
@@ -56,6 +58,7 @@ class ServiceSettings(BaseModel):
     max_video_seconds: float = Field(600.0, gt=0)
     probe_timeout_s: float = Field(30.0, gt=0)
     probe_memory_mb: int = Field(1024, ge=128)
+    max_poses_mb: float = Field(16.0, gt=0)
     max_queued_jobs: int = Field(32, ge=1)
     max_render_side: int = Field(4096, ge=16, le=4096)
     max_render_pixels: int = Field(2048 * 2048, ge=16 * 16)
@@ -77,6 +80,10 @@ class ServiceSettings(BaseModel):
     @property
     def max_upload_bytes(self) -> int:
         return int(self.max_upload_mb * 1024 * 1024)
+
+    @property
+    def max_poses_bytes(self) -> int:
+        return int(min(self.max_poses_mb, self.max_upload_mb) * 1024 * 1024)
 
     @property
     def max_json_bytes(self) -> int:

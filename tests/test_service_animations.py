@@ -1,8 +1,9 @@
 """The animation endpoints and the page, in-process (FastAPI's TestClient; jobs run in their own
 process by the worker's ``JobRunner``, or here by ``JobRun`` as that process would): an avatar
 performs a JSON motion and a video; every bad input (no upload, a video without a person, an
-avatar that does not exist or is not ready, bad poses and options, over the size limit), the API
-key, an attempt that lost its job, and the pose controls the page uses.
+avatar that does not exist or is not ready, bad poses and options, over the size and pixel
+limits), the API key and the request guard, the queue's quota, the render slots, an attempt
+that lost its job, and the pose controls the page uses.
 
 The avatar is the part-coloured teacher avatar published into the service's storage with a
 finished job record, as the worker leaves it (the real pipeline runs in the e2e and browser tests).
@@ -262,3 +263,58 @@ def test_an_attempt_that_lost_its_animation_job_writes_nothing(service):
     store.update(lost.id, state="queued", worker=None)
     assert run_job(queue, lost.id) == "succeeded"
     assert queue.storage.animation_exists(created["animation_id"])
+
+
+def test_animation_uploads_meet_the_guard_and_the_quota(tmp_path, anny_model):
+    """The upload rule covers the animation endpoint (its own body limit, not the 64 KB JSON one),
+    poses have their own smaller cap, the rendered frames must fit the job's pixel budget, and
+    the queue's quota counts animation jobs too."""
+    jobs = JobsConfig(data_dir=tmp_path / "data", max_frame_pixels=64 * 64 * 50)
+    settings = ServiceSettings(jobs=jobs, preload_body_models=(), max_poses_mb=0.01, max_queued_jobs=2,
+                               max_render_pixels=128 * 128)  # fmt: skip
+    queue = JobQueue(jobs)
+    with TestClient(create_app(settings, queue=queue), base_url="http://127.0.0.1") as client:
+        client.app.state.context.avatars._bodies["anny"] = anny_model
+        avatar_id = ready_avatar(queue, anny_model)
+        url = f"/avatars/{avatar_id}/animations"
+        small = {"width": "64", "height": "64"}
+        # Over 64 KB (the JSON limit) but within the upload's: reaches the endpoint, whose poses cap says no.
+        big = poses_file({"poses": [{}] * 40_000})
+        res = client.post(url, files={"poses": big}, data=small)
+        assert res.status_code == 413 and "limit" in res.json()["detail"], res.text
+        # 60 frames of 64x64 are over a budget of 50.
+        res = client.post(url, files={"poses": poses_file([{}] * 60)}, data=small)
+        assert res.status_code == 422 and "M pixels" in res.json()["detail"], res.text
+        # One frame over the render limit.
+        res = client.post(url, files={"poses": poses_file([{}])}, data={"width": "256", "height": "256"})
+        assert res.status_code == 422 and "over the limit" in res.json()["detail"], res.text
+        # Out-of-range values in a pose: the render's bounds and the body model's ranges.
+        for pose, needle in (
+            ({"transl": [1e300, 0, 0]}, "transl"),
+            ({"expression": {"jawOpen": 2.0}}, "range"),
+        ):
+            res = client.post(url, files={"poses": poses_file([pose])}, data=small)
+            assert res.status_code == 422 and needle in res.text, res.text
+        assert list(queue.config.work_dir.iterdir()) == []
+        for _ in range(2):
+            assert client.post(url, files={"poses": poses_file([{}])}, data=small).status_code == 202
+        res = client.post(url, files={"poses": poses_file([{}])}, data=small)
+        assert res.status_code == 503 and "quota" in res.json()["detail"] and res.headers["retry-after"]
+        # Cross-site writes are refused here too.
+        res = client.post(url, files={"poses": poses_file([{}])}, headers={"Origin": "https://evil.example"})
+        assert res.status_code == 403
+
+
+def test_pose_controls_share_the_render_slots(service):
+    """Loading an avatar and posing its body cost like a render: with every render slot taken
+    and no room to wait, the controls are refused with Retry-After, like a render."""
+    client, _, avatar_id = service
+    gate = client.app.state.context.renders
+    gate.running, waiting = gate.slots, gate.waiting
+    gate.waiting = 0
+    try:
+        res = client.get(f"/avatars/{avatar_id}/controls")
+        assert res.status_code == 503 and res.headers["retry-after"] == "1", res.text
+    finally:
+        gate.running, gate.waiting = 0, waiting
+    assert client.get(f"/avatars/{avatar_id}/controls").status_code == 200

@@ -3,8 +3,9 @@ pose controls a client builds sliders from. Thin: validation here, work in ``job
 
 The uploads meet the same guard as an avatar's video (``service.guard``: the key, the body limit
 of uploads, uploads at once, stalled bodies) and the same checks before a job is queued, off the
-event loop: the video's headers probed in a child process and its decoded frames within the
-job's frame budget; poses are parsed and checked against the avatar's body model."""
+event loop: the video's headers probed in a child process, its decoded frames and the rendered
+frames within the job's pixel budget, the queue's quota; poses are parsed and checked against the
+avatar's body model (at most ``max_poses_mb``)."""
 
 from __future__ import annotations
 
@@ -18,18 +19,31 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
 from pydantic import ValidationError
 
-from eva_engine.animate.animation import MAX_SIDE
-from jobs.animation import VIDEO_NAME, AnimationOptions, read_animation_info
+from eva_engine.animate.animation import MAX_SIDE, AnimationError
+from jobs.animation import (
+    VIDEO_NAME,
+    AnimationOptions,
+    animation_pixels,
+    check_animation_budget,
+    read_animation_info,
+)
 from jobs.options import MAX_FRAMES, MAX_SIZE, MIN_SIZE
 from jobs.store import JobRecord, is_valid_id, new_id
 from service.animation_schemas import AnimationCreated, AnimationInfo, AnimationList, Framing, PoseControls
-from service.deps import ServiceContext, avatar_record, context, ready_avatar
+from service.deps import (
+    ServiceContext,
+    avatar_record,
+    check_job_quota,
+    context,
+    ready_avatar,
+    render_admission,
+)
 from service.schemas import ErrorMessage
 from service.uploads import check_video, remove_tree, safe_suffix, save_upload
 
 router = APIRouter(tags=["animations"])
 NOT_FOUND = {404: {"model": ErrorMessage, "description": "Unknown or malformed id"}}
-BUSY = {503: {"model": ErrorMessage, "description": "Busy: retry after `Retry-After` seconds"}}
+BUSY = {503: {"model": ErrorMessage, "description": "Busy or over quota: retry after `Retry-After` seconds"}}
 _DEFAULTS = AnimationOptions(avatar_id="0" * 32)
 
 
@@ -112,6 +126,7 @@ async def create_animation(
 def _create(ctx: ServiceContext, avatar: JobRecord, options: AnimationOptions, source: BinaryIO,
             filename: str | None, is_poses: bool) -> AnimationCreated:  # fmt: skip
     queue, settings = ctx.queue, ctx.settings
+    check_job_quota(ctx)
     job_id, animation_id = new_id(), new_id()
     work = queue.storage.work_dir(job_id)
     work.mkdir(parents=True)
@@ -119,15 +134,21 @@ def _create(ctx: ServiceContext, avatar: JobRecord, options: AnimationOptions, s
         # The worker tells poses from a video by the suffix: a video is never saved as .json.
         suffix = ".json" if is_poses else safe_suffix(filename).replace(".json", ".video")
         path = work / f"input{suffix}"
-        if save_upload(source, path, settings.max_upload_bytes) == 0:
+        limit = settings.max_poses_bytes if is_poses else settings.max_upload_bytes
+        if save_upload(source, path, limit) == 0:
             raise HTTPException(
                 422, f"the uploaded {'poses are' if is_poses else 'video is'} empty (0 bytes)"
             )
         if is_poses:
-            _check_poses(path, avatar, ctx)
+            frames, fps, size = _check_poses(path, avatar, ctx)
         else:
-            check_video(path, options, settings.jobs, settings.max_video_seconds, settings.probe_timeout_s,
-                        settings.probe_memory_mb)  # fmt: skip
+            info = check_video(path, options, settings.jobs, settings.max_video_seconds,
+                               settings.probe_timeout_s, settings.probe_memory_mb)  # fmt: skip
+            scale = min(1.0, options.max_size / max(info.width, info.height))  # as preprocessing resizes
+            size = (max(1, round(info.height * scale)), max(1, round(info.width * scale)))
+            fps = info.fps or 25.0
+            frames = min(options.max_frames, info.frame_count() or options.max_frames)
+        _check_render_size(options, frames, fps, size, ctx)
         name = Path(filename or "upload").name[:200]
         queue.store.create(options.model_dump(mode="json"), filename=name, job_id=job_id,
                            avatar_id=animation_id, kind="animation")  # fmt: skip
@@ -144,6 +165,25 @@ def _create(ctx: ServiceContext, avatar: JobRecord, options: AnimationOptions, s
                             animation_url=f"/animations/{animation_id}")  # fmt: skip
 
 
+def _check_render_size(options: AnimationOptions, frames: int, fps: float, size: tuple[int, int] | None,
+                       ctx: ServiceContext) -> None:  # fmt: skip
+    """422 when one rendered frame is over the render limits (as for ``POST .../render``), or all
+    of them over the job's pixel budget (they are held until encoded)."""
+    settings = ctx.settings
+    _, width, height, _ = animation_pixels(options, frames, fps, size)
+    side, pixels = settings.max_render_side, settings.max_render_pixels
+    if width > side or height > side or width * height > pixels:
+        raise HTTPException(
+            422,
+            f"the animation's frames would be {width}x{height}, over the limit ({side} pixels a side, "
+            f"{pixels} pixels in all); pass a smaller width / height",
+        )
+    try:
+        check_animation_budget(options, frames, fps, size, settings.jobs.max_frame_pixels)
+    except AnimationError as err:
+        raise HTTPException(422, str(err)) from err
+
+
 def _one_upload(video: UploadFile | None, poses: UploadFile | None) -> UploadFile:
     if video is None and poses is None:
         raise HTTPException(422, "no driving motion: upload a video (form field 'video') or a JSON pose "
@@ -153,9 +193,9 @@ def _one_upload(video: UploadFile | None, poses: UploadFile | None) -> UploadFil
     return video if video is not None else poses  # type: ignore[return-value]
 
 
-def _check_poses(path: Path, avatar: JobRecord, ctx: ServiceContext) -> None:
+def _check_poses(path: Path, avatar: JobRecord, ctx: ServiceContext) -> tuple[int, float, None]:
     """422 unless the file is a pose sequence the avatar's body model understands (bounded
-    values, known names, within the model's ranges)."""
+    values, known names, within the model's ranges); returns (frames, fps, None: no image)."""
     from eva_engine.animate import DrivingError, driving_from_poses
     from eva_engine.avatar import read_avatar_info
 
@@ -165,9 +205,10 @@ def _check_poses(path: Path, avatar: JobRecord, ctx: ServiceContext) -> None:
         raise HTTPException(422, f"the poses are not valid JSON: {err}") from err
     body = ctx.avatars.body(read_avatar_info(ctx.queue.storage.avatar_dir(avatar.avatar_id))["body_model"])
     try:
-        driving_from_poses(doc, body)
+        driving = driving_from_poses(doc, body)
     except DrivingError as err:
         raise HTTPException(422, str(err)[:2000]) from err
+    return len(driving), driving.fps, None
 
 
 @router.get("/animations/{animation_id}", response_model=AnimationInfo, responses=NOT_FOUND,
@@ -216,14 +257,22 @@ def list_animations(avatar: JobRecord = Depends(avatar_record), ctx: ServiceCont
 @router.get(
     "/avatars/{avatar_id}/controls",
     response_model=PoseControls,
-    responses={**NOT_FOUND, 409: {"model": ErrorMessage, "description": "The avatar is not ready"}},
+    responses={**NOT_FOUND, 409: {"model": ErrorMessage, "description": "The avatar is not ready"}, **BUSY},
     summary="Sliders for posing the avatar (joints, fingers, face) and a camera that frames it",
+    description="Loading the avatar and posing its body cost like a render: this shares the render "
+    "slots, and past them answers 503 with `Retry-After`.",
+    dependencies=[Depends(render_admission)],  # first: a refusal costs no lookup
 )  # fmt: skip
-def pose_controls(
+async def pose_controls(
     aspect: float = Query(1.0, gt=0.1, le=10.0, description="Width / height of the picture to frame."),
     avatar: JobRecord = Depends(ready_avatar),
     ctx: ServiceContext = Depends(context),
 ):
+    async with ctx.renders.slot():
+        return await run_in_threadpool(_controls, ctx, avatar, aspect)
+
+
+def _controls(ctx: ServiceContext, avatar: JobRecord, aspect: float) -> PoseControls:
     from eva_engine.animate.controls import pose_controls as controls_of
     from eva_engine.avatar.framing import framing
 

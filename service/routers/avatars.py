@@ -12,8 +12,14 @@ from eva_engine.avatar.render_spec import frame_params, spec_camera, spec_params
 from jobs.options import MAX_FRAMES, MAX_ITERATIONS, MAX_SIZE, MIN_SIZE, JobOptions, Method
 from jobs.store import JobRecord, new_id
 from service import rendering
-from service.deps import ServiceContext, avatar_record, context, ready_avatar, render_admission
-from service.guard import RETRY_AFTER_S
+from service.deps import (
+    ServiceContext,
+    avatar_record,
+    check_job_quota,
+    context,
+    ready_avatar,
+    render_admission,
+)
 from service.schemas import AvatarCreated, AvatarInfo, AvatarList, ErrorMessage, RenderRequest
 from service.uploads import check_video, remove_tree, safe_suffix, save_upload
 
@@ -60,10 +66,7 @@ def _create(
     ctx: ServiceContext, options: JobOptions, source: BinaryIO, filename: str | None
 ) -> AvatarCreated:
     queue, settings = ctx.queue, ctx.settings
-    queued = queue.store.counts()["queued"]
-    if queued >= settings.max_queued_jobs:
-        raise HTTPException(503, f"{queued} jobs are waiting for a worker (the quota); retry later",
-                            headers={"Retry-After": str(30 * RETRY_AFTER_S)})  # fmt: skip
+    check_job_quota(ctx)
     job_id, avatar_id = new_id(), new_id()
     work = queue.storage.work_dir(job_id)
     work.mkdir(parents=True)
