@@ -26,13 +26,22 @@ const state = {
 const $ = (id) => document.getElementById(id);
 
 // -- API calls, with the key when the service wants one -----------------------------------------
-async function api(path, options = {}) {
+// A busy service answers 503 with Retry-After (renders at once, requests in flight): wait and
+// retry a few times when it asks for a short wait; a long one (the job quota) is shown as is.
+const BUSY_RETRIES = 3, BUSY_MAX_WAIT_S = 5;
+
+async function api(path, options = {}, retries = BUSY_RETRIES) {
   const headers = new Headers(options.headers || {});
   if (state.key) headers.set("X-API-Key", state.key);
   const res = await fetch(path, { ...options, headers });
   if (res.status === 401) {
     await askForKey(Boolean(state.key));
-    return api(path, options);
+    return api(path, options, retries);
+  }
+  const wait = Number(res.headers.get("Retry-After"));
+  if (res.status === 503 && retries > 0 && wait > 0 && wait <= BUSY_MAX_WAIT_S) {
+    await new Promise((resolve) => setTimeout(resolve, wait * 1000));
+    return api(path, options, retries - 1);
   }
   return res;
 }
