@@ -36,7 +36,9 @@ signer_video = helpers.signer_video  # a fixture
 
 def api(data_dir, queue_url=None) -> TestClient:
     jobs = JobsConfig(data_dir=data_dir, queue_url=queue_url)
-    return TestClient(create_app(ServiceSettings(jobs=jobs, preload_body_models=())), base_url="http://127.0.0.1")
+    return TestClient(
+        create_app(ServiceSettings(jobs=jobs, preload_body_models=())), base_url="http://127.0.0.1"
+    )
 
 
 def upload(client, video, **options) -> dict:

@@ -17,12 +17,14 @@ from eva_engine.cli.parsing import background_value, camera_value, validation_me
 def animate(
     avatar: Path = typer.Argument(..., help="Avatar directory (from `eva train` or the service)."),
     driving: Path = typer.Argument(
-        ..., help="A video of anyone (preprocessed and aligned here), a JSON file of poses "
+        ...,
+        help="A video of anyone (preprocessed and aligned here), a JSON file of poses "
         '({"fps": 25, "poses": [BodyPose, ...]}), or a dataset folder from `eva preprocess`.',
     ),  # fmt: skip
     out: Path = typer.Option(..., "--out", "-o", help="The mp4 to write."),
     camera: str = typer.Option(
-        "front", help="`driving` (the driving video's camera: the avatar where the person was), a preset "
+        "front",
+        help="`driving` (the driving video's camera: the avatar where the person was), a preset "
         "(front, left, ...) or an orbit camera as JSON; an orbit without target/distance is framed on the "
         "avatar.",
     ),  # fmt: skip
