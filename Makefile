@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml Makefile
 install: $(STAMP)
 
 demo: install
-	$(BIN)/eva demo --out out/demo.png
+	$(BIN)/eva demo --out out/demo.png --animation out/demo.mp4
 
 lint: install
 	$(BIN)/ruff check .

@@ -1,5 +1,6 @@
 """The job queue and worker: huey (SQLite or Redis) carries job ids, SQLite holds the job records,
-``Pipeline`` runs a job's stages in ``eva_engine``, ``Storage`` keeps avatars and work folders.
+``JobRunner`` runs each job in its own process, where ``JobRun`` runs its stages in ``eva_engine``;
+``Storage`` keeps avatars, animations and work folders, ``jobs.sweep`` what crashes leave behind.
 
     from jobs import JobQueue, JobsConfig
     queue = JobQueue(JobsConfig.from_env())
@@ -8,31 +9,54 @@
 """
 
 from jobs.config import JobsConfig
+from jobs.media import VideoInfo, VideoRejected, probe_in_subprocess, probe_video
 from jobs.options import JobOptions
-from jobs.pipeline import STAGE_SPANS, JobCancelled, Pipeline
-from jobs.queue import JobQueue, Recovery, make_huey
-from jobs.storage import FRAMES_NAME, InvalidIdError, Storage
-from jobs.store import STAGES, STATES, TERMINAL, JobRecord, JobStore, is_valid_id, new_id
+from jobs.pipeline import STAGE_SPANS, JobCancelled, JobRun
+from jobs.queue import JobQueue, QueueUnavailable, Recovery, make_huey
+from jobs.runner import Crashed, JobRunner
+from jobs.storage import InvalidIdError, Storage
+from jobs.store import (
+    STAGES,
+    STATES,
+    TERMINAL,
+    JobLost,
+    JobRecord,
+    JobStore,
+    JobStoreError,
+    is_valid_id,
+    new_id,
+)
+from jobs.sweep import Sweep, sweep
 from jobs.worker import run_worker
 
 __all__ = [
-    "FRAMES_NAME",
     "STAGES",
     "STAGE_SPANS",
     "STATES",
     "TERMINAL",
+    "Crashed",
     "InvalidIdError",
     "JobCancelled",
+    "JobLost",
     "JobOptions",
     "JobQueue",
     "JobRecord",
+    "JobRun",
+    "JobRunner",
     "JobStore",
+    "JobStoreError",
     "JobsConfig",
-    "Pipeline",
+    "QueueUnavailable",
     "Recovery",
     "Storage",
+    "Sweep",
+    "VideoInfo",
+    "VideoRejected",
     "is_valid_id",
     "make_huey",
     "new_id",
+    "probe_in_subprocess",
+    "probe_video",
     "run_worker",
+    "sweep",
 ]

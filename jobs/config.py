@@ -3,6 +3,7 @@
 Layout under ``data_dir`` (a shared folder when workers run on several machines):
 
 - ``avatars/<avatar_id>/``: finished avatars (``eva_engine.avatar`` files + ``frames.safetensors``);
+- ``animations/<animation_id>/``: finished animations (``animation.mp4`` + ``animation.json``);
 - ``jobs/jobs.db``: the job records (SQLite); ``jobs/queue.db``: huey's SQLite queue (default mode);
 - ``jobs/work/<job_id>/``: a job's upload and intermediate results, removed when it ends.
 """
@@ -19,8 +20,18 @@ class JobsConfig(BaseModel):
     """data_dir: root of avatars and job files; queue_url: ``None`` or ``sqlite:///path`` for
     huey's SQLite queue (default ``<data_dir>/jobs/queue.db``), ``redis://host:port/db`` for Redis;
     max_attempts: runs of one job (a worker killed mid-job costs one); stale_after_s: a running
-    job whose worker has not written a heartbeat for this long is taken back; heartbeat_s: how
-    often a busy worker writes one; threads: torch CPU threads per job (None: torch's default).
+    job whose worker has not written a heartbeat for this long is taken back (when the worker ran
+    on another host; on the same host its process is checked instead); heartbeat_s: how often a
+    busy worker writes one; threads: torch CPU threads per job (None: torch's default).
+
+    Limits of one job, which runs in its own process: job_memory_mb, its address-space limit
+    (``RLIMIT_AS``; None: none); job_timeout_s, its wall time; max_frame_pixels, decoded frames
+    x pixels per frame (checked at upload and again before decoding); max_video_side, largest
+    width or height of an input video, read from its headers; max_gaussians, cap on the
+    avatar's Gaussians during training. Housekeeping: requeue_after_s, a queued job with no
+    message in the queue for this long is sent again; orphan_ttl_s, age after which work folders
+    without a live job are removed; keep_records_days, failed / cancelled / deleted jobs' records
+    are kept this long.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -32,6 +43,14 @@ class JobsConfig(BaseModel):
     stale_after_s: float = Field(120.0, gt=0)
     heartbeat_s: float = Field(5.0, gt=0)
     threads: int | None = Field(None, ge=1)
+    job_memory_mb: int | None = Field(8192, ge=256)
+    job_timeout_s: float = Field(6 * 3600.0, gt=0)
+    max_frame_pixels: int = Field(150_000_000, ge=64 * 64)
+    max_video_side: int = Field(4096, ge=64, le=16384)
+    max_gaussians: int = Field(300_000, ge=1000)
+    requeue_after_s: float = Field(300.0, gt=0)
+    orphan_ttl_s: float = Field(6 * 3600.0, gt=0)
+    keep_records_days: float = Field(30.0, gt=0)
 
     @field_validator("queue_url")
     @classmethod
@@ -43,14 +62,17 @@ class JobsConfig(BaseModel):
     @classmethod
     def from_env(cls, **overrides) -> JobsConfig:
         """Defaults from the environment: ``EVA_SERVICE_DIR`` (else ``eva_engine.paths.data_dir()``),
-        ``EVA_QUEUE_URL``, ``EVA_JOB_THREADS``; ``overrides`` that are not None win."""
+        ``EVA_QUEUE_URL``, ``EVA_JOB_THREADS``, ``EVA_JOB_MEMORY_MB`` (0: no limit),
+        ``EVA_JOB_TIMEOUT_S``, ``EVA_MAX_FRAME_PIXELS``; ``overrides`` that are not None win."""
         from eva_engine.paths import data_dir
 
-        env = {
-            "data_dir": os.environ.get("EVA_SERVICE_DIR") or data_dir(),
-            "queue_url": os.environ.get("EVA_QUEUE_URL") or None,
-            "threads": os.environ.get("EVA_JOB_THREADS") or None,
-        }
+        names = {"queue_url": "EVA_QUEUE_URL", "threads": "EVA_JOB_THREADS",
+                 "job_memory_mb": "EVA_JOB_MEMORY_MB", "job_timeout_s": "EVA_JOB_TIMEOUT_S",
+                 "max_frame_pixels": "EVA_MAX_FRAME_PIXELS"}  # fmt: skip
+        env: dict = {k: os.environ[v] for k, v in names.items() if os.environ.get(v)}
+        env["data_dir"] = os.environ.get("EVA_SERVICE_DIR") or data_dir()
+        if env.get("job_memory_mb", "").strip() == "0":
+            env["job_memory_mb"] = None
         env.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**env)
 
@@ -61,6 +83,10 @@ class JobsConfig(BaseModel):
     @property
     def avatars_dir(self) -> Path:
         return self.data_dir / "avatars"
+
+    @property
+    def animations_dir(self) -> Path:
+        return self.data_dir / "animations"
 
     @property
     def jobs_dir(self) -> Path:

@@ -1,23 +1,29 @@
-"""One avatar job, stage by stage, resumable: video -> dataset (preprocess + align) -> trained
-avatar -> published avatar. Every stage's result lands in the job's work folder by an atomic
-rename, so a worker killed at any moment leaves either the previous stage's result or the next
-one, and a retry starts after the last completed stage.
+"""One avatar job, stage by stage, resumable, run inside the job's own process (``jobs.runner``
+starts it; an animation job runs the stages of ``jobs.animation`` the same way): video ->
+dataset (preprocess + align) -> trained avatar -> published avatar. Every
+stage's result lands in the job's work folder by an atomic rename, so a process killed at any
+moment leaves either the previous stage's result or the next one, and a retry starts after the
+last completed stage.
 
     work/<job_id>/input.<ext>   the upload (written by the API)
     work/<job_id>/dataset/      eva_engine.align.preprocess_video (stages preprocess, align)
     work/<job_id>/avatar/       eva_engine.avatar.save_avatar + metrics + frames (stage train)
     avatars/<avatar_id>/        the same folder, renamed (stage export)
+
+Every record write is conditional on this attempt still owning the job (``JobStore`` ``owner=``);
+when it does not (recovery gave the job to another worker), the stage stops with ``JobLost`` and
+this attempt writes nothing more. Partial results carry the attempt's own suffix, so two
+attempts never write into one folder.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
 import os
 import re
 import shutil
-import socket
-import threading
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -25,8 +31,8 @@ from pathlib import Path
 
 from jobs.config import JobsConfig
 from jobs.options import JobOptions
-from jobs.storage import FRAMES_NAME, Storage
-from jobs.store import STAGES, JobRecord, JobStore
+from jobs.storage import Storage
+from jobs.store import STAGES, JobLost, JobRecord, JobStore
 
 logger = logging.getLogger("eva.jobs")
 
@@ -39,22 +45,19 @@ class JobCancelled(Exception):
     """The job was cancelled while running (raised from a progress callback)."""
 
 
-def worker_id() -> str:
-    """``host:pid:token``: the token tells a restarted worker that reuses a pid (pid 1 in a
-    container) from the dead one."""
-    return f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
-
-
 def input_file(work: Path) -> Path | None:
     found = sorted(p for p in work.glob("input.*") if p.is_file()) if work.is_dir() else []
     return found[0] if found else None
 
 
 class Reporter:
-    """Turns engine callbacks into job-record updates (throttled), heartbeats and cancellation."""
+    """Turns engine callbacks into job-record updates (throttled) and stops the stage when the
+    job was cancelled (``JobCancelled``) or this attempt no longer owns it (``JobLost``)."""
 
-    def __init__(self, store: JobStore, job: JobRecord, worker: str, interval: float = 0.5) -> None:
+    def __init__(self, store: JobStore, job: JobRecord, worker: str, interval: float = 0.5,
+                 spans: dict[str, tuple[float, float]] | None = None) -> None:  # fmt: skip
         self.store, self.job, self.worker, self.interval = store, job, worker, interval
+        self.spans = spans or STAGE_SPANS
         self._last = 0.0
         self._stage: str | None = None
 
@@ -64,93 +67,80 @@ class Reporter:
         if not force and stage == self._stage and now - self._last < self.interval:
             return
         self._stage, self._last = stage, now
-        lo, hi = STAGE_SPANS[stage]
+        lo, hi = self.spans[stage]
         progress = lo + (hi - lo) * min(max(fraction, 0.0), 1.0)
         eta = eta if eta is not None and math.isfinite(eta) else None
-        self.store.update(self.job.id, where_state=("running",), stage=stage, progress=progress, eta_s=eta,
-                          message=message, heartbeat_at=time.time())  # fmt: skip
+        if not self.store.update(self.job.id, owner=self.worker, stage=stage, progress=progress, eta_s=eta,
+                                 message=message, heartbeat_at=time.time()):  # fmt: skip
+            raise JobLost(self.job.id)
         current = self.store.get(self.job.id)
-        if current is None or current.cancel_requested or current.state != "running":
+        if current is None or current.cancel_requested:
             raise JobCancelled(self.job.id)
 
     def completed(self, stage: str) -> None:
-        self.store.update(self.job.id, where_state=("running",), completed_stage=stage)
-
-
-class Heartbeat:
-    """A thread that marks the job alive while a long engine call gives no callbacks."""
-
-    def __init__(self, store: JobStore, job_id: str, worker: str, every: float) -> None:
-        self._stop = threading.Event()
-        self._thread = threading.Thread(
-            target=self._run, args=(store, job_id, worker, every), daemon=True, name=f"heartbeat-{job_id[:8]}"
-        )
-
-    def _run(self, store: JobStore, job_id: str, worker: str, every: float) -> None:
-        while not self._stop.wait(every):
-            store.heartbeat(job_id, worker)
-
-    def __enter__(self) -> Heartbeat:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        self._thread.join()
+        if not self.store.update(self.job.id, owner=self.worker, completed_stage=stage):
+            raise JobLost(self.job.id)
 
 
 @dataclass
-class Pipeline:
-    """What a worker process needs to run jobs; body models are loaded once and kept."""
+class JobRun:
+    """One attempt at one job, by ``worker`` (which has claimed it), in the job's process."""
 
     config: JobsConfig
     store: JobStore
     storage: Storage
-    worker: str = field(default_factory=worker_id)
+    job: JobRecord
+    worker: str
+    attempt: str = field(default_factory=lambda: uuid.uuid4().hex[:8])
     _models: dict = field(default_factory=dict)
-    _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def add_body_model(self, model) -> None:
         """Use an already loaded body model (keyed by its ``name``)."""
-        with self._lock:
-            self._models[model.name] = model
+        self._models[model.name] = model
 
     def body_model(self, name: str):
-        with self._lock:
-            if name not in self._models:
-                from eva_engine.body import load_body_model
+        if name not in self._models:
+            from eva_engine.body import load_body_model
 
-                self._models[name] = load_body_model(name)
-            return self._models[name]
+            self._models[name] = load_body_model(name)
+        return self._models[name]
 
-    # -- the job ------------------------------------------------------------------------------
-    def run(self, job_id: str) -> str | None:
-        """Claim and run the job; returns its final state (None if it was not ours to run)."""
-        job = self.store.claim(job_id, self.worker)
-        if job is None:
-            return None
-        logger.info("job %s: attempt %d on %s", job.id, job.attempts, self.worker)
-        report = Reporter(self.store, job, self.worker)
+    def execute(self) -> str | None:
+        """Run the stages of the job's kind (an avatar, or an animation: ``jobs.animation``) and
+        end the job with its outcome; returns the final state, or None when this attempt lost
+        the job (it then leaves the record and the files alone)."""
+        job = self.job
+        stages, spans = self._stages, STAGE_SPANS
+        if job.kind == "animation":
+            from jobs.animation import ANIMATION_STAGE_SPANS, animation_stages
+
+            stages, spans = (lambda j, r: animation_stages(self, j, r)), ANIMATION_STAGE_SPANS
+        report = Reporter(self.store, job, self.worker, spans=spans)
         stage = job.completed_stage
         try:
-            with Heartbeat(self.store, job.id, self.worker, self.config.heartbeat_s):
-                self._stages(job, report)
+            stages(job, report)
+        except JobLost:
+            logger.warning("job %s: %s no longer owns it; this attempt stops", job.id, self.worker)
+            return None
         except JobCancelled:
-            self.store.finish(job.id, "cancelled", message="cancelled on request")
-            state = "cancelled"
+            state, fields = "cancelled", {"message": "cancelled on request"}
         except Exception as err:  # every failure ends the job with its reason
             stage = (self.store.get(job.id) or job).stage or stage
+            reason = failure_reason(err, stage, self.config)
             reason = re.sub(re.escape(str(self.storage.work_dir(job.id))) + r"/\S*", "the uploaded video",
-                            _reason(err, stage))  # no server paths in messages  # fmt: skip
-            self.store.finish(job.id, "failed", error=reason)
-            logger.warning("job %s failed in stage %s", job.id, stage, exc_info=not _is_input_error(err))
-            state = "failed"
+                            reason)  # no server paths in messages  # fmt: skip
+            logger.warning("job %s failed in stage %s: %s", job.id, stage, reason,
+                           exc_info=not is_input_error(err))  # fmt: skip
+            state, fields = "failed", {"error": reason}
         else:
-            self.store.finish(job.id, "succeeded", message="avatar ready")
-            state = "succeeded"
-        current = self.store.get(job.id)
-        if current is None or current.finished:
+            state, fields = "succeeded", {"message": f"{job.kind} ready"}
+        # Its files go first, so a finished job never has any; a crash in between is retried and
+        # finds the published result (or fails again). Only while the job is still ours.
+        if self.store.update(job.id, owner=self.worker, message=f"{state}: cleaning up"):
             self.storage.remove_work(job.id)
+        if not self.store.finish(job.id, state, owner=self.worker, **fields):
+            logger.warning("job %s: lost before it could be marked %s", job.id, state)
+            return None
         return state
 
     def _stages(self, job: JobRecord, report: Reporter) -> None:
@@ -165,16 +155,24 @@ class Pipeline:
             report.completed("align")
             self._train(job, dataset_dir, trained_dir, options, report)
         report.completed("train")
-        report("export", 0.0, message="publishing the avatar", force=True)
-        self.storage.publish(trained_dir, job.avatar_id)
+        report("export", 0.0, message="publishing the avatar", force=True)  # ownership checked here
+        try:
+            self.storage.publish(trained_dir, job.avatar_id)
+        except FileExistsError:  # another attempt published the same job's avatar first
+            logger.warning("job %s: avatar %s was already published", job.id, job.avatar_id)
         report.completed("export")
 
     def _preprocess(self, work: Path, out: Path, options: JobOptions, report: Reporter) -> None:
         from eva_engine.align import PreprocessConfig, preprocess_video
+        from jobs.media import check_frame_budget, probe_video
 
         video = input_file(work)
         if video is None:
             raise FileNotFoundError("the uploaded video is missing from the job's folder")
+        report("preprocess", 0.0, message="checking the video", force=True)
+        # Again here, not only at upload: the budget may have changed, and this is what decodes.
+        info = probe_video(video, self.config.max_video_side, decode_first=False)
+        check_frame_budget(info, options.max_frames, options.max_size, self.config.max_frame_pixels)
         report("preprocess", 0.0, message="decoding the video", force=True)
         model = self.body_model(options.body_model)
 
@@ -193,15 +191,18 @@ class Pipeline:
 
         config = PreprocessConfig(max_frames=options.max_frames, max_size=options.max_size,
                                   fitting=options.fit_config())  # fmt: skip
-        preprocess_video(video, out, config, model=model, progress=progress, overwrite=True)
+        partial = out.with_name(f"{out.name}.partial-{self.attempt}")
+        preprocess_video(video, partial, config, model=model, progress=progress, overwrite=True)
+        report("align", 1.0, message="dataset ready", force=True)  # still ours: put it in place
+        move_into_place(partial, out)
         video.unlink(missing_ok=True)  # the dataset holds the frames now
 
     def _train(self, job: JobRecord, dataset_dir: Path, out: Path, options: JobOptions,
                report: Reporter) -> None:  # fmt: skip
-        import torch
-        from safetensors.torch import save_file
+        import dataclasses
 
         from eva_engine.avatar import save_avatar
+        from eva_engine.avatar.frames import save_avatar_frames
         from eva_engine.data import load_dataset
         from eva_engine.train import preset, train_avatar, with_method
 
@@ -215,6 +216,9 @@ class Pipeline:
         config = preset(options.preset, **overrides)
         if options.method is not None:
             config = with_method(config, options.method)
+        # The service's cap on Gaussians, whatever the preset or method (memory and render time).
+        cap = min(config.strategy.max_gaussians or self.config.max_gaussians, self.config.max_gaussians)
+        config = dataclasses.replace(config, strategy=dataclasses.replace(config.strategy, max_gaussians=cap))
         report("train", 0.0, message="setting up training", force=True)
 
         def progress(p) -> None:
@@ -240,23 +244,26 @@ class Pipeline:
             "gaussians_per_part": result.gaussians_per_part,
             "pose_correction": result.pose_correction,
             "metrics": metrics,
-            "frames": {"count": len(ds), "image_size": list(ds.meta.image_size), "fps": ds.meta.fps},
             "created_at": time.time(),
         }
-        partial = out.with_name(out.name + ".partial")
-        shutil.rmtree(partial, ignore_errors=True)
-        save_avatar(result.avatar, partial, info)
+        partial = out.with_name(f"{out.name}.partial-{self.attempt}")
+        partial.mkdir(parents=True)
         # Each training frame's pose and camera, so a client can render it to compare with the input.
-        # The training frames as trained: their fits with the per-frame pose correction applied.
-        trained = ds.params.map(lambda t: t.detach().cpu().float().clone())
-        rows = torch.tensor(result.train_indices, dtype=torch.int64)
-        for k, v in result.train_params.tensors().items():
-            getattr(trained, k)[rows] = v.float()
-        frames = {f"params.{k}": v.contiguous() for k, v in trained.tensors().items()}
-        frames["K"], frames["viewmat"] = ds.K.float().contiguous(), ds.viewmat.float().contiguous()
-        frames["timestamps"] = torch.as_tensor(ds.timestamps, dtype=torch.float64)
-        save_file(frames, str(partial / FRAMES_NAME))
-        os.replace(partial, out)
+        info["frames"] = save_avatar_frames(partial, ds, result.frame_params(ds.params))  # as trained
+        save_avatar(result.avatar, partial, info)
+        report("train", 1.0, message="avatar trained", force=True)  # still ours: put it in place
+        move_into_place(partial, out)
+
+
+def move_into_place(partial: Path, dest: Path) -> None:
+    """Rename this attempt's complete folder to ``dest``; if another attempt got there first
+    (its folder is just as complete), keep that one."""
+    try:
+        os.replace(partial, dest)
+    except OSError as err:
+        if err.errno not in (errno.ENOTEMPTY, errno.EEXIST) or not dest.is_dir():
+            raise
+        shutil.rmtree(partial, ignore_errors=True)
 
 
 def _training_metrics(avatar, ds) -> dict:
@@ -276,19 +283,50 @@ def _training_metrics(avatar, ds) -> dict:
     return out
 
 
-def _is_input_error(err: Exception) -> bool:
+def is_input_error(err: Exception) -> bool:
     from eva_engine.align import PreprocessError
+    from eva_engine.animate import AnimationError, DrivingError
+    from eva_engine.avatar import AvatarFileError
     from eva_engine.data import DatasetError, VideoError
     from eva_engine.train import TrainingError
+    from jobs.media import VideoRejected
 
-    return isinstance(err, VideoError | PreprocessError | DatasetError | TrainingError | FileNotFoundError)
+    inputs = (VideoError, VideoRejected, PreprocessError, DatasetError, TrainingError, FileNotFoundError,
+              DrivingError, AnimationError, AvatarFileError)  # fmt: skip
+    return isinstance(err, inputs)
 
 
-def _reason(err: Exception, stage: str | None) -> str:
+def _address_space_peak_mb() -> float | None:
+    try:
+        status = Path("/proc/self/status").read_text()
+    except OSError:
+        return None
+    found = re.search(r"VmPeak:\s+(\d+) kB", status)
+    return int(found.group(1)) / 1024 if found else None
+
+
+def is_out_of_memory(err: BaseException, memory_mb: int | None) -> bool:
+    """MemoryError, or any library's failure (torch's allocator, oneDNN, OpenCV word it each their
+    own way) after this process's address space came within 10% of its limit."""
+    if isinstance(err, MemoryError):
+        return True
+    peak = _address_space_peak_mb()
+    return memory_mb is not None and peak is not None and peak > 0.9 * memory_mb
+
+
+def failure_reason(err: Exception, stage: str | None, config: JobsConfig) -> str:
+    """What the job's record says about ``err``: the input's problem as the engine words it, out
+    of memory or disk with the limit, or "internal error" without internals (they are logged)."""
     where = f" (stage {stage})" if stage else ""
-    if _is_input_error(err):
+    if is_out_of_memory(err, config.job_memory_mb):
+        limit = f" of {config.job_memory_mb} MB" if config.job_memory_mb else ""
+        return (f"the job ran out of memory{where}: it needs more than its limit{limit}; "
+                "lower max_frames, max_size or iterations")  # fmt: skip
+    if isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT):
+        return f"the server's disk is full{where}"
+    if is_input_error(err):
         return f"{err}{where}"
-    return f"internal error{where}: {type(err).__name__}: {err}"
+    return f"internal error{where}: {type(err).__name__} (details in the worker's log)"
 
 
-__all__ = ["STAGES", "STAGE_SPANS", "JobCancelled", "Pipeline", "Reporter", "worker_id"]
+__all__ = ["STAGES", "STAGE_SPANS", "JobCancelled", "JobRun", "Reporter", "failure_reason", "move_into_place"]

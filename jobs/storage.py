@@ -11,8 +11,6 @@ from pathlib import Path
 from jobs.config import JobsConfig
 from jobs.store import is_valid_id
 
-FRAMES_NAME = "frames.safetensors"
-
 
 class InvalidIdError(ValueError):
     """An id that is not 32 lowercase hex characters (e.g. one that tries path traversal)."""
@@ -29,7 +27,7 @@ class Storage:
 
     def __init__(self, config: JobsConfig) -> None:
         self.config = config
-        for folder in (config.avatars_dir, config.work_dir):
+        for folder in (config.avatars_dir, config.animations_dir, config.work_dir):
             folder.mkdir(parents=True, exist_ok=True)
 
     def avatar_dir(self, avatar_id: str) -> Path:
@@ -55,6 +53,28 @@ class Storage:
         if not path.exists():
             return
         trash = self.config.avatars_dir / f".deleted-{avatar_id}-{uuid.uuid4().hex[:8]}"
+        os.replace(path, trash)
+        shutil.rmtree(trash, ignore_errors=True)
+
+    # -- animations (the same rules: checked ids, atomic publish, renamed away before removal) ---
+    def animation_dir(self, animation_id: str) -> Path:
+        return self.config.animations_dir / _checked(animation_id, "animation")
+
+    def animation_exists(self, animation_id: str) -> bool:
+        return self.animation_dir(animation_id).is_dir()
+
+    def publish_animation(self, src: Path, animation_id: str) -> Path:
+        dst = self.animation_dir(animation_id)
+        if dst.exists():
+            raise FileExistsError(f"animation {animation_id} already exists")
+        os.replace(src, dst)
+        return dst
+
+    def delete_animation(self, animation_id: str) -> None:
+        path = self.animation_dir(animation_id)
+        if not path.exists():
+            return
+        trash = self.config.animations_dir / f".deleted-{animation_id}-{uuid.uuid4().hex[:8]}"
         os.replace(path, trash)
         shutil.rmtree(trash, ignore_errors=True)
 

@@ -1,15 +1,30 @@
 """Job records in SQLite: state, stage, progress, error and timestamps that survive restarts of
-the API and the workers (several processes share the file; WAL mode, one connection per call).
+the API and the workers (several processes on one host share the file; WAL mode, one connection
+per call). WAL needs shared memory between the processes, so the file must be on a local disk:
+``JobStore`` refuses a network file system rather than corrupt it.
 
 States: ``queued`` -> ``running`` -> ``succeeded`` | ``failed`` | ``cancelled`` (a queued job
 can be cancelled directly; a worker found dead sends a running job back to ``queued``).
 Stages, in order: ``preprocess`` (decode + detect), ``align`` (body-model fit), ``train``,
 ``export`` (publish the avatar). ``completed_stage`` is the last one whose result is on disk.
+
+Kinds: an ``avatar`` job makes the avatar ``avatar_id`` from a video; an ``animation`` job makes
+an animation of an existing avatar (``jobs.animation``): its ``avatar_id`` column holds the id of
+the animation it makes (the column is the job's unique output id) and ``options["avatar_id"]``
+the avatar it animates. Its stages: ``preprocess``, ``align`` (the driving video), ``render``,
+``export``.
+
+Ownership: a running job belongs to the worker that claimed it (``worker``). Every write a worker
+makes is conditional on still owning it (``owner=``), and recovery's writes are conditional on the
+exact record it judged (``expect=``: state, worker and heartbeat), so a worker that lost its job
+(recovery gave it to another) can no longer change it: its writes return False / raise ``JobLost``.
 """
 
 from __future__ import annotations
 
+import functools
 import json
+import logging
 import sqlite3
 import time
 import uuid
@@ -19,9 +34,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+logger = logging.getLogger("eva.jobs")
+
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 TERMINAL = ("succeeded", "failed", "cancelled")
 STAGES = ("preprocess", "align", "train", "export")
+KINDS = ("avatar", "animation")
+STAGES_OF = {"avatar": STAGES, "animation": ("preprocess", "align", "render", "export")}
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS jobs (
@@ -44,10 +63,28 @@ CREATE TABLE IF NOT EXISTS jobs (
     started_at REAL,
     finished_at REAL,
     updated_at REAL NOT NULL,
-    heartbeat_at REAL
+    heartbeat_at REAL,
+    enqueued_at REAL,
+    kind TEXT NOT NULL DEFAULT 'avatar'
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state);
 """
+# Columns added since the first release: added to an older file when it is opened.
+_ADDED_COLUMNS = {"enqueued_at": "REAL", "kind": "TEXT NOT NULL DEFAULT 'avatar'"}
+# File systems where SQLite's WAL (shared-memory index, POSIX locks) is unsafe.
+NETWORK_FILESYSTEMS = frozenset({
+    "nfs", "nfs4", "cifs", "smb3", "smbfs", "ceph", "glusterfs", "fuse.glusterfs", "fuse.sshfs",
+    "fuse.s3fs", "lustre", "gpfs", "afs", "9p", "fuse.rclone", "beegfs", "ocfs2",
+})  # fmt: skip
+_BUSY_RETRIES = 4
+
+
+class JobLost(Exception):
+    """This worker no longer owns the job: recovery gave it to another worker, or it ended."""
+
+
+class JobStoreError(RuntimeError):
+    """The job records cannot be kept where they were asked to be (see the message)."""
 
 
 def new_id() -> str:
@@ -83,6 +120,8 @@ class JobRecord:
     started_at: float | None = None
     finished_at: float | None = None
     heartbeat_at: float | None = None
+    enqueued_at: float | None = None
+    kind: str = "avatar"
 
     @property
     def finished(self) -> bool:
@@ -97,19 +136,74 @@ class JobRecord:
         return cls(**d)
 
 
-class JobStore:
-    """The job table at ``path`` (created on first use)."""
+def _retry_busy(method):
+    """Retry a store operation when SQLite stays busy or locked past its timeout (another process
+    holding a long write), with a short backoff; other errors pass through."""
 
-    def __init__(self, path: str | Path) -> None:
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        for attempt in range(_BUSY_RETRIES):
+            try:
+                return method(self, *args, **kwargs)
+            except sqlite3.OperationalError as err:
+                transient = "locked" in str(err) or "busy" in str(err)
+                if not transient or attempt == _BUSY_RETRIES - 1:
+                    raise
+                logger.warning("job store busy (%s); retrying %s", err, method.__name__)
+                time.sleep(0.2 * 2**attempt)
+        raise AssertionError("unreachable")
+
+    return wrapper
+
+
+def filesystem_type(path: Path) -> str | None:
+    """The type of the file system holding ``path`` (Linux /proc/self/mounts), or None."""
+    try:
+        mounts = Path("/proc/self/mounts").read_text().splitlines()
+    except OSError:
+        return None
+    target = str(path.resolve())
+    best, kind = "", None
+    for line in mounts:
+        parts = line.split()
+        if len(parts) < 3:
+            continue
+        point = parts[1].replace("\\040", " ")
+        inside = target == point or target.startswith(point.rstrip("/") + "/")
+        if inside and len(point) >= len(best):
+            best, kind = point, parts[2]
+    return kind
+
+
+class JobStore:
+    """The job table at ``path`` (created on first use). ``timeout``: seconds a call waits for
+    another process's write lock before it is retried."""
+
+    def __init__(self, path: str | Path, timeout: float = 10.0) -> None:
         self.path = Path(path)
+        self.timeout = timeout
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        kind = filesystem_type(self.path.parent)
+        if kind in NETWORK_FILESYSTEMS:
+            raise JobStoreError(
+                f"job records (SQLite, WAL) need a local disk, but {self.path.parent} is on {kind}: run the "
+                "API and the workers on one host with the data dir on a local disk (see README, Service)"
+            )
+        self._init()
+
+    @_retry_busy
+    def _init(self) -> None:
         with self._connect() as db:
             db.execute("PRAGMA journal_mode=WAL")
             db.executescript(_SCHEMA)
+            have = {row["name"] for row in db.execute("PRAGMA table_info(jobs)")}
+            for name, kind in _ADDED_COLUMNS.items():
+                if name not in have:
+                    db.execute(f"ALTER TABLE jobs ADD COLUMN {name} {kind}")
 
     @contextmanager
     def _connect(self) -> Iterator[sqlite3.Connection]:
-        db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
+        db = sqlite3.connect(self.path, timeout=self.timeout, isolation_level=None)
         db.row_factory = sqlite3.Row
         try:
             yield db
@@ -117,20 +211,34 @@ class JobStore:
             db.close()
 
     # -- reads ---------------------------------------------------------------------------------
+    @_retry_busy
     def get(self, job_id: str) -> JobRecord | None:
         with self._connect() as db:
             row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return JobRecord.from_row(row) if row else None
 
-    def by_avatar(self, avatar_id: str) -> JobRecord | None:
+    @_retry_busy
+    def by_avatar(self, avatar_id: str, with_deleted: bool = False,
+                  kind: str | None = "avatar") -> JobRecord | None:  # fmt: skip
+        """The job that made ``avatar_id`` (for ``kind="animation"``: the animation with that id;
+        ``kind=None``: either)."""
+        query, args = "SELECT * FROM jobs WHERE avatar_id = ?", [avatar_id]
+        if not with_deleted:
+            query += " AND avatar_deleted = 0"
+        if kind is not None:
+            query += " AND kind = ?"
+            args.append(kind)
         with self._connect() as db:
-            row = db.execute(
-                "SELECT * FROM jobs WHERE avatar_id = ? AND avatar_deleted = 0", (avatar_id,)
-            ).fetchone()
+            row = db.execute(query, args).fetchone()
         return JobRecord.from_row(row) if row else None
 
-    def list(self, states: tuple[str, ...] | None = None, with_deleted: bool = False) -> list[JobRecord]:
+    @_retry_busy
+    def list(self, states: tuple[str, ...] | None = None, with_deleted: bool = False,
+             kind: str | None = None) -> list[JobRecord]:  # fmt: skip
         query, args = "SELECT * FROM jobs WHERE 1 = 1", []
+        if kind is not None:
+            query += " AND kind = ?"
+            args.append(kind)
         if states:
             query += f" AND state IN ({','.join('?' * len(states))})"
             args += list(states)
@@ -140,25 +248,43 @@ class JobStore:
             rows = db.execute(query + " ORDER BY created_at", args).fetchall()
         return [JobRecord.from_row(r) for r in rows]
 
+    @_retry_busy
+    def counts(self) -> dict[str, int]:
+        """Jobs per state (one indexed query, not a row per job)."""
+        counts = dict.fromkeys(STATES, 0)
+        with self._connect() as db:
+            for row in db.execute("SELECT state, COUNT(*) AS n FROM jobs GROUP BY state"):
+                counts[row["state"]] = row["n"]
+        return counts
+
     # -- writes --------------------------------------------------------------------------------
+    @_retry_busy
     def create(self, options: dict[str, Any], filename: str | None = None,
-               job_id: str | None = None, avatar_id: str | None = None) -> JobRecord:  # fmt: skip
+               job_id: str | None = None, avatar_id: str | None = None,
+               kind: str = "avatar") -> JobRecord:  # fmt: skip
+        if kind not in KINDS:
+            raise ValueError(f"unknown job kind {kind!r}; choose one of {KINDS}")
         now = time.time()
         job = JobRecord(
             id=job_id or new_id(), avatar_id=avatar_id or new_id(), state="queued", options=options,
-            created_at=now, updated_at=now, filename=filename, message="waiting for a worker",
+            created_at=now, updated_at=now, filename=filename, message="waiting for a worker", kind=kind,
         )  # fmt: skip
+        row = (job.id, job.avatar_id, kind, job.state, json.dumps(options), filename, job.message, now, now)
         with self._connect() as db:
             db.execute(
-                "INSERT INTO jobs (id, avatar_id, state, options, filename, message, created_at, updated_at)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                (job.id, job.avatar_id, job.state, json.dumps(options), filename, job.message, now, now),
+                "INSERT INTO jobs (id, avatar_id, kind, state, options, filename, message, created_at,"
+                " updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                row,
             )
         return job
 
-    def update(self, job_id: str, *, where_state: tuple[str, ...] | None = None, **fields: Any) -> bool:
-        """Set ``fields`` (column names); only if the job's state is in ``where_state`` when given.
-        Returns whether a row changed (the compare-and-set that claims and cancels jobs)."""
+    @_retry_busy
+    def update(self, job_id: str, *, where_state: tuple[str, ...] | None = None, owner: str | None = None,
+               expect: JobRecord | None = None, **fields: Any) -> bool:  # fmt: skip
+        """Set ``fields`` (column names) if the job still matches, and say whether it did (the
+        compare-and-set behind claims, cancels and recovery). Conditions: ``where_state``, the
+        job's state is one of these; ``owner``, it is running and claimed by this worker;
+        ``expect``, it is still exactly as in this record (state, worker and heartbeat)."""
         fields["updated_at"] = time.time()
         if "options" in fields:
             fields["options"] = json.dumps(fields["options"])
@@ -167,9 +293,16 @@ class JobStore:
         if where_state:
             query += f" AND state IN ({','.join('?' * len(where_state))})"
             args += list(where_state)
+        if owner is not None:
+            query += " AND state = 'running' AND worker = ?"
+            args.append(owner)
+        if expect is not None:
+            query += " AND state = ? AND worker IS ? AND heartbeat_at IS ?"
+            args += [expect.state, expect.worker, expect.heartbeat_at]
         with self._connect() as db:
             return db.execute(query, args).rowcount == 1
 
+    @_retry_busy
     def claim(self, job_id: str, worker: str) -> JobRecord | None:
         """Atomically move a queued job to running for ``worker`` (None if someone else has it)."""
         now = time.time()
@@ -183,23 +316,42 @@ class JobStore:
         return self.get(job_id) if changed == 1 else None
 
     def finish(self, job_id: str, state: str, error: str | None = None, message: str | None = None,
-               from_states: tuple[str, ...] = ("queued", "running")) -> bool:  # fmt: skip
-        """Move a job to a terminal state (only from ``from_states``)."""
+               from_states: tuple[str, ...] = ("queued", "running"), owner: str | None = None,
+               expect: JobRecord | None = None) -> bool:  # fmt: skip
+        """Move a job to a terminal state (only from ``from_states``; ``owner`` / ``expect`` as in
+        ``update``)."""
         if state not in TERMINAL:
             raise ValueError(f"{state!r} is not a terminal state")
         extra: dict[str, Any] = {"progress": 1.0, "eta_s": 0.0} if state == "succeeded" else {"eta_s": None}
         return self.update(
-            job_id, where_state=from_states, state=state, error=error, message=message,
-            finished_at=time.time(), **extra,
+            job_id, where_state=from_states, owner=owner, expect=expect, state=state, error=error,
+            message=message, finished_at=time.time(), **extra,
         )  # fmt: skip
 
-    def heartbeat(self, job_id: str, worker: str) -> None:
+    @_retry_busy
+    def heartbeat(self, job_id: str, worker: str) -> JobRecord | None:
+        """Mark the job alive; returns its record, or None when ``worker`` no longer owns it."""
         with self._connect() as db:
-            db.execute(
+            changed = db.execute(
                 "UPDATE jobs SET heartbeat_at = ? WHERE id = ? AND worker = ? AND state = 'running'",
                 (time.time(), job_id, worker),
-            )
+            ).rowcount
+            row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone() if changed else None
+        return JobRecord.from_row(row) if row else None
 
+    @_retry_busy
     def delete(self, job_id: str) -> None:
         with self._connect() as db:
             db.execute("DELETE FROM jobs WHERE id = ?", (job_id,))
+
+    @_retry_busy
+    def purge(self, finished_before: float) -> list[JobRecord]:
+        """Delete the records of jobs that ended before ``finished_before`` and left nothing to
+        serve (failed, cancelled, or their avatar deleted); returns them."""
+        where = "state IN ('failed', 'cancelled') OR (state = 'succeeded' AND avatar_deleted = 1)"
+        with self._connect() as db:
+            rows = db.execute(f"SELECT * FROM jobs WHERE finished_at < ? AND ({where})",
+                              (finished_before,)).fetchall()  # fmt: skip
+            db.executemany("DELETE FROM jobs WHERE id = ? AND finished_at < ?",
+                           [(r["id"], finished_before) for r in rows])  # fmt: skip
+        return [JobRecord.from_row(r) for r in rows]

@@ -4,7 +4,10 @@ A synthetic signer video (``eva_engine.demo.signer_video``) is uploaded to a rea
 with a real ``eva worker`` (both started here on a free loopback port, over a private service
 folder); the job is followed to the end with its progress, then the avatar is rendered through
 the API in a training frame's pose and in a new pose from the front and from the side. The PNG
-shows: input frame | avatar in that frame's pose | new pose | new pose from 35 degrees.
+shows: input frame | avatar in that frame's pose | new pose | new pose from 35 degrees. With
+``out_mp4``, the avatar then performs a video of someone else (the synthetic signer with another
+seed: another body, face and motion) through ``POST /avatars/{id}/animations``: the mp4 shows
+that video beside the avatar.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ class DemoResult:
     seconds: float
     num_gaussians: int | None
     workdir: Path
+    animation: Path | None = None
 
 
 def _eva_executable() -> str:
@@ -60,10 +64,13 @@ def run_service_demo(
     options: dict[str, str] | None = None,
     progress: Progress | None = None,
     timeout: float = 3600.0,
+    out_mp4: Path | None = None,
 ) -> DemoResult:
-    """Video -> service -> avatar -> renders (see the module docstring). ``options``: the upload
-    form fields (``preset``, ``iterations``, ...). Everything but the PNG goes under ``workdir``
-    (replaced on every run); the server and worker are stopped whatever happens."""
+    """Video -> service -> avatar -> renders (and, with ``out_mp4``, an animation; see the module
+    docstring). ``options``: the upload form fields (``preset``, ``iterations``, ...; its
+    ``fit_scale`` also applies to the driving video). Everything but the PNG and the mp4 goes
+    under ``workdir`` (replaced on every run); the server and worker are stopped whatever
+    happens."""
     import httpx
     from PIL import Image
 
@@ -96,16 +103,8 @@ def run_service_demo(
                 )
             _check(created, "upload")
             avatar_id, job_id = created.json()["avatar_id"], created.json()["job_id"]
-            while True:
-                job = _check(api.get(f"/jobs/{job_id}"), "job status").json()
-                say(job["stage"] or job["state"], job["progress"], job["eta_seconds"])
-                if job["state"] == "succeeded":
-                    break
-                if job["state"] in ("failed", "cancelled"):
-                    raise DemoError(f"the job {job['state']}: {job['error']} (logs in {workdir})")
-                if time.perf_counter() - started > timeout or any(p.poll() is not None for p in procs):
-                    raise DemoError(f"the job did not finish (logs in {workdir})")
-                time.sleep(0.5)
+            follow = _follower(api, procs, workdir, say, started + timeout)
+            follow(job_id, "")
             info = _check(api.get(f"/avatars/{avatar_id}"), "avatar info").json()
             frame = info["num_frames"] // 2
             h, w = info["frame_size"]
@@ -118,6 +117,20 @@ def run_service_demo(
             for body in requests:
                 png = _check(api.post(f"/avatars/{avatar_id}/render", json=body), "render").content
                 panels.append(np.asarray(Image.open(io.BytesIO(png)).convert("RGB").resize((w, h))))
+            if out_mp4 is not None:
+                say("video", 0.0, None)
+                driving, _ = signer_video(workdir / "driving", load_body_model("anny"), seed=1)
+                form = {"camera": "front", "side_by_side": "true"}
+                if options and options.get("fit_scale"):
+                    form["fit_scale"] = options["fit_scale"]
+                with driving.open("rb") as f:
+                    created = api.post(f"/avatars/{avatar_id}/animations", data=form,
+                                       files={"video": ("someone_else.mp4", f, "video/mp4")})  # fmt: skip
+                created = _check(created, "animation upload").json()
+                follow(created["job_id"], "animate ")
+                video = _check(api.get(f"/animations/{created['animation_id']}/video"), "animation").content
+                out_mp4.parent.mkdir(parents=True, exist_ok=True)
+                out_mp4.write_bytes(video)
     finally:
         for p in procs:
             p.terminate()
@@ -130,7 +143,27 @@ def run_service_demo(
             log.close()
     out_png.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.concatenate(panels, axis=1)).save(out_png)
-    return DemoResult(out_png, avatar_id, time.perf_counter() - started, info.get("num_gaussians"), workdir)
+    return DemoResult(out_png, avatar_id, time.perf_counter() - started, info.get("num_gaussians"), workdir,
+                      out_mp4)  # fmt: skip
+
+
+def _follower(api, procs, workdir: Path, say: Progress, deadline: float):
+    """follow(job_id, label): poll the job to its end, reporting progress; DemoError unless it
+    succeeds."""
+
+    def follow(job_id: str, label: str) -> None:
+        while True:
+            job = _check(api.get(f"/jobs/{job_id}"), "job status").json()
+            say(label + (job["stage"] or job["state"]), job["progress"], job["eta_seconds"])
+            if job["state"] == "succeeded":
+                return
+            if job["state"] in ("failed", "cancelled"):
+                raise DemoError(f"the {job['kind']} job {job['state']}: {job['error']} (logs in {workdir})")
+            if time.perf_counter() > deadline or any(p.poll() is not None for p in procs):
+                raise DemoError(f"the job did not finish (logs in {workdir})")
+            time.sleep(0.5)
+
+    return follow
 
 
 def _wait_healthy(api, procs, workdir: Path, timeout: float = 180.0) -> None:

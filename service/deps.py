@@ -1,16 +1,42 @@
-"""Request dependencies: the app's context, the API key, and ids resolved to records (404s)."""
+"""Request dependencies: the app's context and ids resolved to records (404s). The API key is
+checked before routing, by ``service.guard``."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import asyncio
+import time
+from dataclasses import dataclass, field
 
-from fastapi import Depends, HTTPException, Request, Security
-from fastapi.security import APIKeyHeader
+from fastapi import Depends, HTTPException, Request
+from fastapi.concurrency import run_in_threadpool
 
 from jobs.queue import JobQueue
 from jobs.store import JobRecord, is_valid_id
-from service.rendering import AvatarCache
+from service.guard import RETRY_AFTER_S
+from service.rendering import AvatarCache, RenderGate
 from service.settings import ServiceSettings
+
+
+@dataclass
+class JobCounts:
+    """Jobs per state for ``/healthz``, which is polled often and must answer at once: it gets
+    the last counts read; when they are older than ``max_age_s``, a background task reads them
+    again from the store (in a thread)."""
+
+    max_age_s: float = 1.0
+    _value: dict[str, int] | None = None
+    _at: float = field(default=float("-inf"))
+    _refresh: asyncio.Task | None = None
+
+    async def get(self, queue: JobQueue) -> dict[str, int]:
+        if self._value is None:
+            await self._read(queue)
+        elif time.monotonic() - self._at > self.max_age_s and (self._refresh is None or self._refresh.done()):
+            self._refresh = asyncio.create_task(self._read(queue))
+        return self._value
+
+    async def _read(self, queue: JobQueue) -> None:
+        self._value, self._at = await run_in_threadpool(queue.store.counts), time.monotonic()
 
 
 @dataclass
@@ -20,19 +46,18 @@ class ServiceContext:
     settings: ServiceSettings
     queue: JobQueue
     avatars: AvatarCache
+    renders: RenderGate
+    job_counts: JobCounts = field(default_factory=JobCounts)
 
 
-def context(request: Request) -> ServiceContext:
+async def context(request: Request) -> ServiceContext:  # async: no thread hop for a lookup
     return request.app.state.context
 
 
-_api_key = APIKeyHeader(name="X-API-Key", auto_error=False, description="Needed when the service has a key.")
-
-
-def require_api_key(key: str | None = Security(_api_key), ctx: ServiceContext = Depends(context)) -> None:
-    expected = ctx.settings.api_key
-    if expected is not None and key != expected:
-        raise HTTPException(401, "missing or wrong API key (header X-API-Key)")
+async def render_admission(ctx: ServiceContext = Depends(context)) -> None:
+    """Refuse a render (503) before its body is validated or its avatar looked up, when the
+    render gate could not even let it wait."""
+    ctx.renders.admit()
 
 
 def _check_id(value: str, what: str) -> None:
@@ -72,3 +97,12 @@ def ready_avatar(
     if not ctx.queue.storage.avatar_exists(job.avatar_id):
         raise HTTPException(409, f"avatar {job.avatar_id} has no files on disk (deleted?)")
     return job
+
+
+def check_job_quota(ctx: ServiceContext) -> None:
+    """503 with ``Retry-After`` when ``max_queued_jobs`` jobs (avatars and animations) already wait
+    for a worker. Blocking (reads the store): call it from a thread."""
+    queued = ctx.queue.store.counts()["queued"]
+    if queued >= ctx.settings.max_queued_jobs:
+        raise HTTPException(503, f"{queued} jobs are waiting for a worker (the quota); retry later",
+                            headers={"Retry-After": str(30 * RETRY_AFTER_S)})  # fmt: skip

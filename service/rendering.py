@@ -1,79 +1,134 @@
-"""Loaded avatars and what the render and export endpoints do with them: build the camera,
-render through ``Avatar.render``, encode PNG/JPEG, and write the posed body mesh as GLB."""
+"""Loaded avatars and what the render and export endpoints do with them: check the size against
+the limits before the avatar loads, render through ``Avatar.render`` (the request's pose, camera
+and size, checked against the body model: ``eva_engine.avatar.render_spec``; at most
+``RenderGate.slots`` at once), encode PNG/JPEG, and write the posed body mesh as GLB."""
 
 from __future__ import annotations
 
+import asyncio
 import io
 import threading
-from collections import OrderedDict
+from collections import OrderedDict, deque
+from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from eva_engine.avatar import Avatar, load_avatar
+from eva_engine.avatar import Avatar, AvatarFileError, load_avatar
+from eva_engine.avatar.frames import AvatarFrames, load_avatar_frames
+from eva_engine.avatar.render_spec import RenderInputError, RenderSpec, resolve_size
+from eva_engine.avatar.render_spec import render_image as _render_image
 from eva_engine.body import BodyModel, BodyParams, load_body_model
-from eva_engine.render.camera import Camera, intrinsics, orbit_camera
+from eva_engine.render.camera import Camera
 from eva_engine.render.sh import SH_C0
-from jobs.storage import FRAMES_NAME
-from service.schemas import DEFAULT_DISTANCE, DEFAULT_FOV_Y, DEFAULT_SIZE, CameraSpec, RenderRequest
 
 
-class RenderInputError(ValueError):
-    """A render request that names something the avatar does not have (answered 422)."""
+class RenderBusy(Exception):
+    """Every render slot is taken and the waiting line is full or did not move in time (503)."""
 
 
-@dataclass
-class TrainingFrames:
-    """The training frames' fitted params (batch F), cameras K [F, 3, 3], viewmat [F, 4, 4] and
-    image size (height, width)."""
+class RenderGate:
+    """At most ``slots`` renders at once; up to ``waiting`` more wait (first come, first served)
+    at most ``wait_s`` seconds, in the event loop (not in threads); beyond that ``RenderBusy``."""
 
-    params: BodyParams
-    K: torch.Tensor
-    viewmat: torch.Tensor
-    size: tuple[int, int]
+    def __init__(self, slots: int, waiting: int, wait_s: float) -> None:
+        self.slots, self.waiting, self.wait_s = slots, waiting, wait_s
+        self.running = 0
+        self._line: deque[asyncio.Future] = deque()
 
-    def __len__(self) -> int:
-        return self.params.batch_size
+    @property
+    def queued(self) -> int:
+        return len(self._line)
+
+    def admit(self) -> None:
+        """``RenderBusy`` at once when every slot is taken and the line is full: a request that
+        could not even wait is refused before anything is read or looked up for it."""
+        if self.running >= self.slots and len(self._line) >= self.waiting:
+            raise RenderBusy(f"{self.running} renders are running and {len(self._line)} waiting")
+
+    @asynccontextmanager
+    async def slot(self):
+        if self.running < self.slots and not self._line:
+            self.running += 1
+        else:
+            if len(self._line) >= self.waiting:
+                raise RenderBusy(f"{self.running} renders are running and {len(self._line)} waiting")
+            turn = asyncio.get_running_loop().create_future()
+            self._line.append(turn)
+            try:
+                await asyncio.wait_for(turn, self.wait_s)  # the releasing render hands its slot over
+            except TimeoutError:
+                raise RenderBusy(f"no render slot came free within {self.wait_s:.0f} s") from None
+            finally:
+                if turn in self._line:
+                    self._line.remove(turn)
+        try:
+            yield
+        finally:
+            self._release()
+
+    def _release(self) -> None:
+        while self._line:
+            turn = self._line.popleft()
+            if not turn.done():
+                turn.set_result(None)  # the slot passes on: ``running`` stays
+                return
+        self.running -= 1
 
 
 @dataclass
 class LoadedAvatar:
     avatar: Avatar
-    frames: TrainingFrames | None
+    frames: AvatarFrames | None
     lock: threading.Lock
 
 
 class AvatarCache:
-    """Up to ``capacity`` avatars kept loaded (LRU), and one body model per name (loaded once)."""
+    """Up to ``capacity`` avatars kept loaded (LRU), and one body model per name (loaded once).
+    Concurrent first requests for one avatar wait for a single load (``loads`` counts them)."""
 
     def __init__(self, capacity: int) -> None:
         self.capacity = capacity
+        self.loads = 0
         self._avatars: OrderedDict[tuple[str, float], LoadedAvatar] = OrderedDict()
+        self._loading: dict[tuple[str, float], threading.Lock] = {}
         self._bodies: dict[str, BodyModel] = {}
         self._lock = threading.Lock()
+        self._body_lock = threading.Lock()
 
     def body(self, name: str) -> BodyModel:
-        with self._lock:
+        with self._body_lock:
             if name not in self._bodies:
                 self._bodies[name] = load_body_model(name)
             return self._bodies[name]
 
     def get(self, avatar_id: str, path: Path) -> LoadedAvatar:
-        key = (avatar_id, path.stat().st_mtime)
+        try:
+            key = (avatar_id, path.stat().st_mtime)
+        except FileNotFoundError as err:  # deleted since the request was checked
+            raise AvatarFileError(f"avatar {avatar_id} has no files on disk") from err
         with self._lock:
             if key in self._avatars:
                 self._avatars.move_to_end(key)
                 return self._avatars[key]
-        from eva_engine.avatar import read_avatar_info
+            loading = self._loading.setdefault(key, threading.Lock())
+        with loading:  # one thread loads; the others wait here and then find it cached
+            with self._lock:
+                if key in self._avatars:
+                    return self._avatars[key]
+            from eva_engine.avatar import read_avatar_info
 
-        body = self.body(read_avatar_info(path)["body_model"])
-        loaded = LoadedAvatar(load_avatar(path, body=body).eval(), _read_frames(path), threading.Lock())
-        with self._lock:
-            self._avatars[key] = loaded
-            while len(self._avatars) > self.capacity:
-                self._avatars.popitem(last=False)
+            body = self.body(read_avatar_info(path)["body_model"])
+            avatar = load_avatar(path, body=body).eval()
+            loaded = LoadedAvatar(avatar, load_avatar_frames(path), threading.Lock())
+            with self._lock:
+                self.loads += 1
+                self._avatars[key] = loaded
+                self._loading.pop(key, None)
+                while len(self._avatars) > self.capacity:
+                    self._avatars.popitem(last=False)
         return loaded
 
     def forget(self, avatar_id: str) -> None:
@@ -82,68 +137,26 @@ class AvatarCache:
                 del self._avatars[key]
 
 
-def _read_frames(path: Path) -> TrainingFrames | None:
-    from safetensors.torch import load_file
-
+# -- render (pose, camera and size come from eva_engine.avatar.render_spec) ------------------------
+def checked_size(spec: RenderSpec, folder: Path, max_side: int, max_pixels: int) -> tuple[int, int]:
+    """The render's (width, height), from the request and the avatar's ``avatar.json`` (no model
+    load), or ``RenderInputError`` when it is over ``max_side`` a side or ``max_pixels`` in all."""
     from eva_engine.avatar import read_avatar_info
 
-    file = path / FRAMES_NAME
-    if not file.is_file():
-        return None
-    t = load_file(str(file))
-    params = BodyParams(**{k.removeprefix("params."): v for k, v in t.items() if k.startswith("params.")})
-    h, w = read_avatar_info(path).get("frames", {}).get("image_size", (0, 0))
-    return TrainingFrames(params, t["K"], t["viewmat"], (int(h), int(w)))
-
-
-# -- render ----------------------------------------------------------------------------------------
-def resolve_size(req: RenderRequest, frames: TrainingFrames | None) -> tuple[int, int]:
-    """(width, height): as asked, else the training frame's (for ``frame``), else 512."""
-    if req.frame is not None and frames is not None and frames.size[0] > 0:
-        h, w = frames.size
-        if req.width is not None and req.height is None:
-            return req.width, max(16, round(req.width * h / w))
-        if req.height is not None and req.width is None:
-            return max(16, round(req.height * w / h)), req.height
-        return req.width or w, req.height or h
-    return req.width or DEFAULT_SIZE, req.height or DEFAULT_SIZE
-
-
-def frame_params(loaded: LoadedAvatar, index: int) -> BodyParams:
-    frames = loaded.frames
-    if frames is None:
-        raise RenderInputError("this avatar keeps no training frames")
-    if index >= len(frames):
-        raise RenderInputError(f"frame {index} is out of range: the avatar has {len(frames)} training frames")
-    return frames.params[index]
-
-
-def make_camera(req: RenderRequest, width: int, height: int, frames: TrainingFrames | None) -> Camera:
-    spec = req.camera
-    if spec is None and req.frame is not None and frames is not None:
-        # The training frame's own camera, with K scaled to the requested size.
-        h0, w0 = frames.size
-        K = frames.K[req.frame].clone().float()
-        K[0] *= width / w0
-        K[1] *= height / h0
-        return Camera(K, frames.viewmat[req.frame].float(), width, height)
-    spec = spec or CameraSpec()
-    if spec.K is not None and spec.viewmat is not None:
-        return Camera(torch.tensor(spec.K), torch.tensor(spec.viewmat), width, height)
-    view = orbit_camera(
-        spec.yaw or 0.0,
-        spec.pitch or 0.0,
-        spec.distance or DEFAULT_DISTANCE,
-        spec.target or (0.0, 0.0, 0.0),
-    )
-    return Camera(intrinsics(width, height, spec.fov_y or DEFAULT_FOV_Y), view, width, height)
+    size = read_avatar_info(folder).get("frames", {}).get("image_size") if spec.frame is not None else None
+    width, height = resolve_size(spec, (int(size[0]), int(size[1])) if size else None)
+    if width > max_side or height > max_side or width * height > max_pixels:
+        raise RenderInputError(
+            f"render size {width}x{height} is over the limit ({max_side} pixels a side, "
+            f"{max_pixels} pixels in all); pass a smaller width / height"
+        )
+    return width, height
 
 
 def render_image(loaded: LoadedAvatar, params: BodyParams, camera: Camera, background) -> np.ndarray:
-    """[H, W, 3] uint8."""
-    with loaded.lock, torch.no_grad():
-        image = loaded.avatar.render(params, camera, torch.tensor(background, dtype=torch.float32))
-    return (image.cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+    """[H, W, 3] uint8 (one render at a time per loaded avatar)."""
+    with loaded.lock:
+        return _render_image(loaded.avatar, params, camera, background)
 
 
 def encode_image(image: np.ndarray, fmt: str) -> bytes:

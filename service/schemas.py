@@ -2,35 +2,26 @@
 
 from __future__ import annotations
 
-import math
 from datetime import UTC, datetime
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field
 
-from eva_engine.body import BodyPose
+from eva_engine.avatar.render_spec import (  # noqa: F401  (the bounds, re-exported for clients)
+    MAX_FRAME_INDEX,
+    MAX_POSE_KEYS,
+    MAX_SIDE,
+    RenderPose,
+    RenderSpec,
+)
+from eva_engine.render.view import CAMERA_PRESETS, CameraSpec  # noqa: F401
+from jobs.animation import AnimationOptions
 from jobs.options import JobOptions
 from jobs.store import JobRecord
 
-Vec3 = tuple[float, float, float]
-Vec4 = tuple[float, float, float, float]
-Unit = Annotated[float, Field(ge=0.0, le=1.0)]
-
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-JobStage = Literal["preprocess", "align", "train", "export"]
+JobStage = Literal["preprocess", "align", "train", "render", "export"]
 AvatarStatus = Literal["pending", "ready", "failed", "cancelled"]
-
-# Named views of the subject (yaw toward the subject's left is positive; see render.camera).
-CAMERA_PRESETS: dict[str, dict[str, float]] = {
-    "front": {"yaw": 0.0, "pitch": 0.0},
-    "back": {"yaw": 180.0, "pitch": 0.0},
-    "left": {"yaw": 90.0, "pitch": 0.0},
-    "right": {"yaw": -90.0, "pitch": 0.0},
-    "front_left": {"yaw": 45.0, "pitch": 10.0},
-    "front_right": {"yaw": -45.0, "pitch": 10.0},
-    "above": {"yaw": 0.0, "pitch": 45.0},
-}
-DEFAULT_DISTANCE, DEFAULT_FOV_Y, DEFAULT_SIZE = 2.6, 40.0, 512
 
 
 def _time(ts: float | None) -> datetime | None:
@@ -46,6 +37,7 @@ class Health(BaseModel):
     version: str
     queue: str = Field(description="sqlite or redis")
     jobs: dict[str, int] = Field(description="Job count per state.")
+    renders: dict[str, int] = Field(default_factory=dict, description="Renders running and waiting.")
 
 
 class AvatarCreated(BaseModel):
@@ -56,7 +48,10 @@ class AvatarCreated(BaseModel):
 
 
 class JobInfo(BaseModel):
-    """A job's state; ``progress`` runs 0..1 over all stages, ``eta_seconds`` while training."""
+    """A job's state; ``progress`` runs 0..1 over all stages, ``eta_seconds`` while training (or
+    rendering). ``kind``: ``avatar`` (makes ``avatar_id`` from a video: stages preprocess, align,
+    train, export) or ``animation`` (makes ``animation_id``, an mp4 of the avatar ``avatar_id``
+    performing a driving video: stages preprocess, align, render, export)."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [{
         "job_id": "0a1b2c3d4e5f60718293a4b5c6d7e8f9", "avatar_id": "9f1c2b7e4a5d4c3b8e7f6a5b4c3d2e1f",
@@ -68,7 +63,9 @@ class JobInfo(BaseModel):
     }]})  # fmt: skip
 
     job_id: str
+    kind: Literal["avatar", "animation"] = "avatar"
     avatar_id: str
+    animation_id: str | None = None
     state: JobState
     stage: JobStage | None
     progress: float
@@ -78,7 +75,7 @@ class JobInfo(BaseModel):
     attempts: int
     cancel_requested: bool
     filename: str | None
-    options: JobOptions
+    options: JobOptions | AnimationOptions
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
@@ -86,11 +83,16 @@ class JobInfo(BaseModel):
 
     @classmethod
     def of(cls, job: JobRecord) -> JobInfo:
+        if job.kind == "animation":  # its avatar_id column is the animation's id (see jobs.store)
+            options = AnimationOptions.model_validate(job.options)
+            ids = {"kind": "animation", "avatar_id": options.avatar_id, "animation_id": job.avatar_id}
+        else:
+            options, ids = JobOptions.model_validate(job.options), {"avatar_id": job.avatar_id}
         return cls(
-            job_id=job.id, avatar_id=job.avatar_id, state=job.state, stage=job.stage,  # type: ignore[arg-type]
+            job_id=job.id, **ids, state=job.state, stage=job.stage,  # type: ignore[arg-type]
             progress=round(job.progress, 4), eta_seconds=job.eta_s, message=job.message, error=job.error,
             attempts=job.attempts, cancel_requested=job.cancel_requested, filename=job.filename,
-            options=JobOptions.model_validate(job.options), created_at=_time(job.created_at),
+            options=options, created_at=_time(job.created_at),
             started_at=_time(job.started_at), finished_at=_time(job.finished_at),
             updated_at=_time(job.updated_at),
         )  # fmt: skip
@@ -122,50 +124,12 @@ class AvatarList(BaseModel):
     avatars: list[AvatarInfo]
 
 
-class CameraSpec(BaseModel):
-    """Either an orbit around ``target`` (yaw, pitch in degrees; distance in metres; vertical field
-    of view ``fov_y`` in degrees) or explicit OpenCV ``K`` [3x3] (pixels, for the requested size)
-    and world->camera ``viewmat`` [4x4]. A JSON string names a preset view instead."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-    yaw: float | None = Field(None, ge=-360.0, le=360.0)
-    pitch: float | None = Field(None, gt=-90.0, lt=90.0)
-    distance: float | None = Field(None, gt=0.0, le=100.0)
-    target: Vec3 | None = None
-    fov_y: float | None = Field(None, gt=1.0, lt=170.0)
-    K: tuple[Vec3, Vec3, Vec3] | None = None
-    viewmat: tuple[Vec4, Vec4, Vec4, Vec4] | None = None
-
-    @model_validator(mode="after")
-    def _one_kind(self) -> CameraSpec:
-        orbit = [k for k in ("yaw", "pitch", "distance", "target", "fov_y") if getattr(self, k) is not None]
-        if self.K is None and self.viewmat is None:
-            return self
-        if self.K is None or self.viewmat is None:
-            raise ValueError("give both 'K' and 'viewmat' (or neither, for an orbit camera)")
-        if orbit:
-            raise ValueError(f"{orbit} cannot be combined with 'K' and 'viewmat'")
-        k = self.K
-        if not (k[0][0] > 0 and k[1][1] > 0 and k[1][0] == 0 and k[2] == (0.0, 0.0, 1.0)):
-            raise ValueError("K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
-        v = self.viewmat
-        if v[3] != (0.0, 0.0, 0.0, 1.0):
-            raise ValueError("viewmat's last row must be [0, 0, 0, 1]")
-        r = [row[:3] for row in v[:3]]
-        for i in range(3):
-            for j in range(3):
-                dot = sum(r[i][n] * r[j][n] for n in range(3))
-                if not math.isclose(dot, 1.0 if i == j else 0.0, abs_tol=1e-3):
-                    raise ValueError("viewmat's upper-left 3x3 must be a rotation (orthonormal rows)")
-        return self
-
-
-class RenderRequest(BaseModel):
+class RenderRequest(RenderSpec):
     """Every key is optional: the default is the rest pose seen from the front, 512x512 PNG on white.
 
     ``frame`` renders training frame ``i`` with its fitted pose (and, unless ``camera`` is given,
-    its camera and image size) to compare with the input video.
+    its camera and image size) to compare with the input video. The same schema as
+    ``eva render`` (``eva_engine.avatar.RenderSpec``), plus the image ``format``.
     """
 
     model_config = ConfigDict(
@@ -180,27 +144,4 @@ class RenderRequest(BaseModel):
         ]},
     )  # fmt: skip
 
-    pose: BodyPose | None = Field(None, description="Body pose JSON (see BodyPose); default: rest pose.")
-    frame: int | None = Field(None, ge=0, description="Render training frame i (its fitted pose).")
-    camera: CameraSpec | None = Field(
-        None, description=f"Orbit or K/viewmat, or a preset name: {list(CAMERA_PRESETS)}."
-    )
-    width: int | None = Field(None, ge=16, description="Pixels (default 512, or the frame's).")
-    height: int | None = Field(None, ge=16, description="Pixels (default 512, or the frame's).")
-    background: tuple[Unit, Unit, Unit] = Field((1.0, 1.0, 1.0), description="RGB in [0, 1].")
     format: Literal["png", "jpeg"] = "png"
-
-    @field_validator("camera", mode="before")
-    @classmethod
-    def _preset(cls, value):
-        if isinstance(value, str):
-            if value not in CAMERA_PRESETS:
-                raise ValueError(f"unknown camera preset {value!r}; choose one of {list(CAMERA_PRESETS)}")
-            return CAMERA_PRESETS[value]
-        return value
-
-    @model_validator(mode="after")
-    def _pose_or_frame(self) -> RenderRequest:
-        if self.pose is not None and self.frame is not None:
-            raise ValueError("give 'pose' or 'frame', not both")
-        return self

@@ -1,45 +1,117 @@
-"""``ServiceSettings``: the API's configuration (limits, binding, key) around a ``JobsConfig``."""
+"""``ServiceSettings``: the API's configuration (binding, key, limits) around a ``JobsConfig``."""
 
 from __future__ import annotations
 
+import ipaddress
 import os
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from jobs.config import JobsConfig
 
+LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1", "[::1]")
+
+
+def is_loopback(host: str) -> bool:
+    if host in ("localhost", "[::1]"):
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
 
 class ServiceSettings(BaseModel):
-    """host / port: where ``eva serve`` binds (loopback by default); api_key: when set, every
-    endpoint but ``/healthz`` needs the header ``X-API-Key``; max_upload_mb, max_video_seconds:
-    limits on an uploaded video; max_render_pixels: largest ``width`` or ``height`` of a render;
-    avatar_cache: avatars kept loaded for rendering; preload_body_models: loaded in the background
-    at start-up so the first render does not wait for them."""
+    """host / port: where ``eva serve`` binds (loopback by default; any other address needs an
+    ``api_key``); api_key: when set, every endpoint but ``/healthz`` (the docs included) needs the
+    header ``X-API-Key``; allowed_hosts: accepted ``Host`` headers (default: the loopback names
+    without a key, any with one; DNS rebinding cannot supply the key).
+
+    Limits, all enforced before a request reaches its endpoint: max_upload_mb, the body of an
+    upload (a video for an avatar, a driving video or poses for an animation); max_json_kb, every
+    other body; max_uploads, uploads of either kind at once; body_timeout_s, longest
+    pause while a body streams in (a slow sender is cut off with 408); max_requests, requests in
+    flight (connections: ``max_requests`` x 2, uvicorn's own limit behind it). Past a limit of
+    concurrency the answer is 503 with ``Retry-After``.
+
+    Videos: max_video_seconds; probe_timeout_s / probe_memory_mb, the child process that reads an
+    upload's headers; max_poses_mb, a JSON pose sequence uploaded for an animation (parsed in the
+    API). Jobs: max_queued_jobs, quota of jobs (of either kind) waiting for a worker.
+
+    Renders: max_render_side, largest width or height; max_render_pixels, width x height;
+    max_renders at once, up to render_queue more waiting at most render_wait_s; avatar_cache:
+    avatars kept loaded; preload_body_models: loaded in the background at start-up so the first
+    render does not wait for them."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     jobs: JobsConfig
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
-    api_key: str | None = None
+    api_key: str | None = Field(None, min_length=1)
+    allowed_hosts: tuple[str, ...] | None = None
     max_upload_mb: float = Field(512.0, gt=0)
+    max_json_kb: float = Field(64.0, gt=0)
+    max_uploads: int = Field(2, ge=1)
+    body_timeout_s: float = Field(30.0, gt=0)
+    max_requests: int = Field(64, ge=1)
     max_video_seconds: float = Field(600.0, gt=0)
-    max_render_pixels: int = Field(2048, ge=16)
+    probe_timeout_s: float = Field(30.0, gt=0)
+    probe_memory_mb: int = Field(1024, ge=128)
+    max_poses_mb: float = Field(16.0, gt=0)
+    max_queued_jobs: int = Field(32, ge=1)
+    max_render_side: int = Field(4096, ge=16, le=4096)
+    max_render_pixels: int = Field(2048 * 2048, ge=16 * 16)
+    max_renders: int = Field(2, ge=1)
+    render_queue: int = Field(8, ge=0)
+    render_wait_s: float = Field(10.0, gt=0)
     avatar_cache: int = Field(4, ge=1)
     preload_body_models: tuple[str, ...] = ("anny",)
+
+    @model_validator(mode="after")
+    def _no_open_api_on_a_network(self) -> ServiceSettings:
+        if self.api_key is None and not is_loopback(self.host):
+            raise ValueError(
+                f"refusing to serve on {self.host} without an API key: anyone who can reach it could "
+                "upload, export and delete avatars; set EVA_API_KEY (or --api-key), or bind 127.0.0.1"
+            )
+        return self
 
     @property
     def max_upload_bytes(self) -> int:
         return int(self.max_upload_mb * 1024 * 1024)
 
+    @property
+    def max_poses_bytes(self) -> int:
+        return int(min(self.max_poses_mb, self.max_upload_mb) * 1024 * 1024)
+
+    @property
+    def max_json_bytes(self) -> int:
+        return int(self.max_json_kb * 1024)
+
+    @property
+    def trusted_hosts(self) -> list[str]:
+        if self.allowed_hosts is not None:
+            return list(self.allowed_hosts)
+        if self.api_key is not None:
+            return ["*"]
+        extra = [] if self.host in ("0.0.0.0", "::") else [self.host]
+        return [*LOOPBACK_NAMES, *extra]
+
     @classmethod
     def from_env(cls, jobs: JobsConfig | None = None, **overrides) -> ServiceSettings:
-        """From ``EVA_HOST``, ``EVA_PORT``, ``EVA_API_KEY``, ``EVA_MAX_UPLOAD_MB``,
-        ``EVA_MAX_VIDEO_SECONDS``, ``EVA_MAX_RENDER_PIXELS`` (and ``JobsConfig.from_env``);
-        ``overrides`` that are not None win."""
+        """From ``EVA_HOST``, ``EVA_PORT``, ``EVA_API_KEY``, ``EVA_ALLOWED_HOSTS`` (comma-separated),
+        ``EVA_MAX_UPLOAD_MB``, ``EVA_MAX_VIDEO_SECONDS``, ``EVA_MAX_RENDER_PIXELS`` (width x
+        height), ``EVA_MAX_RENDER_SIDE``, ``EVA_MAX_QUEUED_JOBS``, ``EVA_MAX_RENDERS`` (and
+        ``JobsConfig.from_env``); ``overrides`` that are not None win."""
         names = {"host": "EVA_HOST", "port": "EVA_PORT", "api_key": "EVA_API_KEY",
                  "max_upload_mb": "EVA_MAX_UPLOAD_MB", "max_video_seconds": "EVA_MAX_VIDEO_SECONDS",
-                 "max_render_pixels": "EVA_MAX_RENDER_PIXELS"}  # fmt: skip
-        values = {k: os.environ[v] for k, v in names.items() if os.environ.get(v)}
+                 "max_render_pixels": "EVA_MAX_RENDER_PIXELS", "max_render_side": "EVA_MAX_RENDER_SIDE",
+                 "max_queued_jobs": "EVA_MAX_QUEUED_JOBS", "max_renders": "EVA_MAX_RENDERS"}  # fmt: skip
+        values: dict = {k: os.environ[v] for k, v in names.items() if os.environ.get(v)}
+        if os.environ.get("EVA_ALLOWED_HOSTS"):
+            values["allowed_hosts"] = tuple(
+                h.strip() for h in os.environ["EVA_ALLOWED_HOSTS"].split(",") if h.strip()
+            )
         values.update({k: v for k, v in overrides.items() if v is not None})
         return cls(jobs=jobs or JobsConfig.from_env(), **values)

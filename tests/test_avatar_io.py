@@ -56,6 +56,16 @@ def test_ply_round_trip_standard_layout(tmp_path, trained_like):
     np.testing.assert_array_equal(v[f"f_rest_{k}"], splats["shN"][:, 0, 1].detach().numpy())
 
 
+def test_ply_round_trip_of_sh_degree_zero(tmp_path, anny_model):
+    """Base colours only: no f_rest columns in the file, and it reads back."""
+    config = AvatarConfig(init_max_gaussians=200, sh_degree=0)
+    avatar = Avatar.create(anny_model, anny_model.shape_defaults, config)
+    write_ply(tmp_path / "dc.ply", dict(avatar.gaussians.splats.items()))
+    back = read_ply(tmp_path / "dc.ply")
+    assert back["shN"].shape == (len(avatar.gaussians), 0, 3)
+    assert torch.equal(back["sh0"], avatar.gaussians.splats["sh0"].detach())
+
+
 def test_save_reload_renders_identically(tmp_path, anny_model, trained_like):
     out = save_avatar(trained_like, tmp_path / "av", {"train_seconds": 1.5, "metrics": {"psnr": 30.0}})
     assert sorted(p.name for p in out.iterdir()) == ["avatar.json", "avatar.ply", "avatar.safetensors"]

@@ -49,15 +49,23 @@ def test_eva_demo_runs_the_product_end_to_end(tmp_path):
 
     from eva_engine.cli import app
 
-    out, work = tmp_path / "demo.png", tmp_path / "work"
-    args = ["demo", "--out", str(out), "--workdir", str(work), "--preset", "tiny", "--iterations", "3"]
+    out, work, mp4 = tmp_path / "demo.png", tmp_path / "work", tmp_path / "demo.mp4"
+    args = ["demo", "--out", str(out), "--workdir", str(work), "--preset", "tiny", "--iterations", "3",
+            "--animation", str(mp4), "--fit-scale", "0.1"]  # fmt: skip
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
+    assert "http://127.0.0.1:8000/" in res.output  # where to see it in the web page
     image = np.asarray(Image.open(out))
     assert image.shape == (256, 4 * 256, 3)
     for panel in np.split(image, 4, axis=1):  # every panel shows something on the white background
         assert (panel.astype(int).sum(-1) < 3 * 240).mean() > 0.02
     assert (work / "signer.mp4").is_file()
+    # The avatar performing someone else's video, beside it: all 12 driving frames, 256 px high.
+    from eva_engine.data import read_video
+
+    clip = read_video(mp4)
+    assert clip.frames.shape == (12, 256, 512, 3)
+    assert np.abs(np.diff(clip.frames[..., 256:, :].astype(int), axis=0)).mean() > 0.5
     avatars = list((work / "service" / "avatars").iterdir())
     assert len(avatars) == 1 and (avatars[0] / "avatar.ply").is_file()
     res = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "x.jpg")])

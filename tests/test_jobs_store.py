@@ -19,10 +19,8 @@ HOST = socket.gethostname()
 
 
 @pytest.fixture
-def queue(tmp_path, anny_model) -> JobQueue:
-    q = JobQueue(JobsConfig(data_dir=tmp_path / "data", stale_after_s=30))
-    q.pipeline.add_body_model(anny_model)
-    return q
+def queue(tmp_path) -> JobQueue:
+    return JobQueue(JobsConfig(data_dir=tmp_path / "data", stale_after_s=30, heartbeat_s=0.5))
 
 
 def submit(queue: JobQueue, video, **options) -> str:

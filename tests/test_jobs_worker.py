@@ -1,20 +1,27 @@
 """Real worker processes: one killed (SIGKILL) mid-job and restarted finishes the job from its
-last completed stage (SQLite mode); two workers sharing a real redis-server (Redis mode)."""
+last completed stage (SQLite mode); a worker that goes silent is not raced by another; a job's
+process killed mid-job costs only that job an attempt; two workers sharing a real redis-server
+(Redis mode)."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import signal
 import subprocess
+import time
 
 import pytest
 import test_service_helpers as helpers
 from fastapi.testclient import TestClient
 from test_service_helpers import (
+    EVA,
     FAST_OPTIONS,
     free_port,
+    job_processes,
     log_tail,
     no_person_video,
+    start_process,
     start_worker,
     stop,
     wait_for,
@@ -29,7 +36,9 @@ signer_video = helpers.signer_video  # a fixture
 
 def api(data_dir, queue_url=None) -> TestClient:
     jobs = JobsConfig(data_dir=data_dir, queue_url=queue_url)
-    return TestClient(create_app(ServiceSettings(jobs=jobs, preload_body_models=())))
+    return TestClient(
+        create_app(ServiceSettings(jobs=jobs, preload_body_models=())), base_url="http://127.0.0.1"
+    )
 
 
 def upload(client, video, **options) -> dict:
@@ -69,6 +78,68 @@ def test_a_killed_worker_is_replaced_and_the_job_resumes(tmp_path, signer_video)
         assert res.status_code == 200 and res.content[:4] == b"\x89PNG"
     assert not (data / "jobs" / "work" / ids["job_id"]).exists()
     assert sorted(p.name for p in (data / "avatars").iterdir()) == [ids["avatar_id"]]
+
+
+def finished(client, job_id):
+    j = client.get(f"/jobs/{job_id}").json()
+    return j["state"] in ("succeeded", "failed", "cancelled") and j
+
+
+def test_a_silent_worker_is_not_raced_by_another(tmp_path, signer_video):
+    """Worker A and its job's process stop answering (SIGSTOP) for longer than stale_after: a worker
+    B that starts meanwhile sees A's process alive on this host and leaves the job alone (it used
+    to take the stale job and run it beside A, both writing the same folders)."""
+    data, logs = tmp_path / "data", [tmp_path / "a.log", tmp_path / "b.log"]
+    with api(data) as client:
+        ids = upload(client, signer_video, **{**FAST_OPTIONS, "iterations": "40"})
+        a = start_worker(data, logs[0], stale_after=2)
+        b = None
+        try:
+            wait_for(lambda: (j := client.get(f"/jobs/{ids['job_id']}").json())["stage"] == "train"
+                     and j["state"] == "running", 300, "the training stage")  # fmt: skip
+            paused = [a.pid, *job_processes(ids["job_id"])]
+            for pid in paused:
+                os.kill(pid, signal.SIGSTOP)
+            time.sleep(4)  # silent for twice stale_after
+            b = start_worker(data, logs[1], stale_after=2)
+            wait_for(lambda: "recovered" in logs[1].read_text(), 120, "worker B to start")
+            time.sleep(2)
+            for pid in paused:
+                os.kill(pid, signal.SIGCONT)
+            job = wait_for(lambda: finished(client, ids["job_id"]), 400, "the job")
+        finally:
+            for w in (a, b):
+                if w is not None:
+                    stop(w)
+        text = "\n".join(log_tail(log, 20000) for log in logs)
+        assert job["state"] == "succeeded" and job["attempts"] == 1, (job, text)
+        assert f"job {ids['job_id']}: attempt" not in logs[1].read_text(), text
+    assert sorted(p.name for p in (data / "avatars").iterdir()) == [ids["avatar_id"]]
+
+
+def test_a_killed_job_process_costs_only_that_job_an_attempt(tmp_path, signer_video):
+    """The kernel's OOM killer SIGKILLs the process that runs a job, not the worker: the worker
+    records why, retries that job, and its other job runs on undisturbed."""
+    data, log = tmp_path / "data", tmp_path / "worker.log"
+    with api(data) as client:
+        args = [EVA, "worker", "--data-dir", str(data), "--threads", "1", "--workers", "2"]
+        worker = start_process(args, log)
+        try:
+            victim = upload(client, signer_video, **{**FAST_OPTIONS, "iterations": "40"})
+            other = upload(client, signer_video, **FAST_OPTIONS)
+            url = f"/jobs/{victim['job_id']}"
+            wait_for(lambda: client.get(url).json()["stage"] == "train", 300, "training")
+            for pid in job_processes(victim["job_id"]):
+                os.kill(pid, signal.SIGKILL)
+            first = wait_for(lambda: finished(client, victim["job_id"]), 400, "the killed job")
+            second = wait_for(lambda: finished(client, other["job_id"]), 400, "the other job")
+            assert worker.poll() is None  # the worker lived through it
+        finally:
+            stop(worker)
+        text = log_tail(log, 20000)
+        assert first["state"] == "succeeded" and first["attempts"] == 2, (first, text)
+        assert second["state"] == "succeeded" and second["attempts"] == 1, (second, text)
+        assert "the job's process was killed (SIGKILL; out of memory?" in text
 
 
 @pytest.fixture

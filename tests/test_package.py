@@ -11,10 +11,11 @@ BLOCK_SERVICE_STACK = """
 import sys
 class Block:
     def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] in {"fastapi", "uvicorn", "huey", "redis", "starlette"}:
+        if name.split(".")[0] in {"fastapi", "uvicorn", "huey", "redis", "starlette", "service", "jobs"}:
             raise ImportError(f"blocked: {name}")
 sys.meta_path.insert(0, Block())
 import eva_engine, eva_engine.render, eva_engine.body, eva_engine.data, eva_engine.metrics, eva_engine.cli
+import eva_engine.avatar, eva_engine.animate, eva_engine.animate.controls, eva_engine.render.view
 print("ok")
 """
 
@@ -28,5 +29,5 @@ def test_engine_imports_without_service_stack():
 def test_cli_lists_commands():
     result = CliRunner().invoke(app, ["--help"])
     assert result.exit_code == 0
-    for command in ("setup", "demo"):
+    for command in ("setup", "demo", "render", "animate"):
         assert command in result.output

@@ -17,7 +17,7 @@ signer_video = helpers.signer_video  # a fixture
 def make_client(tmp_path, **overrides) -> TestClient:
     jobs = JobsConfig(data_dir=tmp_path / "data")
     settings = ServiceSettings(jobs=jobs, preload_body_models=(), **overrides)
-    return TestClient(create_app(settings))
+    return TestClient(create_app(settings), base_url="http://127.0.0.1")
 
 
 @pytest.fixture
@@ -140,9 +140,14 @@ def test_video_over_the_length_limit_is_422(tmp_path, signer_video):
 
 @pytest.mark.parametrize(
     ("options", "needle"),
-    [({"preset": "huge"}, "preset"), ({"max_frames": "0"}, "max_frames"),
-     ({"body_model": "smpl"}, "body_model"), ({"image_scale": "2"}, "image_scale"),
-     ({"iterations": "many"}, "iterations"), ({"method": "gart"}, "method")],  # fmt: skip
+    [
+        ({"preset": "huge"}, "preset"),
+        ({"max_frames": "0"}, "max_frames"),
+        ({"body_model": "smpl"}, "body_model"),
+        ({"image_scale": "2"}, "image_scale"),
+        ({"iterations": "many"}, "iterations"),
+        ({"method": "gart"}, "method"),
+    ],  # fmt: skip
     ids=["preset", "max_frames", "body_model", "image_scale", "iterations", "method"],
 )
 def test_bad_options_are_422(client, signer_video, tmp_path, options, needle):

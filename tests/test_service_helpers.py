@@ -1,6 +1,6 @@
 """Shared pieces of the service and job tests (imported by them; holds no tests): the tiny
-synthetic signer video, and real ``eva serve`` / ``eva worker`` / ``redis-server`` processes on
-loopback."""
+synthetic signer video, a seeded (untrained) published avatar, and real ``eva serve`` / ``eva
+worker`` / ``redis-server`` / uvicorn processes on loopback."""
 
 from __future__ import annotations
 
@@ -19,8 +19,13 @@ import pytest
 EVA = str(Path(sys.executable).parent / "eva")
 SIGNER_FRAMES = 4
 # The pipeline at its smallest: 4 frames of 256 px, a few tiny-preset iterations at 1/4 scale.
-FAST_OPTIONS = {"preset": "tiny", "iterations": "6", "image_scale": "0.25", "max_frames": str(SIGNER_FRAMES),
-                "fit_scale": "0.1"}
+FAST_OPTIONS = {
+    "preset": "tiny",
+    "iterations": "6",
+    "image_scale": "0.25",
+    "max_frames": str(SIGNER_FRAMES),
+    "fit_scale": "0.1",
+}
 
 
 @pytest.fixture(scope="session")
@@ -37,6 +42,25 @@ def signer_video(anny_model, tmp_path_factory) -> Path:
         order = sorted(ds.splits["train"] + ds.splits["test_pose"])[:SIGNER_FRAMES]
         frames = (ds.images(order).numpy() * 255 + 0.5).astype(np.uint8)
         write_video(folder / "partial.mp4", frames, fps=10)
+        os.replace(folder / "partial.mp4", video)
+    return video
+
+
+@pytest.fixture(scope="session")
+def other_signer_video(anny_model, tmp_path_factory) -> Path:
+    """Someone else: 8 frames (2 fps) of the synthetic wild signer with seed 1 -- another body shape,
+    face, clothes and motion than seed 0's (the demo's) -- at 256 px; made once."""
+    from eva_engine.data import load_dataset, write_video
+    from eva_engine.data.synthetic import generate
+
+    folder = tmp_path_factory.getbasetemp() / "other-signer"
+    video = folder / "someone_else.mp4"
+    if not video.is_file():
+        folder.mkdir(exist_ok=True)
+        ds = load_dataset(generate("wild", "small", 1, folder / "ds", model=anny_model))
+        order = sorted(ds.splits["train"] + ds.splits["test_pose"])[:8]
+        frames = (ds.images(order).numpy() * 255 + 0.5).astype(np.uint8)
+        write_video(folder / "partial.mp4", frames, fps=ds.meta.fps)
         os.replace(folder / "partial.mp4", video)
     return video
 
@@ -94,3 +118,148 @@ def stop(proc: subprocess.Popen, sig: int = signal.SIGTERM, timeout: float = 20.
 
 def log_tail(log: Path, chars: int = 3000) -> str:
     return log.read_text(errors="replace")[-chars:] if log.is_file() else "(no log)"
+
+
+def publish_seeded_avatar(queue, model, frames: int = 3, size: tuple[int, int] = (96, 64)):
+    """A succeeded job whose avatar is a freshly seeded (untrained) Gaussian avatar with
+    ``frames`` training frames of ``size`` (height, width), published the way a worker publishes
+    one: the render and export endpoints work on it in milliseconds, without a training run."""
+    import torch
+    from safetensors.torch import save_file
+
+    from eva_engine.avatar import FRAMES_NAME, Avatar, AvatarConfig, save_avatar
+    from eva_engine.render.camera import intrinsics, orbit_camera
+    from jobs import JobOptions
+
+    job = queue.store.create(JobOptions(preset="tiny").model_dump(), filename="seeded.mp4")
+    worker = "tests:0:0:0:seeded"
+    queue.store.update(job.id, state="running", worker=worker)
+    config = AvatarConfig(init_max_gaussians=800, mlp_width=16, pe_frequencies=2, sh_degree=1)
+    avatar = Avatar.create(model, model.shape_defaults, config)
+    folder = queue.storage.avatar_dir(job.avatar_id)
+    save_avatar(avatar, folder, {"frames": {"count": frames, "image_size": list(size), "fps": 10.0}})
+    params = model.default_params(frames)
+    tensors = {f"params.{k}": v.detach().float().contiguous() for k, v in params.tensors().items()}
+    tensors["K"] = intrinsics(size[1], size[0], 40.0).expand(frames, 3, 3).contiguous()
+    tensors["viewmat"] = orbit_camera(0.0, 0.0, 2.6).float().expand(frames, 4, 4).contiguous()
+    tensors["timestamps"] = torch.arange(frames, dtype=torch.float64) / 10.0
+    save_file(tensors, str(folder / FRAMES_NAME))
+    assert queue.store.finish(job.id, "succeeded", owner=worker)
+    return queue.store.get(job.id)
+
+
+def run_job_here(queue, job_id: str, *models) -> str | None:
+    """Claim the job and run it in this process, as its own process would (``jobs.runner``
+    starts ``JobRun`` there), with already loaded body ``models``; returns its final state."""
+    from jobs import JobRun
+
+    job = queue.store.claim(job_id, f"tests:0:{os.getpid()}:0:here")
+    assert job is not None, f"job {job_id} could not be claimed"
+    run = JobRun(queue.config, queue.store, queue.storage, job, job.worker)
+    for model in models:
+        run.add_body_model(model)
+    return run.execute()
+
+
+SERVE_CODE = (
+    "import sys; from service import ServiceSettings; from service.server import serve; "
+    "serve(ServiceSettings.model_validate_json(sys.argv[1]), log_level='warning')"
+)
+
+
+def start_service(settings, log: Path) -> tuple[subprocess.Popen, str]:
+    """A real uvicorn server (``service.server.serve``, as ``eva serve`` runs it) with ``settings``
+    (a ``ServiceSettings``); returns the process and its base URL once ``/healthz`` answers."""
+    import httpx
+
+    proc = start_process([sys.executable, "-c", SERVE_CODE, settings.model_dump_json()], log)
+    base = f"http://127.0.0.1:{settings.port}"
+
+    def healthy():
+        assert proc.poll() is None, log_tail(log)
+        try:
+            return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    wait_for(healthy, 120, "the service to answer /healthz")
+    return proc, base
+
+
+def rss_mb(pid: int) -> float:
+    """Resident memory of a process, MB (Linux)."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    return int(status.split("VmRSS:")[1].split()[0]) / 1024
+
+
+HUGE_FRAME_CODE = """
+import sys, av
+from fractions import Fraction
+side = int(sys.argv[2])
+with av.open(sys.argv[1], "w") as out:
+    stream = out.add_stream("libx264", rate=Fraction(1))
+    stream.width = stream.height = side
+    stream.pix_fmt = "yuv420p"
+    stream.options = {"preset": "ultrafast"}
+    frame = av.VideoFrame(side, side, "yuv420p")
+    for plane in frame.planes:
+        plane.update(bytes(plane.buffer_size))
+    for packet in [*stream.encode(frame), *stream.encode()]:
+        out.mux(packet)
+"""
+
+
+@pytest.fixture(scope="session")
+def huge_frame_video(tmp_path_factory) -> Path:
+    """A real 1-frame H.264 mp4 of 16000x16000 black pixels (a few tens of KB; decoding it takes
+    ~1.2 GB). Encoded once, in a child process (~4 s, ~1.5 GB there)."""
+    video = tmp_path_factory.getbasetemp() / "huge-frame" / "16k.mp4"
+    if not video.is_file():
+        video.parent.mkdir(exist_ok=True)
+        partial = video.with_suffix(".partial.mp4")
+        subprocess.run([sys.executable, "-c", HUGE_FRAME_CODE, str(partial), "16000"], check=True)
+        os.replace(partial, video)
+    return video
+
+
+def gradient_video(path: Path, frames: int, side: int, fps: int = 10, live: bool = False) -> Path:
+    """A fast-to-encode H.264 video of flat frames (``side`` x ``side``); ``live``: Matroska
+    written as a stream, without duration or cues in its headers."""
+    from fractions import Fraction
+
+    import av
+
+    options = {"live": "1"} if live else {}
+    with av.open(str(path), "w", format="matroska" if live else None, container_options=options) as out:
+        stream = out.add_stream("libx264", rate=Fraction(fps))
+        stream.width = stream.height = side
+        stream.pix_fmt = "yuv420p"
+        stream.options = {"preset": "ultrafast"}
+        for i in range(frames):
+            frame = av.VideoFrame(side, side, "yuv420p")
+            for plane, value in zip(frame.planes, (16 + 3 * i, 128, 128), strict=True):
+                plane.update(bytes([value % 256]) * plane.buffer_size)
+            for packet in stream.encode(frame):
+                out.mux(packet)
+        for packet in stream.encode():
+            out.mux(packet)
+    return path
+
+
+def job_processes(job_id: str | None = None) -> dict[int, str]:
+    """pid -> job id of the running job processes (``python -m jobs run JOB_ID``), from /proc;
+    not a helper one of them forked (same command line until it execs)."""
+    found: dict[int, tuple[str, int]] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            args = (entry / "cmdline").read_bytes().split(b"\0")
+            stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        for i in range(len(args) - 3):
+            if args[i : i + 3] == [b"-m", b"jobs", b"run"] and stat[0] != "Z":
+                if job_id is None or args[i + 3].decode() == job_id:
+                    found[int(entry.name)] = (args[i + 3].decode(), int(stat[1]))
+    return {pid: job for pid, (job, ppid) in found.items() if found.get(ppid, ("",))[0] != job}

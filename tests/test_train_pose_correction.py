@@ -64,6 +64,11 @@ def test_training_corrects_a_misfitted_frame(anny_model):
     )
     assert drift < 0.6 * before, (drift, before)
     assert set(result.pose_correction) >= {"root", "transl", "body", "hand", "face", "expression"}
+    # What is kept with the avatar: the trained frames as corrected, the others as fitted.
+    kept = result.frame_params(ds.params)
+    assert torch.equal(kept.joints[k], result.train_params.joints[row].float())
+    test_rows = [i for i in range(ds.params.batch_size) if i not in result.train_indices]
+    assert torch.equal(kept.joints[test_rows], ds.params.joints[test_rows].float())
 
 
 def test_correction_starts_at_the_fit_and_its_prior_holds_it(anny_model):

@@ -28,6 +28,7 @@ from eva_engine.align.preprocess import (
     detect_frames,
     preprocess_video,
 )
+from eva_engine.align.scaling import scaled_fit_config
 
 __all__ = [
     "Detections",
@@ -49,5 +50,6 @@ __all__ = [
     "mpjpe",
     "preprocess_video",
     "reprojection_error",
+    "scaled_fit_config",
     "targets_from_params",
 ]

@@ -4,9 +4,11 @@ learned weight offsets and a pose-refinement MLP, rendered by ``eva_engine.rende
     from eva_engine.avatar import Camera, load_avatar
     avatar = load_avatar("data/avatars/alice")
     image = avatar.render(avatar.body.params_from_pose({...}), Camera(K, viewmat, 512, 512))
+    still = render_spec(avatar, RenderSpec(pose={...}, camera="left"))   # the API's render JSON
 """
 
 from eva_engine.avatar.config import AvatarConfig
+from eva_engine.avatar.frames import FRAMES_NAME, AvatarFrames, load_avatar_frames, save_avatar_frames
 from eva_engine.avatar.gaussians import PER_GAUSSIAN_BUFFERS, SPLAT_NAMES, CanonicalGaussians
 from eva_engine.avatar.io import (
     AvatarFileError,
@@ -23,28 +25,37 @@ from eva_engine.avatar.networks import (
     blend_skinning_weights,
     positional_encoding,
 )
+from eva_engine.avatar.render_spec import RenderInputError, RenderPose, RenderSpec, render_spec
 from eva_engine.avatar.skinning import orthonormalize, quat_multiply, skin_gaussians
 from eva_engine.render.camera import Camera
 
 __all__ = [
+    "FRAMES_NAME",
     "PER_GAUSSIAN_BUFFERS",
     "SPLAT_NAMES",
     "Avatar",
     "AvatarConfig",
     "AvatarFileError",
+    "AvatarFrames",
     "Camera",
     "CanonicalGaussians",
     "LBSWeightOffsets",
     "PoseRefiner",
     "PosedGaussians",
+    "RenderInputError",
+    "RenderPose",
+    "RenderSpec",
     "blend_skinning_weights",
     "load_avatar",
+    "load_avatar_frames",
     "orthonormalize",
     "positional_encoding",
     "quat_multiply",
     "read_avatar_info",
     "read_ply",
+    "render_spec",
     "save_avatar",
+    "save_avatar_frames",
     "skin_gaussians",
     "template_vertices",
     "write_ply",

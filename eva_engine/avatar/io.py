@@ -72,6 +72,8 @@ def read_ply(path: str | Path) -> dict[str, torch.Tensor]:
         missing = [f"{prefix}{i}" for i in range(count) if f"{prefix}{i}" not in names]
         if missing:
             raise AvatarFileError(f"{path} lacks PLY properties {missing}")
+        if count == 0:  # SH degree 0: no f_rest columns
+            return np.zeros((len(vertex.data), 0), np.float32)
         return np.stack([np.asarray(vertex[f"{prefix}{i}"], dtype=np.float32) for i in range(count)], axis=1)
 
     n_rest = sum(1 for p in names if p.startswith("f_rest_"))

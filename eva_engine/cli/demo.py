@@ -19,13 +19,20 @@ def demo(
     ),
     preset: str = typer.Option("fast", help="Training preset: tiny, fast or default."),
     iterations: int | None = typer.Option(None, min=1, help="Override the preset's iteration count."),
+    animation: Path | None = typer.Option(
+        None, "--animation", help="Also write this mp4: the avatar performing a video of someone else."
+    ),
+    fit_scale: float | None = typer.Option(
+        None, min=0.01, max=4.0, help="Scale the body fit's iterations (1 = the paper's), for both videos."
+    ),
     body_only: bool = typer.Option(
         False, "--body-only", help="Skip the product: render the posed body model as Gaussians (seconds)."
     ),
 ) -> None:
     """Generate a synthetic signer video (the embedded Anny body), submit it to the service
     (`eva serve` + `eva worker`), follow the job, render a new pose. Writes a PNG: input frame |
-    avatar in that pose | avatar in a new pose | the new pose from the side."""
+    avatar in that pose | avatar in a new pose | the new pose from the side; with --animation, an
+    mp4 of the avatar performing a video of someone else."""
     import numpy as np
     from PIL import Image
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -50,7 +57,11 @@ def demo(
 
     from service.demo import DemoError, run_service_demo
 
+    if animation is not None and animation.suffix.lower() != ".mp4":
+        message = f"the animation must be an .mp4 file, got {animation}"
+        raise typer.BadParameter(message, param_hint="--animation")
     options = {"preset": preset} | ({"iterations": str(iterations)} if iterations else {})
+    options |= {"fit_scale": str(fit_scale)} if fit_scale else {}
     columns = (TextColumn("{task.description:>10}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
                TextColumn("{task.fields[eta]}"), TimeElapsedColumn())  # fmt: skip
     with Progress(*columns, console=console) as bar:
@@ -60,7 +71,7 @@ def demo(
             bar.update(task, description=stage, completed=fraction, eta=f"eta {eta:.0f} s" if eta else "")
 
         try:
-            result = run_service_demo(workdir, out, options, progress=report)
+            result = run_service_demo(workdir, out, options, progress=report, out_mp4=animation)
         except DemoError as err:
             console.print(f"[red]error:[/] {err}")
             raise typer.Exit(1) from err
@@ -68,3 +79,8 @@ def demo(
         f"[green]wrote[/] {out}: avatar {result.avatar_id} ({result.num_gaussians:,} Gaussians) trained and "
         f"rendered through the service in {result.seconds:.0f} s; video, service data and logs in {workdir}."
     )
+    if result.animation is not None:
+        console.print(f"[green]wrote[/] {result.animation}: the avatar performing a video of someone else")
+    service = workdir / "service"
+    console.print(f"See the avatar in the web page: [bold]eva serve --data-dir {service}[/], then open "
+                  "[bold]http://127.0.0.1:8000/[/]")  # fmt: skip

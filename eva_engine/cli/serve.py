@@ -1,4 +1,5 @@
-"""``eva serve``: run the REST service (FastAPI + uvicorn) on 127.0.0.1 by default."""
+"""``eva serve``: run the REST service (FastAPI + uvicorn) on 127.0.0.1 by default; any other
+address needs an API key."""
 
 from __future__ import annotations
 
@@ -19,16 +20,17 @@ def serve(
     queue_url: str | None = typer.Option(
         None, help="redis://host:port/db for Redis (default: SQLite in the data dir, or EVA_QUEUE_URL)."
     ),
-    api_key: str | None = typer.Option(None, help="Require this X-API-Key header (or EVA_API_KEY)."),
+    api_key: str | None = typer.Option(
+        None, help="Require this X-API-Key header (or EVA_API_KEY); needed to bind a non-loopback address."
+    ),
     max_upload_mb: float | None = typer.Option(None, min=0.001, help="Upload size limit (default 512)."),
     log_level: str = typer.Option("info", help="uvicorn log level."),
 ) -> None:
     """Serve the API: POST /avatars, GET /jobs/{id}, POST /avatars/{id}/render ... (docs at /docs).
     Run ``eva worker`` beside it (same data dir and queue) to process the jobs."""
-    import uvicorn
-
     from jobs.config import JobsConfig
-    from service import ServiceSettings, create_app
+    from service import ServiceSettings
+    from service.server import serve as run_server
 
     try:
         jobs = JobsConfig.from_env(data_dir=data_dir, queue_url=queue_url)
@@ -37,4 +39,8 @@ def serve(
     except ValueError as err:
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(2) from err
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=log_level)
+    try:
+        run_server(settings, log_level=log_level)
+    except ValueError as err:  # e.g. job records on a network file system
+        typer.echo(f"error: {err}", err=True)
+        raise typer.Exit(2) from err

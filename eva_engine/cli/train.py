@@ -31,7 +31,7 @@ def train(
     """Train an avatar on the dataset's training frames (EVA: 2,000 iterations)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from eva_engine.avatar import save_avatar
+    from eva_engine.avatar import save_avatar, save_avatar_frames
     from eva_engine.data import DatasetError, load_dataset
     from eva_engine.train import METHODS, PRESETS, TrainingError, train_avatar, with_method
     from eva_engine.train import preset as make_preset
@@ -92,6 +92,9 @@ def train(
         "gaussians_per_part": result.gaussians_per_part,
         "pose_correction": result.pose_correction,
     }
+    out.mkdir(parents=True, exist_ok=True)
+    # Training poses (as trained) and cameras: `eva render --pose frame:N`.
+    info["frames"] = save_avatar_frames(out, ds, result.frame_params(ds.params))
     save_avatar(result.avatar, out, info)
     console.print(
         f"[green]wrote[/] {out}: {len(result.avatar.gaussians):,} Gaussians, "

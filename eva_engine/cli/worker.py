@@ -23,17 +23,26 @@ def worker(
     stale_after: float | None = typer.Option(
         None, min=1.0, help="Seconds without a heartbeat after which a running job is taken back."
     ),
+    memory_mb: int | None = typer.Option(
+        None, min=0, help="Memory limit per job process, MB (default 8192 or EVA_JOB_MEMORY_MB; 0: none)."
+    ),
+    health_file: Path | None = typer.Option(
+        None, envvar="EVA_WORKER_HEALTH_FILE", help="Touch this file every 10 s while alive (containers)."
+    ),
 ) -> None:
-    """Consume jobs until interrupted (Ctrl-C finishes the running job first). Jobs a killed worker
-    left running are retried from their last completed stage when a worker starts."""
+    """Consume jobs until interrupted (Ctrl-C finishes the running job first). Each job runs in its
+    own process under a memory limit. Jobs a killed worker left running are retried from their
+    last completed stage when a worker starts."""
     from jobs.config import JobsConfig
     from jobs.worker import run_worker
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         config = JobsConfig.from_env(data_dir=data_dir, queue_url=queue_url, threads=threads,
-                                     stale_after_s=stale_after)  # fmt: skip
+                                     stale_after_s=stale_after, job_memory_mb=memory_mb or None)  # fmt: skip
+        if memory_mb == 0:
+            config = config.model_copy(update={"job_memory_mb": None})
     except ValueError as err:
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(2) from err
-    run_worker(config, workers=workers)
+    run_worker(config, workers=workers, health_file=health_file)

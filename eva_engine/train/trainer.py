@@ -69,6 +69,17 @@ class TrainResult:
     train_params: BodyParams | None = None
     pose_correction: dict[str, float] = field(default_factory=dict)
 
+    def frame_params(self, fitted: BodyParams) -> BodyParams:
+        """The dataset's ``fitted`` params (batch F) with the trained frames' rows replaced by
+        their params as trained (the pose-corrected ones); the other frames keep their fit."""
+        out = fitted.map(lambda t: t.detach().cpu().float().clone())
+        if self.train_params is None:
+            return out
+        rows = torch.tensor(self.train_indices, dtype=torch.int64)
+        for k, v in self.train_params.tensors().items():
+            getattr(out, k)[rows] = v.detach().cpu().float()
+        return out
+
 
 def part_counts(part_ids: Tensor) -> dict[str, int]:
     """{part name: number of Gaussians} for ``part_ids [N]``."""

@@ -1,24 +1,32 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import BinaryIO, Literal
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Response, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
 from eva_engine.avatar import read_avatar_info
-from eva_engine.body import BodyPose
-from jobs.options import JobOptions, Method
+from eva_engine.avatar.render_spec import frame_params, spec_camera, spec_params
+from jobs.options import MAX_FRAMES, MAX_ITERATIONS, MAX_SIZE, MIN_SIZE, JobOptions, Method
 from jobs.store import JobRecord, new_id
 from service import rendering
-from service.deps import ServiceContext, avatar_record, context, ready_avatar
+from service.deps import (
+    ServiceContext,
+    avatar_record,
+    check_job_quota,
+    context,
+    ready_avatar,
+    render_admission,
+)
 from service.schemas import AvatarCreated, AvatarInfo, AvatarList, ErrorMessage, RenderRequest
-from service.uploads import probe_video, remove_tree, safe_suffix, save_upload
+from service.uploads import check_video, remove_tree, safe_suffix, save_upload
 
 router = APIRouter(prefix="/avatars", tags=["avatars"])
 NOT_FOUND = {404: {"model": ErrorMessage, "description": "Unknown or malformed avatar id"}}
 NOT_READY = {409: {"model": ErrorMessage, "description": "The avatar's job has not succeeded"}}
+BUSY = {503: {"model": ErrorMessage, "description": "Busy or over quota: retry after `Retry-After` seconds"}}
 _DEFAULTS = JobOptions()
 
 
@@ -29,16 +37,19 @@ _DEFAULTS = JobOptions()
     summary="Upload a video of one person; queue the job that learns their avatar",
     responses={
         413: {"model": ErrorMessage, "description": "Upload over the size limit"},
-        422: {"description": "Not a video, no decodable frame, too long, or bad options"},
+        422: {"description": "Not an mp4/mov/mkv/webm/avi video, no decodable frame, too long or too large, "
+                             "or bad options"},
+        507: {"model": ErrorMessage, "description": "The server's disk is full"},
+        **BUSY,
     },
-)
+)  # fmt: skip
 async def create_avatar(
-    video: UploadFile = File(..., description="A video of one person (mp4, webm, mov, ...)."),
+    video: UploadFile = File(..., description="A video of one person (mp4, mov, mkv, webm or avi)."),
     preset: Literal["tiny", "fast", "default"] = Form(_DEFAULTS.preset),
-    max_frames: int = Form(_DEFAULTS.max_frames, ge=1, le=2000),
-    max_size: int = Form(_DEFAULTS.max_size, ge=64, le=2048),
+    max_frames: int = Form(_DEFAULTS.max_frames, ge=1, le=MAX_FRAMES),
+    max_size: int = Form(_DEFAULTS.max_size, ge=MIN_SIZE, le=MAX_SIZE),
     body_model: Literal["anny", "smplx"] = Form(_DEFAULTS.body_model),
-    iterations: int | None = Form(None, ge=1, le=100_000),
+    iterations: int | None = Form(None, ge=1, le=MAX_ITERATIONS),
     image_scale: float | None = Form(None, gt=0.05, le=1.0),
     fit_scale: float = Form(1.0, gt=0.0, le=4.0),
     method: Method | None = Form(None, description="Training method (eva, 3dgs+body, ablations)."),
@@ -47,26 +58,35 @@ async def create_avatar(
     options = JobOptions(preset=preset, max_frames=max_frames, max_size=max_size, body_model=body_model,
                          iterations=iterations, image_scale=image_scale, fit_scale=fit_scale,
                          method=method)  # fmt: skip
+    # File copies, the probe's child process and SQLite block: off the event loop.
+    return await run_in_threadpool(_create, ctx, options, video.file, video.filename)
+
+
+def _create(
+    ctx: ServiceContext, options: JobOptions, source: BinaryIO, filename: str | None
+) -> AvatarCreated:
     queue, settings = ctx.queue, ctx.settings
+    check_job_quota(ctx)
     job_id, avatar_id = new_id(), new_id()
     work = queue.storage.work_dir(job_id)
     work.mkdir(parents=True)
     try:
-        path = work / f"input{safe_suffix(video.filename)}"
-        if await save_upload(video, path, settings.max_upload_bytes) == 0:
+        path = work / f"input{safe_suffix(filename)}"
+        if save_upload(source, path, settings.max_upload_bytes) == 0:
             raise HTTPException(422, "the uploaded video is empty (0 bytes)")
-        await run_in_threadpool(probe_video, path, settings.max_video_seconds)
-        filename = Path(video.filename or "video").name[:200]
-        queue.store.create(options.model_dump(), filename=filename, job_id=job_id, avatar_id=avatar_id)
+        check_video(path, options, settings.jobs, settings.max_video_seconds, settings.probe_timeout_s,
+                    settings.probe_memory_mb)  # fmt: skip
+        name = Path(filename or "video").name[:200]
+        queue.store.create(options.model_dump(), filename=name, job_id=job_id, avatar_id=avatar_id)
     except BaseException:
         remove_tree(work)
         raise
     try:
         queue.enqueue(job_id)
-    except Exception as err:  # the queue backend is down: nothing stays behind
+    except BaseException:  # the queue backend is down: nothing stays behind
         queue.store.delete(job_id)
         remove_tree(work)
-        raise HTTPException(503, f"the job queue is unavailable: {err}") from err
+        raise
     return AvatarCreated(avatar_id=avatar_id, job_id=job_id, job_url=f"/jobs/{job_id}",
                          avatar_url=f"/avatars/{avatar_id}")  # fmt: skip
 
@@ -91,7 +111,7 @@ def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
 
 @router.get("", response_model=AvatarList, summary="All avatars, oldest first")
 def list_avatars(ctx: ServiceContext = Depends(context)) -> AvatarList:
-    return AvatarList(avatars=[_info(job, ctx) for job in ctx.queue.store.list()])
+    return AvatarList(avatars=[_info(job, ctx) for job in ctx.queue.store.list(kind="avatar")])
 
 
 @router.get("/{avatar_id}", response_model=AvatarInfo, responses=NOT_FOUND, summary="An avatar's metadata")
@@ -121,32 +141,37 @@ def delete_avatar(
     response_class=Response,
     summary="Render the avatar in a pose, expression and view",
     description="The body is the request's `pose` (or training frame `frame`), seen through `camera`; "
-    "the answer is the image's bytes (PNG or JPEG).",
+    "the answer is the image's bytes (PNG or JPEG). At most a few renders run at once: past them, 503 "
+    "with `Retry-After`.",
     responses={
         200: {"content": {"image/png": {}, "image/jpeg": {}}, "description": "The rendered image"},
-        **NOT_FOUND, **NOT_READY,
-        422: {"description": "Unknown keys or names, NaN, wrong lengths, size over the limit"},
+        **NOT_FOUND, **NOT_READY, **BUSY,
+        422: {"description": "Unknown names, values out of range, wrong lengths, size over the limit"},
     },
+    dependencies=[Depends(render_admission)],  # first: a refusal costs no validation or lookup
 )  # fmt: skip
-def render_avatar(
+async def render_avatar(
     req: RenderRequest | None = None,
     job: JobRecord = Depends(ready_avatar),
     ctx: ServiceContext = Depends(context),
 ) -> Response:
     req = req or RenderRequest()
-    loaded = ctx.avatars.get(job.avatar_id, ctx.queue.storage.avatar_dir(job.avatar_id))
-    width, height = rendering.resolve_size(req, loaded.frames)
-    limit = ctx.settings.max_render_pixels
-    if width > limit or height > limit:
-        raise HTTPException(422, f"render size {width}x{height} is over the limit of {limit} pixels a side")
-    if req.frame is not None:
-        params = rendering.frame_params(loaded, req.frame)
-    else:
-        params = loaded.avatar.body.params_from_pose(req.pose or BodyPose())
-    camera = rendering.make_camera(req, width, height, loaded.frames)
+    folder = ctx.queue.storage.avatar_dir(job.avatar_id)
+    limits = ctx.settings.max_render_side, ctx.settings.max_render_pixels
+    width, height = await run_in_threadpool(rendering.checked_size, req, folder, *limits)  # before loading
+    async with ctx.renders.slot():
+        data = await run_in_threadpool(_render, ctx, job.avatar_id, folder, req, width, height)
+    return Response(data, media_type="image/png" if req.format == "png" else "image/jpeg")
+
+
+def _render(
+    ctx: ServiceContext, avatar_id: str, folder: Path, req: RenderRequest, width: int, height: int
+) -> bytes:
+    loaded = ctx.avatars.get(avatar_id, folder)
+    params = spec_params(loaded.avatar, req, loaded.frames)  # checked against the body model's ranges
+    camera = spec_camera(req, width, height, loaded.frames)
     image = rendering.render_image(loaded, params, camera, req.background)
-    media = "image/png" if req.format == "png" else "image/jpeg"
-    return Response(rendering.encode_image(image, req.format), media_type=media)
+    return rendering.encode_image(image, req.format)
 
 
 @router.get(
@@ -155,12 +180,14 @@ def render_avatar(
     summary="Download the avatar: the 3D Gaussians (PLY) or the posed body mesh (GLB)",
     responses={
         200: {"content": {"application/octet-stream": {}, "model/gltf-binary": {}}},
-        **NOT_FOUND, **NOT_READY,
+        **NOT_FOUND, **NOT_READY, **BUSY,
     },
 )  # fmt: skip
-def export_avatar(
+async def export_avatar(
     format: Literal["ply", "glb"] = Query("ply", description="ply: 3DGS splats (rest pose); glb: mesh"),
-    frame: int | None = Query(None, ge=0, description="glb: pose of this training frame (default rest)"),
+    frame: int | None = Query(
+        None, ge=0, le=100_000, description="glb: pose of this training frame (default rest)"
+    ),
     job: JobRecord = Depends(ready_avatar),
     ctx: ServiceContext = Depends(context),
 ) -> Response:
@@ -172,8 +199,13 @@ def export_avatar(
 
         return FileResponse(folder / PLY_NAME, media_type="application/octet-stream",
                             filename=f"avatar-{job.avatar_id}.ply")  # fmt: skip
-    loaded = ctx.avatars.get(job.avatar_id, folder)
-    params = rendering.frame_params(loaded, frame) if frame is not None else rendering.rest_params(loaded)
-    data = rendering.posed_mesh_glb(loaded, params)
+    async with ctx.renders.slot():  # posing the mesh costs like a render
+        data = await run_in_threadpool(_glb, ctx, job.avatar_id, folder, frame)
     disposition = f'attachment; filename="avatar-{job.avatar_id}.glb"'
     return Response(data, media_type="model/gltf-binary", headers={"Content-Disposition": disposition})
+
+
+def _glb(ctx: ServiceContext, avatar_id: str, folder: Path, frame: int | None) -> bytes:
+    loaded = ctx.avatars.get(avatar_id, folder)
+    params = frame_params(loaded.frames, frame) if frame is not None else rendering.rest_params(loaded)
+    return rendering.posed_mesh_glb(loaded, params)

@@ -1,0 +1,82 @@
+"""Housekeeping: what crashes and lost races leave behind, removed after a time to live.
+
+- ``jobs/work/<id>/`` of a job that has ended (its finisher removes it; a crash in between, or an
+  attempt that lost its job and wrote on, can leave it), after ``FINISHED_GRACE_S``; of a job with
+  no record (the API died during an upload), after ``orphan_ttl_s``;
+- ``avatars/.deleted-*`` and ``animations/.deleted-*`` (a deletion that stopped between its
+  rename and its removal);
+- ``avatars/<id>/`` and ``animations/<id>/`` whose job failed, was cancelled or has no record,
+  after ``orphan_ttl_s``;
+- the records of failed and cancelled jobs, and of deleted avatars and animations,
+  ``keep_records_days`` after they ended.
+
+A worker sweeps at start and every ten minutes (``JobQueue``).
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from jobs.config import JobsConfig
+from jobs.storage import Storage
+from jobs.store import JobStore, is_valid_id
+
+logger = logging.getLogger("eva.jobs")
+
+FINISHED_GRACE_S = 60.0
+
+
+@dataclass
+class Sweep:
+    """What one sweep removed: folders (paths) and job records (ids)."""
+
+    folders: list[Path] = field(default_factory=list)
+    records: list[str] = field(default_factory=list)
+
+
+def _age(path: Path, now: float) -> float:
+    """Seconds since the folder or anything directly in it last changed."""
+    try:
+        times = [path.stat().st_mtime] + [p.stat().st_mtime for p in path.iterdir()]
+    except OSError:
+        return 0.0
+    return now - max(times)
+
+
+def sweep(config: JobsConfig, store: JobStore, storage: Storage, now: float | None = None) -> Sweep:
+    """One pass (see the module docstring)."""
+    now = time.time() if now is None else now
+    done = Sweep()
+
+    def remove(path: Path, why: str) -> None:
+        shutil.rmtree(path, ignore_errors=True)
+        done.folders.append(path)
+        logger.info("swept %s (%s)", path, why)
+
+    for path in sorted(config.work_dir.iterdir()) if config.work_dir.is_dir() else []:
+        job = store.get(path.name) if is_valid_id(path.name) else None
+        age = _age(path, now)
+        if job is not None and job.finished and age > FINISHED_GRACE_S:
+            remove(path, f"work folder of a {job.state} job")
+        elif job is None and age > config.orphan_ttl_s:
+            remove(path, "work folder without a job")
+    for kind, folder in (("avatar", config.avatars_dir), ("animation", config.animations_dir)):
+        for path in sorted(folder.iterdir()) if folder.is_dir() else []:
+            age = _age(path, now)
+            if path.name.startswith(".deleted-") and age > FINISHED_GRACE_S:
+                remove(path, f"a deleted {kind}'s leftovers")
+            elif is_valid_id(path.name) and age > config.orphan_ttl_s:
+                job = store.by_avatar(path.name, with_deleted=True, kind=kind)
+                if job is None or job.state in ("failed", "cancelled") or job.avatar_deleted:
+                    remove(path, f"{kind} without a finished job")
+    purged = store.purge(finished_before=now - config.keep_records_days * 86400.0)
+    done.records = [job.id for job in purged]
+    for job in purged:
+        storage.remove_work(job.id)
+    if done.folders or done.records:
+        logger.info("sweep: removed %d folder(s), %d record(s)", len(done.folders), len(done.records))
+    return done

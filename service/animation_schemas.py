@@ -1,0 +1,93 @@
+"""The API's contract for animations and posing: what ``POST /avatars/{id}/animations`` answers,
+an animation's state, and the pose controls (sliders) of an avatar."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+from eva_engine.animate.controls import PoseControl
+from jobs.animation import AnimationOptions
+from jobs.store import JobRecord
+
+AnimationState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+
+
+def _time(ts: float | None) -> datetime | None:
+    return datetime.fromtimestamp(ts, UTC) if ts is not None else None
+
+
+class AnimationCreated(BaseModel):
+    animation_id: str = Field(examples=["5e4d3c2b1a0f9e8d7c6b5a4f3e2d1c0b"])
+    job_id: str = Field(examples=["0a1b2c3d4e5f60718293a4b5c6d7e8f9"])
+    job_url: str = Field(examples=["/jobs/0a1b2c3d4e5f60718293a4b5c6d7e8f9"])
+    animation_url: str = Field(examples=["/animations/5e4d3c2b1a0f9e8d7c6b5a4f3e2d1c0b"])
+
+
+class AnimationInfo(BaseModel):
+    """An animation: its job's state and progress (0..1 over preprocess, align, render, export);
+    once ``succeeded``, ``video_url`` serves the mp4 and the video's facts are filled in."""
+
+    animation_id: str
+    avatar_id: str = Field(description="The avatar animated.")
+    job_id: str
+    state: AnimationState
+    stage: Literal["preprocess", "align", "render", "export"] | None
+    progress: float
+    eta_seconds: float | None
+    message: str | None
+    error: str | None
+    source: str | None = Field(None, description="The uploaded file's name.")
+    options: AnimationOptions
+    created_at: datetime
+    finished_at: datetime | None
+    video_url: str | None = Field(None, description="The mp4 (H.264), once succeeded.")
+    frames: int | None = None
+    fps: float | None = None
+    width: int | None = None
+    height: int | None = None
+    duration_s: float | None = None
+    driving_frames_without_person: int | None = Field(
+        None, description="Frames of the driving video where nobody was found (skipped, interpolated)."
+    )
+
+    @classmethod
+    def of(cls, job: JobRecord, info: dict | None = None) -> AnimationInfo:
+        """From the job record and, once published, the animation's ``animation.json``."""
+        info = info or {}
+        done = job.state == "succeeded" and bool(info)
+        return cls(
+            animation_id=job.avatar_id, avatar_id=job.options["avatar_id"], job_id=job.id,
+            state=job.state, stage=job.stage, progress=round(job.progress, 4),  # type: ignore[arg-type]
+            eta_seconds=job.eta_s, message=job.message, error=job.error, source=job.filename,
+            options=AnimationOptions.model_validate(job.options), created_at=_time(job.created_at),
+            finished_at=_time(job.finished_at),
+            video_url=f"/animations/{job.avatar_id}/video" if done else None,
+            **{k: info.get(k) for k in ("frames", "fps", "width", "height", "duration_s",
+                                        "driving_frames_without_person")},
+        )  # type: ignore[arg-type]  # fmt: skip
+
+
+class AnimationList(BaseModel):
+    animations: list[AnimationInfo]
+
+
+class Framing(BaseModel):
+    """An orbit camera that fits the avatar (``CameraSpec`` fields)."""
+
+    target: tuple[float, float, float]
+    distance: float
+    fov_y: float
+
+
+class PoseControls(BaseModel):
+    """Sliders for posing an avatar (see ``eva_engine.animate.controls``): a joint's rotation is
+    the product, in list order, of its controls' ``exp(value * gain * axis)`` (axis-angle in the
+    pose JSON); an expression is the sum of ``value * gain``. ``framing``: an orbit camera that
+    fits the avatar."""
+
+    body_model: str
+    controls: list[PoseControl]
+    framing: Framing

@@ -1,0 +1,192 @@
+"""``RequestGuard``: an ASGI middleware that decides about a request before the app reads a byte
+of its body or routes it, in this order:
+
+1. the API key (``X-API-Key``, compared in constant time) unless the path is public (``/healthz``)
+   or open (the web page and its static files, which hold no secret): 401;
+2. a browser's cross-site write (``Origin`` / ``Sec-Fetch-Site`` of another site on a POST,
+   PUT, PATCH or DELETE, e.g. a web page posting a form to the loopback service): 403;
+3. requests in flight over ``max_requests`` (public paths, i.e. ``/healthz``, are always
+   answered): 503 with ``Retry-After``;
+4. the body limit of the route (``BodyRule``: per method and path pattern, else
+   ``default_max_bytes``): 413 at once from ``Content-Length``, or as soon as the streamed body
+   crosses it; the rule's own cap on concurrent requests (uploads): 503 with ``Retry-After``;
+   a body that pauses longer than ``body_timeout_s`` between chunks: 408.
+
+A body cut off by 413 or 408 fails the app's parsing, so the endpoint never runs (no half job).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import re
+from dataclasses import dataclass, field
+from urllib.parse import urlsplit
+
+from starlette.exceptions import HTTPException
+from starlette.responses import JSONResponse
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+RETRY_AFTER_S = 1
+
+
+@dataclass(frozen=True)
+class BodyRule:
+    """Requests with ``method`` whose path matches ``path`` (a regular expression, anchored) may
+    send at most ``max_bytes`` of body, and at most ``concurrent`` of them run at once (None: no
+    cap of their own)."""
+
+    method: str
+    path: str
+    max_bytes: int
+    concurrent: int | None = None
+
+    def matches(self, method: str, path: str) -> bool:
+        return method == self.method and re.fullmatch(self.path, path) is not None
+
+
+@dataclass(frozen=True)
+class GuardConfig:
+    """api_key: None for no key; public_paths: paths that need no key and are answered whatever
+    the load (exact match: health); open_paths / open_prefixes: paths (exact, or starting with a
+    prefix) that need no key but count against ``max_requests`` like any other (the web page)."""
+
+    api_key: str | None
+    public_paths: frozenset[str]
+    trusted_hosts: tuple[str, ...]
+    rules: tuple[BodyRule, ...]
+    default_max_bytes: int
+    max_requests: int
+    body_timeout_s: float
+    open_paths: frozenset[str] = frozenset()
+    open_prefixes: tuple[str, ...] = ()
+
+    def needs_key(self, path: str) -> bool:
+        if path in self.public_paths or path in self.open_paths:
+            return False
+        return ".." in path or not any(path.startswith(prefix) for prefix in self.open_prefixes)
+
+
+class BodyRejected(HTTPException):
+    """Raised from ``receive`` when a body breaks its limit; FastAPI answers it as is."""
+
+
+def _reply(status: int, detail: str, retry_after: bool = False) -> JSONResponse:
+    headers = {"Retry-After": str(RETRY_AFTER_S)} if retry_after else None
+    return JSONResponse({"detail": detail}, status_code=status, headers=headers)
+
+
+@dataclass
+class _Counters:
+    in_flight: int = 0
+    per_rule: dict[int, int] = field(default_factory=dict)
+
+
+class RequestGuard:
+    def __init__(self, app: ASGIApp, config: GuardConfig) -> None:
+        self.app, self.config = app, config
+        self._key = config.api_key.encode() if config.api_key is not None else None
+        self._counters = _Counters()  # this app's requests (the event loop is single-threaded)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
+        method, path = scope["method"], scope["path"]
+        refusal = self._refuse(method, path, headers)
+        if refusal is not None:
+            await refusal(scope, receive, send)
+            return
+        counters, cfg = self._counters, self.config
+        if counters.in_flight >= cfg.max_requests and path not in cfg.public_paths:  # health stays visible
+            await _reply(503, "the service is busy; retry shortly", retry_after=True)(scope, receive, send)
+            return
+        index, rule = next(((i, r) for i, r in enumerate(cfg.rules) if r.matches(method, path)), (None, None))
+        limit = rule.max_bytes if rule is not None else cfg.default_max_bytes
+        length = headers.get("content-length")
+        if length is not None and (not length.isdigit() or int(length) > limit):
+            detail = _too_large(limit, method, path) if length.isdigit() else "invalid Content-Length"
+            await _reply(413 if length.isdigit() else 400, detail)(scope, receive, send)
+            return
+        if (
+            rule is not None
+            and rule.concurrent is not None
+            and counters.per_rule.get(index, 0) >= rule.concurrent
+        ):
+            detail = f"{rule.concurrent} {method} requests like this one are in progress; retry shortly"
+            await _reply(503, detail, retry_after=True)(scope, receive, send)
+            return
+        counters.in_flight += 1
+        if index is not None:
+            counters.per_rule[index] = counters.per_rule.get(index, 0) + 1
+        try:
+            await self._run(scope, receive, send, limit, method, path)
+        finally:
+            counters.in_flight -= 1
+            if index is not None:
+                counters.per_rule[index] -= 1
+
+    def _refuse(self, method: str, path: str, headers: dict[str, str]) -> JSONResponse | None:
+        if self._key is not None and self.config.needs_key(path):
+            given = headers.get("x-api-key", "").encode("latin-1")
+            if not hmac.compare_digest(given, self._key):
+                return _reply(401, "missing or wrong API key (header X-API-Key)")
+        if method not in SAFE_METHODS and self._cross_site(headers):
+            return _reply(403, "cross-site requests are refused (the Origin is not this service)")
+        return None
+
+    def _cross_site(self, headers: dict[str, str]) -> bool:
+        """A browser request made by another site's page (programs send neither header)."""
+        if headers.get("sec-fetch-site") == "cross-site":
+            return True
+        origin = headers.get("origin")
+        if origin is None:
+            return False
+        host = urlsplit(origin).hostname
+        if host is None:  # "null": sandboxed frames, file:// pages
+            return True
+        trusted = self.config.trusted_hosts
+        own = (headers.get("host") or "").rsplit(":", 1)[0].strip("[]")
+        return host != own and "*" not in trusted and host not in {h.strip("[]") for h in trusted}
+
+    async def _run(
+        self, scope: Scope, receive: Receive, send: Send, limit: int, method: str, path: str
+    ) -> None:
+        seen, done, started = 0, False, False
+        timeout = self.config.body_timeout_s
+
+        async def limited() -> Message:
+            nonlocal seen, done
+            if done:  # the body is in; what follows is a wait for the disconnect: no timeout
+                return await receive()
+            try:
+                message = await asyncio.wait_for(receive(), timeout)
+            except TimeoutError:
+                raise BodyRejected(408, f"the request body stalled for more than {timeout:.0f} s") from None
+            if message["type"] == "http.request":
+                seen += len(message.get("body", b""))
+                if seen > limit:
+                    raise BodyRejected(413, _too_large(limit, method, path))
+                done = not message.get("more_body", False)
+            else:
+                done = True
+            return message
+
+        async def tracked(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, limited, tracked)
+        except BodyRejected as err:  # raised where no handler turned it into a response
+            if started:
+                raise
+            await _reply(err.status_code, err.detail)(scope, receive, send)
+
+
+def _too_large(limit: int, method: str, path: str) -> str:
+    size = f"{limit / 2**20:.0f} MB" if limit >= 2**20 else f"{limit / 1024:.0f} KB"
+    return f"the request body is larger than the limit of {size} for {method} {path}"

@@ -1,0 +1,284 @@
+"""Animations: an avatar performs the motion of a driving video (or JSON poses), as a job; and the
+pose controls a client builds sliders from. Thin: validation here, work in ``jobs.animation``.
+
+The uploads meet the same guard as an avatar's video (``service.guard``: the key, the body limit
+of uploads, uploads at once, stalled bodies) and the same checks before a job is queued, off the
+event loop: the video's headers probed in a child process, its decoded frames and the rendered
+frames within the job's pixel budget, the queue's quota; poses are parsed and checked against the
+avatar's body model (at most ``max_poses_mb``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import BinaryIO
+
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Response, UploadFile
+from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse
+from pydantic import ValidationError
+
+from eva_engine.animate.animation import MAX_SIDE, AnimationError
+from jobs.animation import (
+    VIDEO_NAME,
+    AnimationOptions,
+    animation_pixels,
+    check_animation_budget,
+    read_animation_info,
+)
+from jobs.options import MAX_FRAMES, MAX_SIZE, MIN_SIZE
+from jobs.store import JobRecord, is_valid_id, new_id
+from service.animation_schemas import AnimationCreated, AnimationInfo, AnimationList, Framing, PoseControls
+from service.deps import (
+    ServiceContext,
+    avatar_record,
+    check_job_quota,
+    context,
+    ready_avatar,
+    render_admission,
+)
+from service.schemas import ErrorMessage
+from service.uploads import check_video, remove_tree, safe_suffix, save_upload
+
+router = APIRouter(tags=["animations"])
+NOT_FOUND = {404: {"model": ErrorMessage, "description": "Unknown or malformed id"}}
+BUSY = {503: {"model": ErrorMessage, "description": "Busy or over quota: retry after `Retry-After` seconds"}}
+_DEFAULTS = AnimationOptions(avatar_id="0" * 32)
+
+
+def animation_record(animation_id: str, ctx: ServiceContext = Depends(context)) -> JobRecord:
+    """The job behind an animation (404 for unknown or malformed ids)."""
+    job = ctx.queue.store.by_avatar(animation_id, kind="animation") if is_valid_id(animation_id) else None
+    if job is None:
+        raise HTTPException(404, f"no animation with id {animation_id!r}")
+    return job
+
+
+def _info(job: JobRecord, ctx: ServiceContext) -> AnimationInfo:
+    folder = ctx.queue.storage.animation_dir(job.avatar_id)
+    return AnimationInfo.of(job, read_animation_info(folder) if job.state == "succeeded" else None)
+
+
+def _camera(value: str):
+    """The form's ``camera``: a preset name, ``driving``, or a CameraSpec as JSON."""
+    text = value.strip()
+    if not text.startswith("{"):
+        return text
+    try:
+        return json.loads(text)
+    except ValueError as err:
+        raise HTTPException(422, f"camera is not a preset name, 'driving' or valid JSON: {err}") from err
+
+
+@router.post(
+    "/avatars/{avatar_id}/animations",
+    status_code=202,
+    response_model=AnimationCreated,
+    summary="Make the avatar perform a driving video (or JSON poses): queue an animation job",
+    description="Upload `video` (anyone, any body proportions: it is preprocessed, aligned and "
+    "retargeted onto the avatar) or `poses` (a JSON file `{\"fps\": 25, \"poses\": [BodyPose, ...]}`, "
+    "applied as they are). Follow `GET /animations/{id}` (or the job) until `succeeded`, then download "
+    "`video_url`. A video in which nobody is found fails its job with that reason.",
+    responses={
+        **NOT_FOUND,
+        409: {"model": ErrorMessage, "description": "The avatar is not ready"},
+        413: {"model": ErrorMessage, "description": "Upload over the size limit"},
+        422: {"description": "No upload, not an mp4/mov/mkv/webm/avi video, too long or too large, bad "
+                             "poses or bad options"},
+        507: {"model": ErrorMessage, "description": "The server's disk is full"},
+        **BUSY,
+    },
+)  # fmt: skip
+async def create_animation(
+    video: UploadFile | None = File(None, description="A driving video of one person (mp4, webm, ...)."),
+    poses: UploadFile | None = File(None, description='Or a JSON pose sequence {"fps", "poses": [...]}.'),
+    camera: str = Form("front", description="A preset (front, left, ...), 'driving' (the video's own "
+                       "camera) or a CameraSpec as JSON; an orbit without target/distance is framed on the "
+                       "avatar."),
+    side_by_side: bool = Form(False, description="The driving frame beside the avatar (videos only)."),
+    fps: float | None = Form(None, gt=0.0, le=120.0, description="Output fps (default: the driving's)."),
+    width: int | None = Form(None, ge=16, le=MAX_SIDE),
+    height: int | None = Form(None, ge=16, le=MAX_SIDE),
+    smooth_s: float = Form(_DEFAULTS.smooth_s, ge=0.0, le=2.0, description="Temporal smoothing (s)."),
+    max_frames: int = Form(_DEFAULTS.max_frames, ge=1, le=MAX_FRAMES),
+    max_size: int = Form(_DEFAULTS.max_size, ge=MIN_SIZE, le=MAX_SIZE),
+    fit_scale: float = Form(_DEFAULTS.fit_scale, gt=0.0, le=4.0),
+    avatar: JobRecord = Depends(ready_avatar),
+    ctx: ServiceContext = Depends(context),
+) -> AnimationCreated:  # fmt: skip
+    try:
+        options = AnimationOptions(
+            avatar_id=avatar.avatar_id, camera=_camera(camera), side_by_side=side_by_side, fps=fps,
+            width=width, height=height, smooth_s=smooth_s, max_frames=max_frames, max_size=max_size,
+            fit_scale=fit_scale,
+        )  # fmt: skip
+    except ValidationError as err:
+        raise RequestValidationError(err.errors(include_input=False)) from err
+    upload = _one_upload(video, poses)
+    if poses is not None and (options.camera == "driving" or options.side_by_side):
+        raise HTTPException(422, "camera 'driving' and side_by_side need a driving video, not poses")
+    # File copies, the probe's child process, parsing poses and SQLite block: off the event loop.
+    return await run_in_threadpool(_create, ctx, avatar, options, upload.file, upload.filename,
+                                   poses is not None)  # fmt: skip
+
+
+def _create(ctx: ServiceContext, avatar: JobRecord, options: AnimationOptions, source: BinaryIO,
+            filename: str | None, is_poses: bool) -> AnimationCreated:  # fmt: skip
+    queue, settings = ctx.queue, ctx.settings
+    check_job_quota(ctx)
+    job_id, animation_id = new_id(), new_id()
+    work = queue.storage.work_dir(job_id)
+    work.mkdir(parents=True)
+    try:
+        # The worker tells poses from a video by the suffix: a video is never saved as .json.
+        suffix = ".json" if is_poses else safe_suffix(filename).replace(".json", ".video")
+        path = work / f"input{suffix}"
+        limit = settings.max_poses_bytes if is_poses else settings.max_upload_bytes
+        if save_upload(source, path, limit) == 0:
+            raise HTTPException(
+                422, f"the uploaded {'poses are' if is_poses else 'video is'} empty (0 bytes)"
+            )
+        if is_poses:
+            frames, fps, size = _check_poses(path, avatar, ctx)
+        else:
+            info = check_video(path, options, settings.jobs, settings.max_video_seconds,
+                               settings.probe_timeout_s, settings.probe_memory_mb)  # fmt: skip
+            scale = min(1.0, options.max_size / max(info.width, info.height))  # as preprocessing resizes
+            size = (max(1, round(info.height * scale)), max(1, round(info.width * scale)))
+            fps = info.fps or 25.0
+            frames = min(options.max_frames, info.frame_count() or options.max_frames)
+        _check_render_size(options, frames, fps, size, ctx)
+        name = Path(filename or "upload").name[:200]
+        queue.store.create(options.model_dump(mode="json"), filename=name, job_id=job_id,
+                           avatar_id=animation_id, kind="animation")  # fmt: skip
+    except BaseException:
+        remove_tree(work)
+        raise
+    try:
+        queue.enqueue(job_id)
+    except BaseException:  # the queue backend is down (503 without its details): nothing stays behind
+        queue.store.delete(job_id)
+        remove_tree(work)
+        raise
+    return AnimationCreated(animation_id=animation_id, job_id=job_id, job_url=f"/jobs/{job_id}",
+                            animation_url=f"/animations/{animation_id}")  # fmt: skip
+
+
+def _check_render_size(options: AnimationOptions, frames: int, fps: float, size: tuple[int, int] | None,
+                       ctx: ServiceContext) -> None:  # fmt: skip
+    """422 when one rendered frame is over the render limits (as for ``POST .../render``), or all
+    of them over the job's pixel budget (they are held until encoded)."""
+    settings = ctx.settings
+    _, width, height, _ = animation_pixels(options, frames, fps, size)
+    side, pixels = settings.max_render_side, settings.max_render_pixels
+    if width > side or height > side or width * height > pixels:
+        raise HTTPException(
+            422,
+            f"the animation's frames would be {width}x{height}, over the limit ({side} pixels a side, "
+            f"{pixels} pixels in all); pass a smaller width / height",
+        )
+    try:
+        check_animation_budget(options, frames, fps, size, settings.jobs.max_frame_pixels)
+    except AnimationError as err:
+        raise HTTPException(422, str(err)) from err
+
+
+def _one_upload(video: UploadFile | None, poses: UploadFile | None) -> UploadFile:
+    if video is None and poses is None:
+        raise HTTPException(422, "no driving motion: upload a video (form field 'video') or a JSON pose "
+                                 "sequence (form field 'poses')")  # fmt: skip
+    if video is not None and poses is not None:
+        raise HTTPException(422, "upload a video or poses, not both")
+    return video if video is not None else poses  # type: ignore[return-value]
+
+
+def _check_poses(path: Path, avatar: JobRecord, ctx: ServiceContext) -> tuple[int, float, None]:
+    """422 unless the file is a pose sequence the avatar's body model understands (bounded
+    values, known names, within the model's ranges); returns (frames, fps, None: no image)."""
+    from eva_engine.animate import DrivingError, driving_from_poses
+    from eva_engine.avatar import read_avatar_info
+
+    try:
+        doc = json.loads(path.read_bytes())
+    except (ValueError, UnicodeDecodeError) as err:
+        raise HTTPException(422, f"the poses are not valid JSON: {err}") from err
+    body = ctx.avatars.body(read_avatar_info(ctx.queue.storage.avatar_dir(avatar.avatar_id))["body_model"])
+    try:
+        driving = driving_from_poses(doc, body)
+    except DrivingError as err:
+        raise HTTPException(422, str(err)[:2000]) from err
+    return len(driving), driving.fps, None
+
+
+@router.get("/animations/{animation_id}", response_model=AnimationInfo, responses=NOT_FOUND,
+            summary="An animation's state and progress; its video's address once done")  # fmt: skip
+def get_animation(job: JobRecord = Depends(animation_record), ctx: ServiceContext = Depends(context)):
+    return _info(job, ctx)
+
+
+@router.get(
+    "/animations/{animation_id}/video",
+    response_class=FileResponse,
+    summary="The animation as an mp4 (H.264)",
+    responses={200: {"content": {"video/mp4": {}}}, **NOT_FOUND,
+               409: {"model": ErrorMessage, "description": "The animation's job has not succeeded"}},
+)  # fmt: skip
+def animation_video(job: JobRecord = Depends(animation_record), ctx: ServiceContext = Depends(context)):
+    file = ctx.queue.storage.animation_dir(job.avatar_id) / VIDEO_NAME
+    if job.state != "succeeded" or not file.is_file():
+        reason = job.error if job.state == "failed" else f"its job is {job.state}"
+        raise HTTPException(409, f"animation {job.avatar_id} has no video: {reason}")
+    return FileResponse(file, media_type="video/mp4", filename=f"animation-{job.avatar_id}.mp4")
+
+
+@router.delete(
+    "/animations/{animation_id}",
+    status_code=204,
+    summary="Delete an animation and its video",
+    responses={**NOT_FOUND, 409: {"model": ErrorMessage, "description": "Its job is still running"}},
+)
+def delete_animation(job: JobRecord = Depends(animation_record), ctx: ServiceContext = Depends(context)):
+    if not job.finished:
+        raise HTTPException(409, f"animation {job.avatar_id} is still being made; cancel job {job.id} first")
+    ctx.queue.storage.delete_animation(job.avatar_id)
+    ctx.queue.store.update(job.id, avatar_deleted=1)
+    return Response(status_code=204)
+
+
+@router.get("/avatars/{avatar_id}/animations", response_model=AnimationList, responses=NOT_FOUND,
+            summary="The animations of an avatar, oldest first")  # fmt: skip
+def list_animations(avatar: JobRecord = Depends(avatar_record), ctx: ServiceContext = Depends(context)):
+    jobs = ctx.queue.store.list(kind="animation")
+    jobs = [j for j in jobs if j.options.get("avatar_id") == avatar.avatar_id]
+    return AnimationList(animations=[_info(j, ctx) for j in jobs])
+
+
+@router.get(
+    "/avatars/{avatar_id}/controls",
+    response_model=PoseControls,
+    responses={**NOT_FOUND, 409: {"model": ErrorMessage, "description": "The avatar is not ready"}, **BUSY},
+    summary="Sliders for posing the avatar (joints, fingers, face) and a camera that frames it",
+    description="Loading the avatar and posing its body cost like a render: this shares the render "
+    "slots, and past them answers 503 with `Retry-After`.",
+    dependencies=[Depends(render_admission)],  # first: a refusal costs no lookup
+)  # fmt: skip
+async def pose_controls(
+    aspect: float = Query(1.0, gt=0.1, le=10.0, description="Width / height of the picture to frame."),
+    avatar: JobRecord = Depends(ready_avatar),
+    ctx: ServiceContext = Depends(context),
+):
+    async with ctx.renders.slot():
+        return await run_in_threadpool(_controls, ctx, avatar, aspect)
+
+
+def _controls(ctx: ServiceContext, avatar: JobRecord, aspect: float) -> PoseControls:
+    from eva_engine.animate.controls import pose_controls as controls_of
+    from eva_engine.avatar.framing import framing
+
+    loaded = ctx.avatars.get(avatar.avatar_id, ctx.queue.storage.avatar_dir(avatar.avatar_id))
+    with loaded.lock:
+        controls = controls_of(loaded.avatar.body, loaded.avatar.shape)
+        fit = framing(loaded.avatar, aspect=aspect)
+    framed = Framing(target=fit.target, distance=fit.distance, fov_y=fit.fov_y)
+    return PoseControls(body_model=loaded.avatar.body.name, controls=controls, framing=framed)

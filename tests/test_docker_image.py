@@ -1,0 +1,166 @@
+"""The container image, checked without a Docker engine (none runs here or in CI): what the build
+context holds (``.dockerignore``, matched with Docker's rules), that the image runs as an
+unprivileged user from a multi-stage build without dev extras, that every role has a health check
+it can pass, that compose caps memory and will not start an open API; and the health check."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from service import healthcheck
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _pattern_regex(pattern: str) -> re.Pattern:
+    """Docker's pattern syntax (Go's filepath.Match plus ``**``): ``*`` and ``?`` stay within one
+    path element, ``**`` spans any number of them."""
+    out, i = "", 0
+    while i < len(pattern):
+        if pattern.startswith("**/", i):
+            out, i = out + "(?:.*/)?", i + 3
+        elif pattern.startswith("**", i):
+            out, i = out + ".*", i + 2
+        elif pattern[i] == "*":
+            out, i = out + "[^/]*", i + 1
+        elif pattern[i] == "?":
+            out, i = out + "[^/]", i + 1
+        else:
+            out, i = out + re.escape(pattern[i]), i + 1
+    return re.compile(out)
+
+
+def dockerignore_rules(path: Path = ROOT / ".dockerignore") -> list[tuple[bool, re.Pattern]]:
+    rules = []
+    for line in path.read_text().splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        keep = line.startswith("!")
+        pattern = line.lstrip("!").strip().strip("/")
+        rules.append((keep, _pattern_regex(pattern)))
+    return rules
+
+
+def in_context(relpath: str, rules) -> bool:
+    """Whether Docker sends ``relpath`` to the build: the last rule that matches the path or one
+    of its parent folders decides."""
+    parts = relpath.split("/")
+    prefixes = ["/".join(parts[: i + 1]) for i in range(len(parts))]
+    included = True
+    for keep, regex in rules:
+        if any(regex.fullmatch(p) for p in prefixes):
+            included = keep
+    return included
+
+
+def test_the_build_context_holds_no_data_venv_or_history():
+    rules = dockerignore_rules()
+    excluded = [".git/HEAD", ".venv/.installed", ".venv/bin/python", "data/service/jobs/jobs.db",
+                "data/service/avatars/0123/avatar.ply", "data/cache/anny/x.safetensors", "out/demo.png",
+                "out/demo/service/jobs/work/x/input.mp4", "tests/test_service_api.py",
+                "bench/results/service.md", "eva_engine/__pycache__/paths.cpython-311.pyc",
+                "service/__pycache__/app.cpython-311.pyc", ".env", "docs/evaluation.md",
+                "scripts/install-system-deps.sh"]  # fmt: skip
+    for path in excluded:
+        assert not in_context(path, rules), path
+    tracked = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    needed = [p for p in tracked.split() if p.split("/")[0] in ("eva_engine", "service", "jobs")]
+    needed += ["pyproject.toml", "Makefile", "README.md"]
+    assert len(needed) > 50
+    for path in needed:
+        assert in_context(path, rules), path
+
+
+def stages(dockerfile: str) -> list[list[str]]:
+    """Instructions per stage (continuation lines joined)."""
+    text = re.sub(r"\\\n", " ", dockerfile)
+    out: list[list[str]] = []
+    for line in text.splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        if line.upper().startswith("FROM "):
+            out.append([])
+        out[-1].append(line)
+    return out
+
+
+def test_the_image_runs_unprivileged_from_a_multi_stage_build():
+    dockerfile = (ROOT / "docker" / "Dockerfile").read_text()
+    build, final = stages(dockerfile)[0], stages(dockerfile)[-1]
+    assert len(stages(dockerfile)) >= 2 and build[0].endswith(" AS build")
+    users = [line.split()[1] for line in final if line.upper().startswith("USER ")]
+    assert users and users[-1] not in ("root", "0") and not users[-1].startswith("0:"), users
+    run = " ".join(line for line in final if "useradd" in line)
+    created = re.search(r"useradd .*--uid (\d+).* (\w+)$", run)
+    assert created and int(created.group(1)) >= 1000 and created.group(2) == users[-1]
+    assert any(line.startswith("COPY --from=build") for line in final)
+    assert not any("make install" in line or "[dev]" in line for line in build + final)
+    # Every source the build stage copies is in the build context.
+    rules = dockerignore_rules()
+    for line in build:
+        if line.startswith("COPY ") and "--from" not in line:
+            for src in line.split()[1:-1]:
+                assert in_context(src, rules), src
+    health = next(line for line in final if line.startswith("HEALTHCHECK"))
+    assert "service.healthcheck" in health  # role-aware: a worker is not sent to /healthz
+    env = " ".join(line for line in final if line.startswith("ENV "))
+    assert "EVA_HOST=0.0.0.0" in env and "EVA_WORKER_HEALTH_FILE=" in env
+
+
+def test_compose_caps_memory_and_needs_a_key():
+    compose = yaml.safe_load((ROOT / "docker" / "docker-compose.yml").read_text())
+    for name, service in compose["services"].items():
+        assert service.get("mem_limit"), name
+        assert service.get("healthcheck", {}).get("disable") is not True, name
+    api, worker = compose["services"]["api"], compose["services"]["worker"]
+    assert re.match(r"\$\{EVA_API_KEY:\?", api["environment"]["EVA_API_KEY"])
+    assert all(p.startswith("127.0.0.1:") for p in api["ports"])
+    job_mb = int(re.search(r":-(\d+)", worker["environment"]["EVA_JOB_MEMORY_MB"]).group(1))
+    assert job_mb * 2**20 < int(worker["mem_limit"].rstrip("g")) * 2**30  # a job fails before the container
+
+
+def test_the_health_check_knows_the_worker_role(tmp_path):
+    cmdline = tmp_path / "cmdline"
+    cmdline.write_bytes(b"/app/.venv/bin/python\0/app/.venv/bin/eva\0worker\0--workers\0001\0")
+    assert healthcheck.container_role(cmdline) == "worker"
+    cmdline.write_bytes(b"/app/.venv/bin/python\0/app/.venv/bin/eva\0serve\0")
+    assert healthcheck.container_role(cmdline) == "api"
+    alive = tmp_path / "alive"
+    assert "no health file" in healthcheck.check_worker(alive)
+    alive.touch()
+    assert healthcheck.check_worker(alive) is None
+    old = time.time() - 10 * healthcheck.MAX_AGE_S
+    import os
+
+    os.utime(alive, (old, old))
+    assert "ago" in healthcheck.check_worker(alive)
+
+
+@pytest.mark.slow
+def test_a_worker_keeps_its_health_file_fresh(tmp_path):
+    from test_service_helpers import EVA, start_process, stop, wait_for
+
+    alive = tmp_path / "alive"
+    worker = start_process([EVA, "worker", "--data-dir", str(tmp_path / "data"), "--health-file", str(alive)],
+                           tmp_path / "worker.log")  # fmt: skip
+    try:
+        wait_for(alive.exists, 60, "the health file")
+        assert healthcheck.main(["--role", "worker"]) == 1  # the default path is not this one
+        import os
+
+        os.environ["EVA_WORKER_HEALTH_FILE"] = str(alive)
+        try:
+            assert healthcheck.main(["--role", "worker"]) == 0
+        finally:
+            del os.environ["EVA_WORKER_HEALTH_FILE"]
+    finally:
+        stop(worker)
+    assert not alive.exists()  # removed on a clean stop
