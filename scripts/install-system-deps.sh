@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # Debian packages the project needs at run time: Mesa's software EGL/GL for the ground-truth mesh
-# renderer (moderngl, see ../shared/reference/mesh-rendering-notes.md) and redis-server for the
-# queue's Redis mode tests. Installs only what is missing; never needed twice.
+# renderer (moderngl, see ../shared/reference/mesh-rendering-notes.md), redis-server for the
+# queue's Redis mode tests, and g++ with ninja, which build the rasterizer's C++ kernels
+# (eva_engine/render/native.py; without them the slower torch kernels run). Installs only what
+# is missing; never needed twice.
 set -euo pipefail
-pkgs=(libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri redis-server)
+pkgs=(libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri redis-server g++ ninja-build)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
