@@ -1,8 +1,9 @@
 """The rasterizer's compiled CPU kernels (``csrc/raster.cpp``), built once per machine.
 
-The tile binning and the tile compositing (forward and backward) have two implementations that
-follow the same rules: the pure-torch kernels in ``tiles.py`` and ``composite.py``, which run
-anywhere, and a small C++/OpenMP torch extension, several times faster on CPU. Which one runs is
+The projection, the tile binning and the tile compositing (forwards and backwards) have two
+implementations that follow the same rules: the pure-torch ones in ``projection.py``, ``tiles.py``
+and ``composite.py``, which run anywhere, and a small C++/OpenMP torch extension, several times
+faster on CPU. Which one runs is
 ``kernel``: "cpp" forces the compiled one (an error if it cannot be built), "torch" the fallback,
 and "auto" (the default) reads ``EVA_RASTER_KERNEL`` (auto | cpp | torch), else uses the compiled
 kernels for CPU float32/float64 tensors whenever they load.

@@ -28,7 +28,7 @@ class RasterConfig:
              "autograd": plain torch autograd through the compositing, memory O(Gaussian-pixel
              pairs); the reference the tests compare against.
     tile_size: square screen tiles in pixels (8 is fastest on CPU).
-    kernel: the "tiled" backend's binning and compositing kernels: "cpp" (compiled C++/OpenMP,
+    kernel: the "tiled" backend's projection, binning and compositing kernels: "cpp" (compiled C++/OpenMP,
             built once per machine), "torch" (pure torch, runs anywhere) or "auto" (default:
             ``EVA_RASTER_KERNEL`` if set, else "cpp" when it builds, for CPU float32/float64);
             see ``eva_engine.render.native``.
@@ -113,15 +113,17 @@ def rasterize(
     cfg = config or RasterConfig()
     _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background, sh_degree)
 
-    proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near_plane, far_plane, eps2d)
+    # The autograd reference stays pure torch end to end.
+    kernel = cfg.kernel if cfg.backend == "tiled" else "torch"
+    proj = project_gaussians(
+        means, quats, scales, viewmat, K, width, height, near_plane, far_plane, eps2d, kernel
+    )
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
     if sh_degree is not None:
         colors = eval_sh(sh_degree, colors, view_dirs(means, viewmat))
 
-    # The autograd reference stays pure torch end to end, binning included.
-    kernel = cfg.kernel if cfg.backend == "tiled" else "torch"
     bins = bin_gaussians(
         means2d, proj.radii, proj.depths, width, height, cfg.tile_size, proj.conics, opacities, kernel
     )

@@ -1,5 +1,5 @@
-// Compiled CPU kernels of eva_engine.render: tile binning and tile compositing (forward and
-// hand-written backward). Built on first use by eva_engine/render/native.py; the pure-torch
+// Compiled CPU kernels of eva_engine.render: EWA projection, tile binning and tile compositing,
+// each forward with a hand-written backward (binning has none). Built on first use by eva_engine/render/native.py; the pure-torch
 // kernels in tiles.py and composite.py follow the same rules and stay the fallback.
 //
 // Rules (3DGS / gsplat "classic", as in composite.py): alpha = min(0.999, o exp(power)) with
@@ -624,10 +624,264 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles(
   return {gauss_ids, tile_ids, tile_start, tile_count};
 }
 
+// ------------------------------------------------------------------------------ projection
+//
+// EWA projection as in projection.py (gsplat "classic"), one Gaussian per iteration, in double
+// whatever the tensors' dtype: the frustum-clamped Jacobian J, A = J W R S, cov2d = A A^T + eps2d I
+// with its determinant via Cauchy-Binet, conic = cov2d^-1, and the same culling. The backward is
+// the chain rule of exactly these steps.
+
+struct CameraArgs {
+  double Rw[9], tw[3], fx, fy, cx, cy, near, far, eps2d, ulo, uhi, vlo, vhi;
+  int64_t width, height;
+
+  CameraArgs(const at::Tensor& viewmat, const at::Tensor& K, int64_t w, int64_t h, double near_, double far_,
+             double eps2d_)
+      : near(near_), far(far_), eps2d(eps2d_), width(w), height(h) {
+    TORCH_CHECK(viewmat.sizes() == at::IntArrayRef({4, 4}) && K.sizes() == at::IntArrayRef({3, 3}),
+                "viewmat must be [4, 4] and K [3, 3]");
+    const auto vm = viewmat.to(at::kDouble).contiguous(), k = K.to(at::kDouble).contiguous();
+    const double* v = vm.data_ptr<double>();
+    const double* kk = k.data_ptr<double>();
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) Rw[3 * r + c] = v[4 * r + c];
+      tw[r] = v[4 * r + 3];
+    }
+    fx = kk[0], fy = kk[4], cx = kk[2], cy = kk[5];
+    // gsplat's frustum clamp of the point where J is evaluated: 1.3x the half field of view.
+    const double margin = 0.3, tan_x = 0.5 * w / fx, tan_y = 0.5 * h / fy;
+    ulo = -(cx / fx + margin * tan_x), uhi = (w - cx) / fx + margin * tan_x;
+    vlo = -(cy / fy + margin * tan_y), vhi = (h - cy) / fy + margin * tan_y;
+  }
+};
+
+// Unit quaternion (w, x, y, z) -> row-major rotation matrix.
+inline void rotmat(const double q[4], double R[9]) {
+  const double w = q[0], x = q[1], y = q[2], z = q[3];
+  R[0] = 1 - 2 * (y * y + z * z), R[1] = 2 * (x * y - w * z), R[2] = 2 * (x * z + w * y);
+  R[3] = 2 * (x * y + w * z), R[4] = 1 - 2 * (x * x + z * z), R[5] = 2 * (y * z - w * x);
+  R[6] = 2 * (x * z - w * y), R[7] = 2 * (y * z + w * x), R[8] = 1 - 2 * (x * x + y * y);
+}
+
+// dL/dq of rotmat(q) given G = dL/dR (row-major).
+inline void rotmat_grad(const double q[4], const double G[9], double dq[4]) {
+  const double w = q[0], x = q[1], y = q[2], z = q[3];
+  dq[0] = 2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]);
+  dq[1] = 2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] + w * G[7] - 2 * x * G[8]);
+  dq[2] = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7] - 2 * y * G[8]);
+  dq[3] = 2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] + x * G[6] + y * G[7]);
+}
+
+// Everything the forward computes for one Gaussian, kept for its backward.
+struct ProjState {
+  double p[3], zs, u, v, uc, vc, J[6], qn[4], qnorm, RwRq[9], M[9], A[6], m00, m01, m11, minor01, minor02,
+      minor12, a, b, c, det, D;
+  bool in_range, quat_ok, det_ok;
+};
+
+inline void project_one(const CameraArgs& cam, const double mean[3], const double quat[4], const double scale[3],
+                        ProjState& st) {
+  for (int r = 0; r < 3; ++r)
+    st.p[r] = cam.Rw[3 * r] * mean[0] + cam.Rw[3 * r + 1] * mean[1] + cam.Rw[3 * r + 2] * mean[2] + cam.tw[r];
+  st.in_range = st.p[2] >= cam.near && st.p[2] <= cam.far;
+  st.zs = st.in_range ? st.p[2] : 1.0;  // a safe z keeps culled Gaussians' values finite
+  st.u = st.p[0] / st.zs, st.v = st.p[1] / st.zs;
+  st.uc = std::min(std::max(st.u, cam.ulo), cam.uhi);
+  st.vc = std::min(std::max(st.v, cam.vlo), cam.vhi);
+  st.J[0] = cam.fx / st.zs, st.J[1] = 0, st.J[2] = -cam.fx * st.uc / st.zs;
+  st.J[3] = 0, st.J[4] = cam.fy / st.zs, st.J[5] = -cam.fy * st.vc / st.zs;
+  st.qnorm = std::sqrt(quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3]);
+  st.quat_ok = st.qnorm > 1e-12;  // the zero quaternion is the identity, with zero gradient
+  for (int i = 0; i < 4; ++i) st.qn[i] = st.quat_ok ? quat[i] / st.qnorm : (i == 0 ? 1.0 : 0.0);
+  double Rq[9];
+  rotmat(st.qn, Rq);
+  for (int k = 0; k < 3; ++k)
+    for (int j = 0; j < 3; ++j) {
+      st.RwRq[3 * k + j] =
+          cam.Rw[3 * k] * Rq[j] + cam.Rw[3 * k + 1] * Rq[3 + j] + cam.Rw[3 * k + 2] * Rq[6 + j];
+      st.M[3 * k + j] = st.RwRq[3 * k + j] * scale[j];
+    }
+  for (int i = 0; i < 2; ++i)
+    for (int j = 0; j < 3; ++j)
+      st.A[3 * i + j] = st.J[3 * i] * st.M[j] + st.J[3 * i + 1] * st.M[3 + j] + st.J[3 * i + 2] * st.M[6 + j];
+  const double* A = st.A;
+  st.m00 = A[0] * A[0] + A[1] * A[1] + A[2] * A[2];
+  st.m01 = A[0] * A[3] + A[1] * A[4] + A[2] * A[5];
+  st.m11 = A[3] * A[3] + A[4] * A[4] + A[5] * A[5];
+  st.minor01 = A[0] * A[4] - A[1] * A[3];
+  st.minor02 = A[0] * A[5] - A[2] * A[3];
+  st.minor12 = A[1] * A[5] - A[2] * A[4];
+  const double e = cam.eps2d;
+  st.a = st.m00 + e, st.b = st.m01, st.c = st.m11 + e;
+  // Non-negative by construction, unlike a c - b^2, which cancels in float32 for needles.
+  st.det = st.minor01 * st.minor01 + st.minor02 * st.minor02 + st.minor12 * st.minor12 + e * (st.m00 + st.m11) +
+           e * e;
+  st.det_ok = st.det > 0;
+  st.D = st.det_ok ? st.det : 1.0;
+}
+
+template <typename scalar_t>
+void project_forward_kernel(const CameraArgs& cam, const scalar_t* means, const scalar_t* quats,
+                            const scalar_t* scales, int64_t N, scalar_t* means2d, scalar_t* conics, scalar_t* depths,
+                            int32_t* radii) {
+#pragma omp parallel for schedule(static) num_threads(num_threads())
+  for (int64_t g = 0; g < N; ++g) {
+    const double mean[3] = {double(means[3 * g]), double(means[3 * g + 1]), double(means[3 * g + 2])};
+    const double quat[4] = {double(quats[4 * g]), double(quats[4 * g + 1]), double(quats[4 * g + 2]),
+                            double(quats[4 * g + 3])};
+    const double scale[3] = {double(scales[3 * g]), double(scales[3 * g + 1]), double(scales[3 * g + 2])};
+    ProjState st;
+    project_one(cam, mean, quat, scale, st);
+    const scalar_t mx = static_cast<scalar_t>(cam.fx * st.u + cam.cx);
+    const scalar_t my = static_cast<scalar_t>(cam.fy * st.v + cam.cy);
+    const scalar_t ca = static_cast<scalar_t>(st.c / st.D), cb = static_cast<scalar_t>(-st.b / st.D),
+                   cc = static_cast<scalar_t>(st.a / st.D);
+    means2d[2 * g] = mx, means2d[2 * g + 1] = my;
+    conics[3 * g] = ca, conics[3 * g + 1] = cb, conics[3 * g + 2] = cc;
+    depths[g] = static_cast<scalar_t>(st.p[2]);
+    // Radii in the tensors' dtype, as the torch projection computes them.
+    const scalar_t sig = static_cast<scalar_t>(3.33);
+    const scalar_t rx = std::ceil(sig * std::sqrt(std::max(static_cast<scalar_t>(st.a), scalar_t(0))));
+    const scalar_t ry = std::ceil(sig * std::sqrt(std::max(static_cast<scalar_t>(st.c), scalar_t(0))));
+    const bool on_image = (mx + rx > 0) && (mx - rx < cam.width) && (my + ry > 0) && (my - ry < cam.height);
+    const bool finite = std::isfinite(mx) && std::isfinite(my) && std::isfinite(ca) && std::isfinite(cb) &&
+                        std::isfinite(cc);
+    const bool keep = st.in_range && st.det_ok && rx > 0 && ry > 0 && on_image && finite;
+    const scalar_t cap = static_cast<scalar_t>(1 << 30);  // a Gaussian at the near plane can be huge
+    radii[2 * g] = keep ? static_cast<int32_t>(std::min(rx, cap)) : 0;
+    radii[2 * g + 1] = keep ? static_cast<int32_t>(std::min(ry, cap)) : 0;
+  }
+}
+
+template <typename scalar_t>
+void project_backward_kernel(const CameraArgs& cam, const scalar_t* means, const scalar_t* quats,
+                             const scalar_t* scales, int64_t N, const scalar_t* g_means2d, const scalar_t* g_conics,
+                             const scalar_t* g_depths, scalar_t* g_means, scalar_t* g_quats, scalar_t* g_scales) {
+#pragma omp parallel for schedule(static) num_threads(num_threads())
+  for (int64_t g = 0; g < N; ++g) {
+    const double mean[3] = {double(means[3 * g]), double(means[3 * g + 1]), double(means[3 * g + 2])};
+    const double quat[4] = {double(quats[4 * g]), double(quats[4 * g + 1]), double(quats[4 * g + 2]),
+                            double(quats[4 * g + 3])};
+    const double scale[3] = {double(scales[3 * g]), double(scales[3 * g + 1]), double(scales[3 * g + 2])};
+    ProjState st;
+    project_one(cam, mean, quat, scale, st);
+    const double gm0 = g_means2d[2 * g], gm1 = g_means2d[2 * g + 1];
+    const double gca = g_conics[3 * g], gcb = g_conics[3 * g + 1], gcc = g_conics[3 * g + 2];
+    // conic = (c, -b, a) / D
+    const double D = st.D;
+    const double da = gcc / D, db = -gcb / D, dc = gca / D;
+    const double dD = st.det_ok ? -(gca * st.c - gcb * st.b + gcc * st.a) / (D * D) : 0.0;
+    const double e = cam.eps2d;
+    const double dm00 = da + e * dD, dm11 = dc + e * dD, dm01 = db;
+    const double g01 = 2 * st.minor01 * dD, g02 = 2 * st.minor02 * dD, g12 = 2 * st.minor12 * dD;
+    const double* A = st.A;
+    double dA[6];
+    for (int j = 0; j < 3; ++j) {
+      dA[j] = 2 * A[j] * dm00 + A[3 + j] * dm01;
+      dA[3 + j] = 2 * A[3 + j] * dm11 + A[j] * dm01;
+    }
+    dA[0] += A[4] * g01, dA[4] += A[0] * g01, dA[1] -= A[3] * g01, dA[3] -= A[1] * g01;  // minor01
+    dA[0] += A[5] * g02, dA[5] += A[0] * g02, dA[2] -= A[3] * g02, dA[3] -= A[2] * g02;  // minor02
+    dA[1] += A[5] * g12, dA[5] += A[1] * g12, dA[2] -= A[4] * g12, dA[4] -= A[2] * g12;  // minor12
+    // A = J M
+    double dJ[6], dM[9];
+    for (int i = 0; i < 2; ++i)
+      for (int k = 0; k < 3; ++k)
+        dJ[3 * i + k] = dA[3 * i] * st.M[3 * k] + dA[3 * i + 1] * st.M[3 * k + 1] + dA[3 * i + 2] * st.M[3 * k + 2];
+    for (int k = 0; k < 3; ++k)
+      for (int j = 0; j < 3; ++j) dM[3 * k + j] = st.J[k] * dA[j] + st.J[3 + k] * dA[3 + j];
+    // M = (Rw Rq) diag(scale)
+    double ds[3] = {0, 0, 0}, dRq[9];
+    for (int k = 0; k < 3; ++k)
+      for (int j = 0; j < 3; ++j) ds[j] += dM[3 * k + j] * st.RwRq[3 * k + j];
+    for (int l = 0; l < 3; ++l)
+      for (int j = 0; j < 3; ++j)
+        dRq[3 * l + j] =
+            (cam.Rw[l] * dM[j] + cam.Rw[3 + l] * dM[3 + j] + cam.Rw[6 + l] * dM[6 + j]) * scale[j];
+    double dq[4] = {0, 0, 0, 0};
+    if (st.quat_ok) {
+      double dqn[4];
+      rotmat_grad(st.qn, dRq, dqn);
+      const double dot = st.qn[0] * dqn[0] + st.qn[1] * dqn[1] + st.qn[2] * dqn[2] + st.qn[3] * dqn[3];
+      for (int i = 0; i < 4; ++i) dq[i] = (dqn[i] - st.qn[i] * dot) / st.qnorm;
+    }
+    // J = [[fx / zs, 0, -fx uc / zs], [0, fy / zs, -fy vc / zs]], uc / vc the clamped u / v
+    const double zs = st.zs, z2 = zs * zs;
+    double dzs = -cam.fx / z2 * dJ[0] + cam.fx * st.uc / z2 * dJ[2] - cam.fy / z2 * dJ[4] + cam.fy * st.vc / z2 * dJ[5];
+    const double duc = -cam.fx / zs * dJ[2], dvc = -cam.fy / zs * dJ[5];
+    const double du = cam.fx * gm0 + ((st.u > cam.ulo && st.u < cam.uhi) ? duc : 0.0);
+    const double dv = cam.fy * gm1 + ((st.v > cam.vlo && st.v < cam.vhi) ? dvc : 0.0);
+    dzs -= (du * st.u + dv * st.v) / zs;  // u = x / zs, v = y / zs
+    const double dp[3] = {du / zs, dv / zs, double(g_depths[g]) + (st.in_range ? dzs : 0.0)};
+    for (int c = 0; c < 3; ++c)
+      g_means[3 * g + c] = static_cast<scalar_t>(cam.Rw[c] * dp[0] + cam.Rw[3 + c] * dp[1] + cam.Rw[6 + c] * dp[2]);
+    for (int i = 0; i < 4; ++i) g_quats[4 * g + i] = static_cast<scalar_t>(dq[i]);
+    for (int j = 0; j < 3; ++j) g_scales[3 * g + j] = static_cast<scalar_t>(ds[j]);
+  }
+}
+
+void check_gaussians(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales) {
+  TORCH_CHECK(means.device().is_cpu(), "eva_raster kernels run on the CPU");
+  const int64_t n = means.size(0);
+  TORCH_CHECK(means.sizes() == at::IntArrayRef({n, 3}) && quats.sizes() == at::IntArrayRef({n, 4}) &&
+                  scales.sizes() == at::IntArrayRef({n, 3}),
+              "means [N, 3], quats [N, 4], scales [N, 3]");
+  TORCH_CHECK(quats.scalar_type() == means.scalar_type() && scales.scalar_type() == means.scalar_type(),
+              "means, quats and scales must share one dtype");
+}
+
+// Returns means2d [N, 2], conics [N, 3], depths [N], radii [N, 2] (int32, 0 = culled).
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_forward(
+    const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& viewmat,
+    const at::Tensor& K, int64_t width, int64_t height, double near_plane, double far_plane, double eps2d) {
+  check_gaussians(means, quats, scales);
+  const CameraArgs cam(viewmat, K, width, height, near_plane, far_plane, eps2d);
+  const auto m = means.contiguous(), q = quats.contiguous(), s = scales.contiguous();
+  const int64_t N = m.size(0);
+  auto means2d = at::empty({N, 2}, m.options());
+  auto conics = at::empty({N, 3}, m.options());
+  auto depths = at::empty({N}, m.options());
+  auto radii = at::empty({N, 2}, m.options().dtype(at::kInt));
+  AT_DISPATCH_FLOATING_TYPES(m.scalar_type(), "eva_raster_project_forward", [&] {
+    project_forward_kernel<scalar_t>(cam, m.data_ptr<scalar_t>(), q.data_ptr<scalar_t>(), s.data_ptr<scalar_t>(), N,
+                                     means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                                     depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>());
+  });
+  return {means2d, conics, depths, radii};
+}
+
+// Returns dL/dmeans [N, 3], dL/dquats [N, 4], dL/dscales [N, 3].
+std::tuple<at::Tensor, at::Tensor, at::Tensor> project_backward(
+    const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& viewmat,
+    const at::Tensor& K, int64_t width, int64_t height, double near_plane, double far_plane, double eps2d,
+    const at::Tensor& grad_means2d, const at::Tensor& grad_conics, const at::Tensor& grad_depths) {
+  check_gaussians(means, quats, scales);
+  const CameraArgs cam(viewmat, K, width, height, near_plane, far_plane, eps2d);
+  const auto m = means.contiguous(), q = quats.contiguous(), s = scales.contiguous();
+  const int64_t N = m.size(0);
+  TORCH_CHECK(grad_means2d.numel() == 2 * N && grad_conics.numel() == 3 * N && grad_depths.numel() == N,
+              "gradients must be [N, 2], [N, 3] and [N]");
+  const auto dt = m.scalar_type();
+  const auto gm = grad_means2d.contiguous().to(dt), gc = grad_conics.contiguous().to(dt);
+  const auto gd = grad_depths.contiguous().to(dt);
+  auto g_means = at::empty({N, 3}, m.options());
+  auto g_quats = at::empty({N, 4}, m.options());
+  auto g_scales = at::empty({N, 3}, m.options());
+  AT_DISPATCH_FLOATING_TYPES(dt, "eva_raster_project_backward", [&] {
+    project_backward_kernel<scalar_t>(cam, m.data_ptr<scalar_t>(), q.data_ptr<scalar_t>(), s.data_ptr<scalar_t>(),
+                                      N, gm.data_ptr<scalar_t>(), gc.data_ptr<scalar_t>(), gd.data_ptr<scalar_t>(),
+                                      g_means.data_ptr<scalar_t>(), g_quats.data_ptr<scalar_t>(),
+                                      g_scales.data_ptr<scalar_t>());
+  });
+  return {g_means, g_quats, g_scales};
+}
+
 }  // namespace
 
 TORCH_LIBRARY(eva_raster, m) {
   m.def("composite_image_forward", &composite_image_forward);
   m.def("composite_image_backward", &composite_image_backward);
   m.def("bin_tiles", &bin_tiles);
+  m.def("project_forward", &project_forward);
+  m.def("project_backward", &project_backward);
 }
