@@ -1,15 +1,24 @@
-"""Benchmark of eva_engine.render.rasterize on body-like scenes (CPU by default).
+"""Benchmark of eva_engine.render.rasterize on body-like scenes (CPU by default): today against before.
 
 For N in {2k, 20k, 100k} Gaussians on a 1.7 m human-shaped surface and images of 256^2 and 512^2,
-measures forward and forward+backward wall time and peak memory of the tiled rasterizer (the
-default, hand-written backward) and, side by side, of the plain-autograd reference. Each
-(config, backend) runs in its own subprocess so that its peak RSS (ru_maxrss) is its own.
+measures forward and forward+backward wall time, CPU time and peak memory of the default
+rasterizer in three variants, each run in its own fresh process (so its peak RSS is its own):
+
+- ``before``: the rasterizer as it was at ``--before`` (default 008d8b2, main before the compiled
+  kernels; extracted with ``git archive``), its default tiled backend;
+- ``torch``: this tree with the pure-torch kernels (``kernel="torch"``, the fallback);
+- ``cpp``: this tree with the compiled C++ kernels (``kernel="cpp"``, the default where they build).
+
+The variants are interleaved round by round (``--rounds``), so load from other work on the machine
+hits them alike; the report gives the medians over all rounds, their ratios, the load average and
+the CPU time (less sensitive to load than wall time). ``--reference`` adds the plain-autograd
+reference backend.
 
     .venv/bin/python bench/rasterizer.py            # full grid, writes bench/results/rasterizer.{json,md}
-    .venv/bin/python bench/rasterizer.py --quick    # fewer repeats, N <= 20k
+    .venv/bin/python bench/rasterizer.py --quick    # fewer repeats and rounds, N <= 20k
 
-Targets (2 CPU cores): 20k @ 512^2 forward+backward <= 100 ms, forward >= 20 FPS, peak memory
-<= 0.5 GB.
+Targets (issue 18, 2 CPU cores): 20k @ 512^2 forward+backward <= 60 ms, forward >= 40 FPS; peak
+memory <= 0.5 GB.
 """
 
 from __future__ import annotations
@@ -24,20 +33,18 @@ import resource
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import torch
 from machine import cpu_name
 
-from eva_engine.demo import quat_from_z
-
+ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results"
 THREADS = 2  # the target machine's core count; --threads overrides
-# The autograd reference keeps ~16 float32 values per Gaussian-pixel pair alive for backward;
-# configs whose estimate exceeds this are skipped rather than pushing a shared machine into swap.
-REFERENCE_MAX_BYTES = 2 * 1024**3
-REFERENCE_BYTES_PER_PAIR = 64
+BEFORE = "008d8b2"  # main before the compiled kernels (issue 18)
+VARIANTS = ("before", "torch", "cpp")
 
 
 # ----------------------------------------------------------------------------- scene
@@ -89,13 +96,17 @@ def body_scene(n: int, size: int, seed: int = 0) -> dict:
         ("cap", ((0.11, 0.5, 0.0), (0.12, 0.08, -0.02), 0.055), 0.05),
     ]
     weights = torch.tensor([p[2] for p in parts])
-    counts = torch.distributions.Multinomial(n, weights / weights.sum()).sample().long().tolist()
+    # Seeded, so every variant (each in its own process) renders the same scene.
+    pick = torch.multinomial(weights, n, replacement=True, generator=gen)
+    counts = torch.bincount(pick, minlength=len(parts)).tolist()
     pts, nrm = [], []
     for (kind, args, _), k in zip(parts, counts, strict=True):
         p, q = (_ellipsoid_points if kind == "ell" else _capsule_points)(k, *args, gen=gen)
         pts.append(p)
         nrm.append(q)
     means, normals = torch.cat(pts), torch.cat(nrm)
+    from eva_engine.demo import quat_from_z
+
     quats = quat_from_z(normals)  # flat discs tangent to the surface
     scales = torch.cat(
         [0.005 + 0.005 * torch.rand(n, 2, generator=gen), 0.001 + 0.001 * torch.rand(n, 1, generator=gen)], -1
@@ -123,51 +134,87 @@ def _rss_bytes() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
-def measure(n: int, size: int, backend: str, mode: str, repeats: int, threads: int) -> dict:
-    """Time `repeats` runs (after one warm-up) of forward or forward+backward in this process."""
+def measure(n: int, size: int, variant: str, mode: str, repeats: int, threads: int) -> dict:
+    """Time ``repeats`` runs (after one warm-up) of forward or forward+backward in this process.
+
+    variant: "before" (whatever eva_engine is importable, default config), "torch" or "cpp"
+    (kernel of this tree's RasterConfig), or "autograd" (the reference backend).
+    """
     from eva_engine.render import RasterConfig, rasterize
 
     torch.set_num_threads(threads)
     scene = body_scene(n, size)
-    cfg = RasterConfig(backend=backend)
+    if variant == "autograd":
+        cfg = RasterConfig(backend="autograd")
+    elif variant in ("torch", "cpp"):
+        cfg = RasterConfig(kernel=variant)
+    else:
+        cfg = RasterConfig()
     grads = ("means", "quats", "scales", "opacities", "colors")
     rss_before = _rss_bytes()
-    times, pairs = [], 0
+    times, cpu_times, pairs = [], [], 0
     for i in range(repeats + 1):
         inputs = dict(scene)
         if mode == "fwd+bwd":
             for k in grads:
                 inputs[k] = scene[k].clone().requires_grad_(True)
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         if mode == "fwd":
             with torch.no_grad():
                 out = rasterize(**inputs, config=cfg)
         else:
             out = rasterize(**inputs, config=cfg)
             (out.image.sum() + out.alpha.sum()).backward()
-        elapsed = time.perf_counter() - t0
+        elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
         pairs = out.num_intersections * cfg.tile_size**2
         if i > 0:
             times.append(elapsed)
-    median = statistics.median(times)
+            cpu_times.append(cpu)
     return dict(
-        n=n, size=size, backend=backend, mode=mode, repeats=repeats,
-        median_ms=1e3 * median, min_ms=1e3 * min(times),
+        n=n, size=size, variant=variant, mode=mode, repeats=repeats,
+        times_ms=[1e3 * t for t in times], cpu_ms=[1e3 * t for t in cpu_times],
         peak_rss_delta_mb=(_rss_bytes() - rss_before) / 2**20,
         peak_rss_mb=_rss_bytes() / 2**20,
         intersections=out.num_intersections, pairs=pairs,
-        pairs_per_s=pairs / median,
-        coverage=float(out.alpha.mean()),
+        coverage=float(out.alpha.detach().mean()),
     )  # fmt: skip
 
 
-def _run_child(n: int, size: int, backend: str, mode: str, repeats: int, threads: int) -> dict:
-    cmd = [sys.executable, __file__, "--child", f"{n},{size},{backend},{mode},{repeats},{threads}"]
-    env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+def _run_child(
+    code_root: Path, n: int, size: int, variant: str, mode: str, repeats: int, threads: int, wait: str | None
+) -> dict:
+    cmd = [sys.executable, __file__, "--child", f"{n},{size},{variant},{mode},{repeats},{threads}"]
+    # PYTHONPATH picks which eva_engine the child imports (this tree, or the extracted "before").
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads), PYTHONPATH=str(code_root))
+    env.pop("EVA_RASTER_KERNEL", None)
+    if wait:
+        env["OMP_WAIT_POLICY"] = wait
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if proc.returncode != 0:
-        return dict(n=n, size=size, backend=backend, mode=mode, error=proc.stderr.strip()[-2000:])
+        return dict(n=n, size=size, variant=variant, mode=mode, error=proc.stderr.strip()[-2000:])
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _extract(ref: str, into: Path) -> str:
+    """``eva_engine`` as of git ``ref`` under ``into``; returns the full commit hash."""
+    commit = subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--verify", f"{ref}^{{commit}}"],
+        capture_output=True, text=True, check=True,
+    ).stdout.strip()  # fmt: skip
+    archive = subprocess.run(
+        ["git", "-C", str(ROOT), "archive", commit, "eva_engine"], capture_output=True, check=True
+    ).stdout
+    subprocess.run(["tar", "-x", "-C", str(into)], input=archive, check=True)
+    return commit
+
+
+def _build_kernels() -> str | None:
+    """Build (or load) this tree's compiled kernels once, outside the timed runs; None if ok."""
+    code = "from eva_engine.render import native; native.load_kernels(); print(native.unavailable_reason())"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    reason = out.stdout.strip().splitlines()[-1] if out.stdout.strip() else out.stderr[-500:]
+    return None if reason == "None" else reason
 
 
 # ----------------------------------------------------------------------------- report
@@ -176,118 +223,247 @@ def _run_child(n: int, size: int, backend: str, mode: str, repeats: int, threads
 def _interpreter() -> str:
     """The Python that ran this, relative to the repository when it lives there (.venv/bin/python)."""
     exe = Path(sys.executable).absolute()
-    root = Path(__file__).resolve().parents[1]
-    return str(exe.relative_to(root)) if exe.is_relative_to(root) else str(exe)
+    return str(exe.relative_to(ROOT)) if exe.is_relative_to(ROOT) else str(exe)
+
+
+def _load() -> list[float]:
+    return [round(x, 2) for x in os.getloadavg()]
 
 
 def _machine(threads: int) -> dict:
     return dict(
         cpu=cpu_name(), logical_cores=os.cpu_count(), torch_threads=threads, torch=torch.__version__,
         python=platform.python_version(), platform=platform.platform(),
-        load_average_at_start=[round(x, 2) for x in os.getloadavg()],
     )  # fmt: skip
+
+
+def _summary(results: list[dict]) -> list[dict]:
+    """One row per (n, size, variant, mode): medians over every timed run of every round."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in results:
+        groups.setdefault((r["threads"], r["n"], r["size"], r["variant"], r["mode"]), []).append(r)
+    rows = []
+    for (threads, n, size, variant, mode), runs in groups.items():
+        ok = [r for r in runs if "times_ms" in r]
+        row = dict(threads=threads, n=n, size=size, variant=variant, mode=mode)
+        if not ok:
+            row["note"] = next((r.get("skipped") or "error: " + r["error"][-300:] for r in runs), "")
+            rows.append(row)
+            continue
+        times = [t for r in ok for t in r["times_ms"]]
+        cpu = [t for r in ok for t in r["cpu_ms"]]
+        median = statistics.median(times)
+        row.update(
+            runs=len(times), median_ms=median, min_ms=min(times), cpu_median_ms=statistics.median(cpu),
+            fps=1e3 / median, pairs=ok[0]["pairs"], mpairs_per_s=ok[0]["pairs"] / median / 1e3,
+            peak_rss_delta_mb=max(r["peak_rss_delta_mb"] for r in ok),
+        )  # fmt: skip
+        rows.append(row)
+    order = {v: i for i, v in enumerate((*VARIANTS, "autograd"))}
+    return sorted(
+        rows, key=lambda r: (r["threads"], r["n"], r["size"], r["mode"] != "fwd", order[r["variant"]])
+    )
+
+
+def _find(summary: list[dict], threads: int, n: int, size: int, variant: str, mode: str) -> dict | None:
+    for r in summary:
+        key = (r["threads"], r["n"], r["size"], r["variant"], r["mode"])
+        if key == (threads, n, size, variant, mode) and "median_ms" in r:
+            return r
+    return None
+
+
+def _ratios(summary: list[dict]) -> list[dict]:
+    """Speed-ups of ``cpp`` over ``before`` and over ``torch`` per (n, size, mode)."""
+    out = []
+    for r in summary:
+        if r["variant"] != "cpp" or "median_ms" not in r:
+            continue
+        row = dict(threads=r["threads"], n=r["n"], size=r["size"], mode=r["mode"], cpp_ms=r["median_ms"])
+        for other in ("before", "torch"):
+            o = _find(summary, r["threads"], r["n"], r["size"], other, r["mode"])
+            if o:
+                row[f"{other}_ms"] = o["median_ms"]
+                row[f"speedup_vs_{other}"] = o["median_ms"] / r["median_ms"]
+                row[f"cpu_speedup_vs_{other}"] = o["cpu_median_ms"] / r["cpu_median_ms"]
+        out.append(row)
+    return out
+
+
+def _targets(summary: list[dict], threads: list[int]) -> list[str]:
+    out = []
+    for t in threads:
+        fb, fw = (
+            _find(summary, t, 20_000, 512, "cpp", "fwd+bwd"),
+            _find(summary, t, 20_000, 512, "cpp", "fwd"),
+        )
+        head = f"{t} thread{'s' if t > 1 else ''}:"
+        if fb:
+            ok = "met" if fb["median_ms"] <= 60 else "NOT met"
+            out.append(f"{head} forward+backward <= 60 ms: {fb['median_ms']:.1f} ms ({ok})")
+        if fw:
+            ok = "met" if fw["fps"] >= 40 else "NOT met"
+            out.append(f"{head} forward >= 40 FPS: {fw['fps']:.1f} FPS ({ok})")
+        peaks = [r["peak_rss_delta_mb"] for r in (fb, fw) if r]
+        if peaks:
+            ok = "met" if max(peaks) <= 512 else "NOT met"
+            out.append(f"{head} peak memory <= 0.5 GB: {max(peaks):.0f} MB RSS growth ({ok})")
+    return out
 
 
 def _markdown(report: dict) -> str:
     m = report["machine"]
+    before = report.get("before_commit") or "unavailable"
     lines = [
         "# Rasterizer benchmark",
         "",
         f"- date: {report['date']}",
         f"- command: `{report['command']}`",
-        f"- machine: {m['cpu']}, {m['logical_cores']} logical cores, torch {m['torch']} "
-        f"({m['torch_threads']} threads), Python {m['python']}; load average at start "
-        f"{m['load_average_at_start']} (other work on the machine makes timings noisy)",
-        "- scene: N Gaussians on a 1.7 m body surface (discs 5-10 mm), camera 2.75 m away, "
-        "white background; peak memory is the RSS growth of a fresh process during the runs",
-        "- pairs = Gaussian-tile intersections x 64 pixels (Gaussian-pixel pairs evaluated)",
+        f"- machine: {m['cpu']}, {m['logical_cores']} logical cores, torch {m['torch']}, Python "
+        f"{m['python']}; torch threads {m['torch_threads']}, OMP_WAIT_POLICY "
+        f"{report.get('omp_wait_policy') or 'unset (libgomp default: spin)'}",
+        f"- load average (1, 5, 15 min) at start {report['load_average_at_start']}, at end "
+        f"{report['load_average_at_end']}; per round {report['load_average_per_round']}. Other work "
+        "shared the machine: wall times are inflated and noisy, CPU times (all threads) less so, and "
+        "the variants ran interleaved round by round so the ratios compare like with like",
+        f"- variants: `before` = commit {before[:12]} (main before the compiled kernels, its default "
+        'tiled torch rasterizer); `torch` = this commit with `RasterConfig(kernel="torch")` (the '
+        "fallback); `cpp` = this commit with the compiled C++ kernels (the default where they build)",
+        f"- {report['rounds']} interleaved rounds x {report['repeats']} timed runs (after a warm-up) per "
+        "variant, each round a fresh process per (config, variant, mode); medians over all runs",
+        "- scene: N Gaussians on a 1.7 m body surface (discs 5-10 mm), camera 2.75 m away, white "
+        "background; loss for the backward = image.sum() + alpha.sum(); peak memory is the RSS growth "
+        "of the process during its runs",
+        "- pairs = Gaussian-tile intersections x 64 pixels",
         "",
-        "| N | image | backend | mode | median ms | min ms | FPS | Mpairs/s | peak RSS delta MB | note |",
+        "## Speed-up of the compiled kernels",
+        "",
+        "| threads | N | image | mode | before ms | torch ms | cpp ms | cpp vs before | cpp vs torch "
+        "| CPU-time ratio vs before |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for r in report["results"]:
-        head = f"| {r['n']} | {r['size']}² | {r['backend']} | {r['mode']} |"
-        if "skipped" in r or "error" in r:
-            lines.append(f"{head} - | - | - | - | - | {r.get('skipped') or 'error: ' + r['error'][-200:]} |")
+    for r in report["ratios"]:
+
+        def ms(key, r=r):
+            return f"{r[key]:.1f}" if key in r else "-"
+
+        def x(key, r=r):
+            return f"{r[key]:.2f}x" if key in r else "-"
+
+        lines.append(
+            f"| {r['threads']} | {r['n']} | {r['size']}² | {r['mode']} | {ms('before_ms')} | "
+            f"{ms('torch_ms')} | {ms('cpp_ms')} | {x('speedup_vs_before')} | {x('speedup_vs_torch')} | "
+            f"{x('cpu_speedup_vs_before')} |"
+        )
+    lines += [
+        "",
+        "## All runs",
+        "",
+        "| threads | N | image | variant | mode | median ms | min ms | CPU ms | FPS | Mpairs/s "
+        "| peak RSS delta MB | note |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in report["summary"]:
+        head = f"| {r['threads']} | {r['n']} | {r['size']}² | {r['variant']} | {r['mode']} |"
+        if "median_ms" not in r:
+            lines.append(f"{head} - | - | - | - | - | - | {r.get('note', '')[:200]} |")
             continue
         lines.append(
-            f"{head} {r['median_ms']:.1f} | {r['min_ms']:.1f} | {1e3 / r['median_ms']:.1f} | "
-            f"{r['pairs_per_s'] / 1e6:.1f} | {r['peak_rss_delta_mb']:.0f} | |"
+            f"{head} {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['cpu_median_ms']:.1f} | {r['fps']:.1f} | "
+            f"{r['mpairs_per_s']:.1f} | {r['peak_rss_delta_mb']:.0f} | |"
         )
-    lines += ["", "## Targets (20k Gaussians @ 512², 2 cores)", ""]
+    lines += ["", "## Targets (20k Gaussians @ 512², `cpp`; the issue's are for 2 cores)", ""]
     for t in report["targets"]:
         lines.append(f"- {t}")
+    if report.get("notes"):
+        lines += ["", "## Notes", ""] + [f"- {t}" for t in report["notes"]]
     return "\n".join(lines) + "\n"
-
-
-def _targets(results: list[dict]) -> list[str]:
-    def find(mode):
-        for r in results:
-            key = (r["n"], r["size"], r["backend"], r["mode"])
-            if key == (20_000, 512, "tiled", mode) and "median_ms" in r:
-                return r
-        return None
-
-    out = []
-    fb, fw = find("fwd+bwd"), find("fwd")
-    if fb:
-        ok = "met" if fb["median_ms"] <= 100 else "NOT met"
-        out.append(f"forward+backward <= 100 ms: {fb['median_ms']:.1f} ms ({ok})")
-    if fw:
-        fps = 1e3 / fw["median_ms"]
-        out.append(f"forward >= 20 FPS: {fps:.1f} FPS ({'met' if fps >= 20 else 'NOT met'})")
-    peaks = [r["peak_rss_delta_mb"] for r in (fb, fw) if r]
-    if peaks:
-        ok = "met" if max(peaks) <= 512 else "NOT met"
-        out.append(f"peak memory <= 0.5 GB: {max(peaks):.0f} MB RSS growth ({ok})")
-    return out
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--quick", action="store_true", help="fewer repeats and N <= 20k")
+    parser.add_argument("--quick", action="store_true", help="fewer repeats and rounds, N <= 20k")
     parser.add_argument("--child", help=argparse.SUPPRESS)
-    parser.add_argument("--threads", type=int, default=THREADS, help="torch threads (default 2)")
+    parser.add_argument("--threads", default=str(THREADS), help="torch threads, e.g. 2 or 1,2 (default 2)")
+    parser.add_argument(
+        "--omp-wait-policy",
+        choices=("PASSIVE", "ACTIVE"),
+        help="OMP_WAIT_POLICY for the runs; PASSIVE keeps OpenMP threads from spinning on a loaded machine",
+    )
+    parser.add_argument(
+        "--before", default=BEFORE, help=f"git ref of the 'before' variant (default {BEFORE})"
+    )
+    parser.add_argument("--rounds", type=int, help="interleaved rounds (default 3, quick 2)")
+    parser.add_argument("--reference", action="store_true", help="also run the plain-autograd reference")
     parser.add_argument("--out", type=Path, default=RESULTS, help="results folder")
     args = parser.parse_args()
     if args.child:
-        n, size, backend, mode, repeats, threads = args.child.split(",")
-        print(json.dumps(measure(int(n), int(size), backend, mode, int(repeats), int(threads))))
+        n, size, variant, mode, repeats, threads = args.child.split(",")
+        print(json.dumps(measure(int(n), int(size), variant, mode, int(repeats), int(threads))))
         return
-    machine = _machine(args.threads)
 
-    sizes = (256, 512)
+    threads = [int(t) for t in args.threads.split(",")]
+    load_start = _load()
     ns = (2_000, 20_000) if args.quick else (2_000, 20_000, 100_000)
+    sizes = (256, 512)
     repeats = 3 if args.quick else 5
-    results = []
-    for n in ns:
-        for size in sizes:
-            pairs_estimate = None
-            for backend in ("tiled", "autograd"):
-                for mode in ("fwd", "fwd+bwd"):
-                    if backend == "autograd" and pairs_estimate is not None:
-                        need = pairs_estimate * REFERENCE_BYTES_PER_PAIR
-                        if need > REFERENCE_MAX_BYTES:
-                            results.append(
-                                dict(n=n, size=size, backend=backend, mode=mode,
-                                     skipped=f"skipped: reference would need ~{need / 2**30:.1f} GB")
-                            )  # fmt: skip
-                            print(results[-1], flush=True)
-                            continue
-                    r = _run_child(n, size, backend, mode, repeats, args.threads)
-                    if backend == "tiled" and "pairs" in r:
-                        pairs_estimate = r["pairs"]
-                    results.append(r)
-                    print({k: (round(v, 2) if isinstance(v, float) else v) for k, v in r.items()}, flush=True)
+    rounds = args.rounds or (2 if args.quick else 3)
+    notes = []
+    reason = _build_kernels()
+    if reason:
+        notes.append(f"compiled kernels unavailable ({reason}): the cpp rows fail")
+    with tempfile.TemporaryDirectory(prefix="eva-bench-before-") as tmp:
+        roots = {"torch": ROOT, "cpp": ROOT, "autograd": ROOT}
+        try:
+            before_commit = _extract(args.before, Path(tmp))
+            roots["before"] = Path(tmp)
+        except (subprocess.CalledProcessError, FileNotFoundError) as err:
+            before_commit = None
+            notes.append(f"before variant skipped: no git checkout or ref {args.before!r} ({err})")
+        variants = [v for v in VARIANTS if v in roots] + (["autograd"] if args.reference else [])
+        results, per_round = [], []
+        for round_ in range(rounds):
+            for n, nt in ((n, nt) for nt in threads for n in ns):
+                for size in sizes:
+                    for mode in ("fwd", "fwd+bwd"):
+                        for variant in variants:
+                            if variant == "autograd" and n * size * size > 100_000 * 256 * 256:
+                                results.append(
+                                    dict(n=n, size=size, variant=variant, mode=mode, threads=nt,
+                                         skipped="skipped: the reference's memory grows with the pairs")
+                                )  # fmt: skip
+                                continue
+                            r = _run_child(
+                                roots[variant], n, size, variant, mode, repeats, nt, args.omp_wait_policy
+                            )
+                            r.update(round=round_, threads=nt)
+                            results.append(r)
+                            brief = {k: v for k, v in r.items() if k not in ("times_ms", "cpu_ms")}
+                            if "times_ms" in r:
+                                brief["median_ms"] = round(statistics.median(r["times_ms"]), 1)
+                            print(brief, flush=True)
+            per_round.append(_load())
+    summary = _summary(results)
     report = dict(
         date=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         command=" ".join([_interpreter(), "bench/rasterizer.py", *sys.argv[1:]]),
-        machine=machine,
+        machine=_machine(args.threads),
+        omp_wait_policy=args.omp_wait_policy,
+        load_average_at_start=load_start,
+        load_average_per_round=per_round,
+        load_average_at_end=_load(),
+        before_ref=args.before,
+        before_commit=before_commit,
+        rounds=rounds,
+        repeats=repeats,
+        summary=summary,
+        ratios=_ratios(summary),
+        targets=_targets(summary, threads),
+        notes=notes,
         results=results,
     )
-    report["targets"] = _targets(results)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "rasterizer.json").write_text(json.dumps(report, indent=2) + "\n")
     (args.out / "rasterizer.md").write_text(_markdown(report))

@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
 # Debian packages the project needs at run time: Mesa's software EGL/GL for the ground-truth mesh
 # renderer (moderngl, see ../shared/reference/mesh-rendering-notes.md), redis-server for the
-# queue's Redis mode tests, and Chromium with its WebDriver for the web page's browser test (a
-# browser downloaded at test time does not work offline). Installs only what is missing.
+# queue's Redis mode tests, Chromium with its WebDriver for the web page's browser test (a
+# browser downloaded at test time does not work offline), and g++ with ninja, which build the
+# rasterizer's C++ kernels (eva_engine/render/native.py; without them the slower torch kernels
+# run). Installs only what is missing.
 set -euo pipefail
-pkgs=(libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri redis-server chromium chromium-driver)
+pkgs=(libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri redis-server chromium chromium-driver g++ ninja-build)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -1,7 +1,9 @@
 """eva_engine.render.rasterize against a brute-force reference, its gradients and hard cases.
 
 The reference below is written independently of the module: float64, every Gaussian for every
-pixel, one Gaussian at a time in depth order, exactly the 3DGS per-pixel loop.
+pixel, one Gaussian at a time in depth order, exactly the 3DGS per-pixel loop. The default
+configuration runs the compiled kernels where they build; the main checks also run the torch
+kernels explicitly (test_render_kernels.py compares the two everywhere).
 """
 
 from __future__ import annotations
@@ -198,8 +200,8 @@ def assert_finite(out, grads):
 def test_matches_brute_force_reference(n, width, height, seed):
     scene = random_scene(n, width, height, seed)
     ref_img, ref_alpha, ref_depth = render_reference(scene)
-    for backend in ("tiled", "autograd"):
-        out = rasterize(**scene, config=RasterConfig(backend=backend))
+    for config in (RasterConfig(), RasterConfig(kernel="torch"), RasterConfig(backend="autograd")):
+        out = rasterize(**scene, config=config)
         assert out.image.shape == (height, width, 3)
         assert out.alpha.shape == out.depth.shape == (height, width, 1)
         torch.testing.assert_close(out.image, ref_img, rtol=0, atol=1e-10)
@@ -282,17 +284,22 @@ def test_exact_tile_test_drops_only_invisible_pairs(dtype):
 # ----------------------------------------------------------------------------- gradients
 
 
+KERNELS = pytest.mark.parametrize("kernel", ["auto", "torch"])
+
+
+@KERNELS
 @pytest.mark.parametrize(("n", "width", "height", "seed"), [(25, 30, 20, 0), (200, 40, 36, 1)])
-def test_hand_written_backward_matches_autograd(n, width, height, seed):
+def test_hand_written_backward_matches_autograd(n, width, height, seed, kernel):
     scene = random_scene(n, width, height, seed, spread=0.4)
-    out_t, grads_t = render_with_grads(scene, RasterConfig(backend="tiled"))
+    out_t, grads_t = render_with_grads(scene, RasterConfig(backend="tiled", kernel=kernel))
     out_a, grads_a = render_with_grads(scene, RasterConfig(backend="autograd"))
     for k in PARAMS:
         torch.testing.assert_close(grads_t[k], grads_a[k], rtol=1e-8, atol=1e-10, msg=k)
     torch.testing.assert_close(out_t.means2d.grad, out_a.means2d.grad, rtol=1e-8, atol=1e-10)
 
 
-def test_hand_written_backward_matches_autograd_with_clamped_alphas():
+@KERNELS
+def test_hand_written_backward_matches_autograd_with_clamped_alphas(kernel):
     # Opacity 1 saturates alpha at 0.999 near the centres (zero gradient there), and the dense
     # stack makes pixels stop early: both switches must agree between the two backwards.
     scene = random_scene(120, 40, 32, seed=6, spread=0.3, size=(0.3, 0.6))
@@ -305,15 +312,16 @@ def test_hand_written_backward_matches_autograd_with_clamped_alphas():
     a, b, c = proj.conics[::3, None, None].unbind(-1)
     raw = torch.exp(-0.5 * (a * d[..., 0] ** 2 + c * d[..., 1] ** 2) - b * d[..., 0] * d[..., 1])
     assert ((raw > 0.999) & (proj.depths[::3, None, None] > 0)).sum() >= 3  # some clamped pairs
-    _, grads_t = render_with_grads(scene, RasterConfig(backend="tiled"))
+    _, grads_t = render_with_grads(scene, RasterConfig(backend="tiled", kernel=kernel))
     _, grads_a = render_with_grads(scene, RasterConfig(backend="autograd"))
     for k in PARAMS:
         torch.testing.assert_close(grads_t[k], grads_a[k], rtol=1e-8, atol=1e-10, msg=k)
 
 
-def test_hand_written_backward_matches_autograd_float32():
+@KERNELS
+def test_hand_written_backward_matches_autograd_float32(kernel):
     scene = cast(random_scene(150, 48, 40, seed=3, spread=0.4), torch.float32)
-    _, grads_t = render_with_grads(scene, RasterConfig(backend="tiled"))
+    _, grads_t = render_with_grads(scene, RasterConfig(backend="tiled", kernel=kernel))
     _, grads_a = render_with_grads(scene, RasterConfig(backend="autograd"))
     for k in PARAMS:
         scale = grads_a[k].abs().max()
@@ -327,12 +335,14 @@ def _smooth_scene():
     return scene
 
 
-def test_gradients_match_finite_differences():
+@KERNELS
+def test_gradients_match_finite_differences(kernel):
     scene = _smooth_scene()
-    _, grads = render_with_grads(scene)
+    config = RasterConfig(kernel=kernel)
+    _, grads = render_with_grads(scene, config)
 
     def loss_of(s):
-        out = rasterize(**s)
+        out = rasterize(**s, config=config)
         g = torch.Generator().manual_seed(1)
         dt = torch.float64
         return (
@@ -354,14 +364,25 @@ def test_gradients_match_finite_differences():
         torch.testing.assert_close(grads[name], numeric, rtol=1e-5, atol=1e-6, msg=name)
 
 
-def test_gradcheck_tiled():
+@KERNELS
+def test_gradcheck_tiled(kernel):
     scene = _smooth_scene()
     scene["width"], scene["height"] = 9, 7
     scene["K"] = look_camera(9, 7, focal=9.0)[1]
 
     def fn(means, quats, scales, opacities, colors, background):
         out = rasterize(
-            means, quats, scales, opacities, colors, scene["viewmat"], scene["K"], 9, 7, background=background
+            means,
+            quats,
+            scales,
+            opacities,
+            colors,
+            scene["viewmat"],
+            scene["K"],
+            9,
+            7,
+            background=background,
+            config=RasterConfig(kernel=kernel),
         )
         return out.image, out.alpha, out.depth
 

@@ -14,11 +14,14 @@ from eva_engine.cli.app import app
 
 @app.command()
 def setup(
-    force: bool = typer.Option(False, "--force", help="Rebuild the Anny cache even if it is current."),
+    force: bool = typer.Option(
+        False, "--force", help="Rebuild the Anny cache even if it is current; retry a failed kernel build."
+    ),
     cache_dir: Path = typer.Option(None, help="Anny cache folder (default: <data dir>/cache/anny)."),
 ) -> None:
     """Build the Anny body-model cache (once, ~1 min) and its face-mesh correspondence (MediaPipe
-    on rendered faces, ~30 s), and check the offline LPIPS weights."""
+    on rendered faces, ~30 s), build the rasterizer's C++ kernels (~20 s), and check the offline
+    LPIPS weights."""
     from eva_engine.body import load_body_model, prepare_anny_cache
     from eva_engine.metrics import LPIPSWeightsError, prepare_lpips
 
@@ -44,6 +47,19 @@ def setup(
             f"[green]ok[/] face-mesh correspondence: {int(corr.valid.sum())} of {len(corr.valid)} landmarks "
             f"({time.perf_counter() - started:.0f} s)"
         )
+    from eva_engine.render import native
+
+    started = time.perf_counter()
+    with console.status("rasterizer C++ kernels (compiled once per machine)..."):
+        ops = native.load_kernels(force=force)
+    if ops is None:
+        # Not fatal: the torch kernels give the same images, only slower.
+        console.print(
+            f"[yellow]warning[/] rasterizer C++ kernels unavailable, torch kernels in use: "
+            f"{native.unavailable_reason()}"
+        )
+    else:
+        console.print(f"[green]ok[/] rasterizer C++ kernels ({time.perf_counter() - started:.0f} s)")
     try:
         weights = prepare_lpips()
     except LPIPSWeightsError as err:

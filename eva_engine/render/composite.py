@@ -16,10 +16,11 @@ Rules (3DGS / gsplat): alpha = min(0.999, alpha_raw); pairs with alpha < 1/255 a
 pixel stops before the Gaussian that would bring its transmittance to <= 1e-4.
 
 Two implementations share these rules:
-- ``composite`` (default): a ``torch.autograd.Function`` that walks each tile in chunks of
-  ``chunk_size`` Gaussians and recomputes the chunks in its hand-written backward, back to
-  front, from the final transmittance and per-pixel contributor count saved by the forward.
-  Memory: O(pixels + intersections).
+- ``composite_image`` (default): a hand-written backward that recomputes alphas back to front
+  from the final transmittance and per-pixel contributor count saved by the forward. Memory:
+  O(pixels + intersections). Its kernels are either the compiled ones (``csrc/raster.cpp``: one
+  thread per tile, pixels vectorised, image layout; see ``native``) or ``composite``, in torch,
+  which walks each tile in chunks of ``chunk_size`` Gaussians as batched tensor ops.
 - ``composite_autograd``: the same maths in plain differentiable torch, one padded block per
   group of tiles. Memory: O(Gaussian-pixel pairs). It is the reference the tests compare with.
 """
@@ -33,6 +34,7 @@ import torch.nn.functional as F_nn
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from eva_engine.render.native import Kernel, load_kernels, resolve_kernel
 from eva_engine.render.tiles import TileBins
 
 ALPHA_MAX = 0.999
@@ -52,7 +54,8 @@ def _alpha_min(dtype: torch.dtype) -> float:
 
 @dataclass(frozen=True)
 class CompositeConfig:
-    """Work partitioning of the tiled compositor (results do not depend on it).
+    """Work partitioning of the torch kernels of the tiled compositor (results do not depend on
+    it; the compiled kernels always take one tile at a time).
 
     chunk_size: Gaussians per tile processed at once (the K of the [tiles, pixels, K] blocks).
     block_elements: upper bound on tiles * pixels * K per block, which bounds working memory.
@@ -340,6 +343,77 @@ class _Composite(torch.autograd.Function):
         return g_table[:, :2], g_table[:, 2:5], g_opac, g_table[:, 6:], None, None
 
 
+class _CompositeImage(torch.autograd.Function):
+    """The compiled kernels, straight to image layout with the background blended in."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, depths, background, bins, width, height, ops):
+        tiles = (
+            bins.gauss_ids,
+            bins.tile_start,
+            bins.tile_count,
+            bins.tiles_x,
+            bins.tile_size,
+            width,
+            height,
+        )
+        image, depth, alpha, t_final, count = ops.composite_image_forward(
+            means2d, conics, opacities, colors, depths, background, *tiles
+        )
+        ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, t_final, count)
+        ctx.tiles, ctx.ops = tiles, ops
+        return image, depth, alpha
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_image, grad_depth, grad_alpha):
+        means2d, conics, opacities, colors, depths, background, t_final, count = ctx.saved_tensors
+        # g: [N, 7 + D] = dL/d(means2d x, y | conic a, b, c | opacity | colours | depth) per Gaussian.
+        g, g_bg = ctx.ops.composite_image_backward(
+            means2d, conics, opacities, colors, depths, background, *ctx.tiles,
+            t_final, count, grad_image, grad_depth, grad_alpha,
+        )  # fmt: skip
+        d = colors.shape[1]
+        return g[:, :2], g[:, 2:5], g[:, 5], g[:, 6 : 6 + d], g[:, 6 + d], g_bg, None, None, None, None
+
+
+def composite_image(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    depths: Tensor,
+    bins: TileBins,
+    width: int,
+    height: int,
+    background: Tensor | None = None,
+    cfg: CompositeConfig | None = None,
+    kernel: Kernel = "auto",
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Tiled compositing of N 2D Gaussians into an image, with a hand-written backward.
+
+    means2d: [N, 2] pixels; conics: [N, 3]; opacities: [N]; colors: [N, D]; depths: [N] camera z;
+    bins: their tile binning; background: [D] or None (black). Returns image [H, W, D] =
+    sum_i alpha_i T_i c_i + T_final * background, depth [H, W, 1] = sum_i alpha_i T_i z_i and
+    alpha [H, W, 1] = 1 - T_final. kernel: "auto" | "cpp" | "torch" picks the implementation
+    (see ``eva_engine.render.native``): the compiled kernels write this layout directly; the
+    torch kernels run ``composite`` on colours and depth as one feature block, then untile.
+    """
+    if resolve_kernel(kernel, means2d) == "cpp":
+        bg = colors.new_zeros(colors.shape[1]) if background is None else background.to(colors)
+        return _CompositeImage.apply(
+            means2d, conics, opacities, colors, depths, bg, bins, width, height, load_kernels()
+        )
+    feats = torch.cat([colors, depths[:, None]], dim=-1)  # depth: one more channel, no background
+    acc, t_final = composite(means2d, conics, opacities, feats, bins, cfg)
+    acc = tiles_to_image(acc, bins, width, height)
+    t_final = tiles_to_image(t_final[..., None], bins, width, height)
+    image = acc[..., :-1]
+    if background is not None:
+        image = image + t_final * background.to(image)
+    return image, acc[..., -1:], 1.0 - t_final
+
+
 def composite(
     means2d: Tensor,
     conics: Tensor,
@@ -348,11 +422,12 @@ def composite(
     bins: TileBins,
     cfg: CompositeConfig | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """Tiled compositing of N 2D Gaussians with a hand-written backward.
+    """Tiled compositing of N 2D Gaussians with a hand-written backward, in torch kernels.
 
     means2d: [N, 2] pixels; conics: [N, 3]; opacities: [N]; feats: [N, F] (colours, depth, ...);
     bins: their tile binning. Returns acc [T, P, F] = sum_i alpha_i T_i f_i per tile pixel and
     the final transmittance [T, P] (T tiles of P = tile_size^2 pixels, see ``tiles_to_image``).
+    ``composite_image`` is the entry point that also runs the compiled kernels.
     """
     acc, t_final, _ = _Composite.apply(means2d, conics, opacities, feats, bins, cfg or CompositeConfig())
     return acc, t_final

@@ -1,7 +1,8 @@
 """EWA projection of 3D Gaussians to screen-space 2D Gaussians (gsplat "classic" semantics).
 
-Everything here is plain differentiable torch: autograd carries gradients from the 2D Gaussians
-back to means, quaternions and scales; only the compositing stage has a hand-written backward.
+The maths here is plain differentiable torch: autograd carries gradients from the 2D Gaussians
+back to means, quaternions and scales. The compiled kernels (``native``) implement the same
+steps in one fused pass with a hand-written backward; ``project_gaussians(kernel=...)`` picks.
 """
 
 from __future__ import annotations
@@ -10,6 +11,9 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from eva_engine.render.native import Kernel, load_kernels, resolve_kernel
 
 # A Gaussian's 2D extent along each screen axis is ceil(RADIUS_SIGMAS * sigma_axis) pixels. 3.33
 # sigma is where o * exp(-d^2 / 2) drops below 1/255 even at o = 1, so nothing visible is cut.
@@ -78,6 +82,7 @@ def project_gaussians(
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     eps2d: float = 0.3,
+    kernel: Kernel = "auto",
 ) -> Projection:
     """Project 3D Gaussians with the first-order (EWA) approximation of the pinhole camera.
 
@@ -86,7 +91,19 @@ def project_gaussians(
 
     Culling (radii = 0): camera z outside [near_plane, far_plane], a non-positive 2D covariance
     determinant, or a 2D bounding box entirely outside the image.
+
+    kernel: "auto" | "cpp" | "torch" (see ``eva_engine.render.native``). The compiled kernel
+    differentiates w.r.t. means, quats and scales; with a camera that requires grad, or on other
+    devices and dtypes, the torch version runs.
     """
+    camera_grad = (torch.is_tensor(viewmat) and viewmat.requires_grad) or (
+        torch.is_tensor(K) and K.requires_grad
+    )
+    if not camera_grad and resolve_kernel(kernel, means) == "cpp":
+        means2d, conics, depths, radii = _ProjectCompiled.apply(
+            means, quats, scales, viewmat, K, width, height, near_plane, far_plane, eps2d, load_kernels()
+        )
+        return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii)
     dtype = means.dtype
     viewmat = viewmat.to(device=means.device, dtype=dtype)
     rot_w, t_w = viewmat[:3, :3], viewmat[:3, 3]
@@ -143,3 +160,27 @@ def project_gaussians(
         radii = torch.stack([rx, ry], dim=-1).clamp_max(2**30).to(torch.int32)
         radii = torch.where(keep[:, None], radii, torch.zeros_like(radii))
     return Projection(means2d=means2d, conics=conics, depths=p_cam[:, 2], radii=radii)
+
+
+class _ProjectCompiled(torch.autograd.Function):
+    """``project_gaussians`` in the compiled kernels: the same outputs, gradients by hand."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, viewmat, K, width, height, near, far, eps2d, ops):
+        viewmat = torch.as_tensor(viewmat).detach().to("cpu", torch.float64)
+        K = torch.as_tensor(K).detach().to("cpu", torch.float64)
+        camera = (viewmat, K, width, height, float(near), float(far), float(eps2d))
+        means2d, conics, depths, radii = ops.project_forward(means, quats, scales, *camera)
+        ctx.save_for_backward(means, quats, scales)
+        ctx.camera, ctx.ops = camera, ops
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, depths, radii
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_means2d, grad_conics, grad_depths, _grad_radii):
+        means, quats, scales = ctx.saved_tensors
+        g_means, g_quats, g_scales = ctx.ops.project_backward(
+            means, quats, scales, *ctx.camera, grad_means2d, grad_conics, grad_depths
+        )
+        return g_means, g_quats, g_scales, *([None] * 8)

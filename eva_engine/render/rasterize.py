@@ -10,10 +10,11 @@ from torch import Tensor
 
 from eva_engine.render.composite import (
     CompositeConfig,
-    composite,
     composite_autograd,
+    composite_image,
     tiles_to_image,
 )
+from eva_engine.render.native import KERNELS, Kernel
 from eva_engine.render.projection import project_gaussians
 from eva_engine.render.sh import eval_sh, view_dirs
 from eva_engine.render.tiles import bin_gaussians
@@ -27,16 +28,23 @@ class RasterConfig:
              "autograd": plain torch autograd through the compositing, memory O(Gaussian-pixel
              pairs); the reference the tests compare against.
     tile_size: square screen tiles in pixels (8 is fastest on CPU).
-    composite: chunking of the tiled compositor.
+    kernel: the "tiled" backend's projection, binning and compositing kernels: "cpp" (compiled C++/OpenMP,
+            built once per machine), "torch" (pure torch, runs anywhere) or "auto" (default:
+            ``EVA_RASTER_KERNEL`` if set, else "cpp" when it builds, for CPU float32/float64);
+            see ``eva_engine.render.native``.
+    composite: chunking of the torch compositing kernels.
     """
 
     backend: Literal["tiled", "autograd"] = "tiled"
     tile_size: int = 8
+    kernel: Kernel = "auto"
     composite: CompositeConfig = field(default_factory=CompositeConfig)
 
     def __post_init__(self) -> None:
         if self.backend not in ("tiled", "autograd"):
             raise ValueError(f"backend must be 'tiled' or 'autograd', got {self.backend!r}")
+        if self.kernel not in KERNELS:
+            raise ValueError(f"kernel must be one of {KERNELS}, got {self.kernel!r}")
         if self.tile_size < 1:
             raise ValueError(f"tile_size must be positive, got {self.tile_size}")
 
@@ -105,7 +113,11 @@ def rasterize(
     cfg = config or RasterConfig()
     _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background, sh_degree)
 
-    proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near_plane, far_plane, eps2d)
+    # The autograd reference stays pure torch end to end.
+    kernel = cfg.kernel if cfg.backend == "tiled" else "torch"
+    proj = project_gaussians(
+        means, quats, scales, viewmat, K, width, height, near_plane, far_plane, eps2d, kernel
+    )
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
@@ -113,22 +125,26 @@ def rasterize(
         colors = eval_sh(sh_degree, colors, view_dirs(means, viewmat))
 
     bins = bin_gaussians(
-        means2d, proj.radii, proj.depths, width, height, cfg.tile_size, proj.conics, opacities
+        means2d, proj.radii, proj.depths, width, height, cfg.tile_size, proj.conics, opacities, kernel
     )
-    # Depth is composited as one more feature channel, with no background term.
-    feats = torch.cat([colors, proj.depths[:, None]], dim=-1)
-    run = composite if cfg.backend == "tiled" else composite_autograd
-    acc, t_final = run(means2d, proj.conics, opacities, feats, bins, cfg.composite)
-    acc = tiles_to_image(acc, bins, width, height)
-    t_final = tiles_to_image(t_final[..., None], bins, width, height)
-
-    image = acc[..., :-1]
-    if background is not None:
-        image = image + t_final * background.to(image)
+    if cfg.backend == "tiled":
+        image, depth, alpha = composite_image(
+            means2d, proj.conics, opacities, colors, proj.depths, bins, width, height, background,
+            cfg.composite, kernel,
+        )  # fmt: skip
+    else:
+        # Depth is composited as one more feature channel, with no background term.
+        feats = torch.cat([colors, proj.depths[:, None]], dim=-1)
+        acc, t_final = composite_autograd(means2d, proj.conics, opacities, feats, bins, cfg.composite)
+        acc = tiles_to_image(acc, bins, width, height)
+        t_final = tiles_to_image(t_final[..., None], bins, width, height)
+        image, depth, alpha = acc[..., :-1], acc[..., -1:], 1.0 - t_final
+        if background is not None:
+            image = image + t_final * background.to(image)
     return RenderOutput(
         image=image,
-        alpha=1.0 - t_final,
-        depth=acc[..., -1:],
+        alpha=alpha,
+        depth=depth,
         means2d=means2d,
         radii=proj.radii.amax(dim=-1),
         depths=proj.depths,
