@@ -19,7 +19,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,12 +36,38 @@ class DemoError(RuntimeError):
 
 @dataclass
 class DemoResult:
+    """seconds: the whole run; phases: seconds per phase in the order they ran (the demo's own
+    steps and each job stage as the service reports it, e.g. ``train``, ``animate render``)."""
+
     image: Path
     avatar_id: str
     seconds: float
     num_gaussians: int | None
     workdir: Path
     animation: Path | None = None
+    phases: dict[str, float] = field(default_factory=dict)
+
+
+class PhaseClock:
+    """Wraps a progress callback: a phase lasts from its first report to the next phase's."""
+
+    def __init__(self, progress: Progress | None) -> None:
+        self.progress = progress or (lambda *_: None)
+        self.phases: dict[str, float] = {}
+        self._current: str | None = None
+        self._since = time.perf_counter()
+
+    def __call__(self, stage: str, fraction: float, eta: float | None) -> None:
+        if stage != self._current:
+            self.stop()
+            self._current, self._since = stage, time.perf_counter()
+        self.progress(stage, fraction, eta)
+
+    def stop(self) -> None:
+        if self._current is not None:
+            elapsed = time.perf_counter() - self._since
+            self.phases[self._current] = self.phases.get(self._current, 0.0) + elapsed
+        self._current = None
 
 
 def _eva_executable() -> str:
@@ -81,7 +107,7 @@ def run_service_demo(
     workdir = Path(workdir)
     shutil.rmtree(workdir, ignore_errors=True)
     workdir.mkdir(parents=True)
-    say = progress or (lambda *_: None)
+    say = PhaseClock(progress)
     say("video", 0.0, None)
     video, frames = signer_video(workdir, load_body_model("anny"))
 
@@ -96,6 +122,7 @@ def run_service_demo(
     procs = [subprocess.Popen(c, stdout=log, stderr=subprocess.STDOUT) for c, log in pairs]
     try:
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=120.0) as api:
+            say("service start", 0.0, None)
             _wait_healthy(api, procs, workdir)
             with video.open("rb") as f:
                 created = api.post(
@@ -114,11 +141,12 @@ def run_service_demo(
                 {"pose": DEMO_POSE, "camera": {"yaw": 35.0, **UPPER_BODY}, "width": w, "height": h},
             ]
             panels = [(frames[frame].numpy() * 255 + 0.5).astype(np.uint8)]
+            say("render", 0.0, None)
             for body in requests:
                 png = _check(api.post(f"/avatars/{avatar_id}/render", json=body), "render").content
                 panels.append(np.asarray(Image.open(io.BytesIO(png)).convert("RGB").resize((w, h))))
             if out_mp4 is not None:
-                say("video", 0.0, None)
+                say("driving video", 0.0, None)
                 driving, _ = signer_video(workdir / "driving", load_body_model("anny"), seed=1)
                 form = {"camera": "front", "side_by_side": "true"}
                 if options and options.get("fit_scale"):
@@ -141,10 +169,11 @@ def run_service_demo(
                 p.kill()
         for log in logs:
             log.close()
+    say.stop()
     out_png.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.concatenate(panels, axis=1)).save(out_png)
     return DemoResult(out_png, avatar_id, time.perf_counter() - started, info.get("num_gaussians"), workdir,
-                      out_mp4)  # fmt: skip
+                      out_mp4, say.phases)  # fmt: skip
 
 
 def _follower(api, procs, workdir: Path, say: Progress, deadline: float):

@@ -55,6 +55,7 @@ def test_eva_demo_runs_the_product_end_to_end(tmp_path):
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     assert "http://127.0.0.1:8000/" in res.output  # where to see it in the web page
+    assert "time per phase: video" in res.output and "· train " in res.output and "· render " in res.output
     image = np.asarray(Image.open(out))
     assert image.shape == (256, 4 * 256, 3)
     for panel in np.split(image, 4, axis=1):  # every panel shows something on the white background

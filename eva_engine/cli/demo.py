@@ -81,6 +81,8 @@ def demo(
     )
     if result.animation is not None:
         console.print(f"[green]wrote[/] {result.animation}: the avatar performing a video of someone else")
+    phases = " · ".join(f"{name} {sec:.0f} s" for name, sec in result.phases.items())
+    console.print(f"time per phase: {phases}")
     service = workdir / "service"
     console.print(f"See the avatar in the web page: [bold]eva serve --data-dir {service}[/], then open "
                   "[bold]http://127.0.0.1:8000/[/]")  # fmt: skip
