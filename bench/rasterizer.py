@@ -17,7 +17,7 @@ reference backend.
     .venv/bin/python bench/rasterizer.py            # full grid, writes bench/results/rasterizer.{json,md}
     .venv/bin/python bench/rasterizer.py --quick    # fewer repeats and rounds, N <= 20k
 
-Targets (issue 18, 2 CPU cores): 20k @ 512^2 forward+backward <= 60 ms, forward >= 40 FPS; peak
+Targets (2 CPU cores): 20k @ 512^2 forward+backward <= 60 ms, forward >= 40 FPS; peak
 memory <= 0.5 GB.
 """
 
@@ -43,7 +43,7 @@ from machine import cpu_name
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results"
 THREADS = 2  # the target machine's core count; --threads overrides
-BEFORE = "008d8b2"  # main before the compiled kernels (issue 18)
+BEFORE = "008d8b2"  # main before the compiled kernels
 VARIANTS = ("before", "torch", "cpp")
 
 

@@ -1,4 +1,4 @@
-"""Benchmark of avatar training (issue 5): time per iteration and where it goes (data,
+"""Benchmark of avatar training: time per iteration and where it goes (data,
 skinning, rasterize, losses, backward, optimizer, densify), total training time, Gaussian count,
 and the full / hand / face metrics on the novel-pose frames.
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Debian packages the project needs at run time: Mesa's software EGL/GL for the ground-truth mesh
-# renderer (moderngl, see ../shared/reference/mesh-rendering-notes.md), redis-server for the
+# renderer (moderngl), redis-server for the
 # queue's Redis mode tests, Chromium with its WebDriver for the web page's browser test (a
 # browser downloaded at test time does not work offline), and g++ with ninja, which build the
 # rasterizer's C++ kernels (eva_engine/render/native.py; without them the slower torch kernels

@@ -1,5 +1,5 @@
 """ "Model only what a scene needs": a video whose frames never show the hands ends with no hand
-Gaussians, while the parts it shows keep theirs (issue 6)."""
+Gaussians, while the parts it shows keep theirs."""
 
 from __future__ import annotations
 

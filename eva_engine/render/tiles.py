@@ -47,11 +47,6 @@ class TileBins:
         return torch.stack([tx, ty], dim=-1).to(dtype) * self.tile_size
 
 
-# Slack (in log-alpha) for the exact tile test, so float32 rounding in the compositor can never
-# make a dropped pair visible.
-_LOG_ALPHA_SLACK = 1e-3
-
-
 def bin_gaussians(
     means2d: Tensor,
     radii: Tensor,

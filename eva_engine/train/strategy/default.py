@@ -20,7 +20,7 @@ order.
 
 Subclasses change the policy through the three hooks (``densify_thresholds``,
 ``prune_distance_thresholds``, ``end_window``) and extra per-Gaussian entries in ``state``, which
-the ops keep aligned; e.g. issue 6's context-aware strategy keeps the previous window's gradient
+the ops keep aligned; e.g. the context-aware strategy keeps the previous window's gradient
 sums and sets per-part thresholds.
 """
 
