@@ -223,6 +223,14 @@ class FitConfig:
     sigma_z: float = 0.03
     expression_sigma: float = 0.04
     """Seconds: the Gaussian that smooths the fitted expression over time (``clip.fit_clip``)."""
+    coarse_weight: float = 0.3
+    """Weight (relative to ``w_pose``) of the pose model's coarse hand and face points in stages
+    where the hand or face group has no weight of its own yet."""
+    transl_smooth: float = 10.0
+    """Weight of frame-to-frame translation (m²) against rotation (rad²) in the smoothness term:
+    10 puts 1 cm of jitter on a par with ~1.8 degrees."""
+    range_weight: float = 10.0
+    """Weight of the quadratic penalty outside a parameter's valid range (expression, shape)."""
     dense_face: bool = True
     """Fit the face to all of MediaPipe's face-mesh landmarks through the body model's
     correspondence (``align.face_mesh``), where the model has one."""
@@ -314,8 +322,8 @@ class _Problem:
         # pose model's coarse hand and face points stand in for them.
         groups = (
             (stage.w_pose, self.group_mask["pose"]),
-            (0.3 * stage.w_pose * (stage.w_face == 0), self.group_mask["pose_face"]),
-            (0.3 * stage.w_pose * (stage.w_hand == 0), self.group_mask["pose_hand"]),
+            (cfg.coarse_weight * stage.w_pose * (stage.w_face == 0), self.group_mask["pose_face"]),
+            (cfg.coarse_weight * stage.w_pose * (stage.w_hand == 0), self.group_mask["pose_hand"]),
             (stage.w_hand, self.group_mask["hand"]),
             (stage.w_face, self.group_mask["face_rigid" if stage.rigid_face_only else "face"]),
         )
@@ -360,15 +368,15 @@ class _Problem:
         if stage.smooth > 0 and t.num_frames > 1:
             smooth = (rotvecs[1:] - rotvecs[:-1]).square().mean()
             smooth = smooth + _rotation_distance(params.root_orient[1:], params.root_orient[:-1]).mean()
-            smooth = smooth + 10.0 * (params.transl[1:] - params.transl[:-1]).square().mean()
+            smooth = smooth + cfg.transl_smooth * (params.transl[1:] - params.transl[:-1]).square().mean()
             total = total + stage.smooth * smooth
         if stage.expression_smooth > 0 and t.num_frames > 1:
             step = params.expression[1:] - params.expression[:-1]
             total = total + stage.expression_smooth * step.square().mean()
         total = total + stage.expression_reg * params.expression.square().mean()
-        total = total + _box(params.expression, self.model.expression_bounds)
+        total = total + cfg.range_weight * _box(params.expression, self.model.expression_bounds)
         total = total + stage.shape_reg * (self.values["shape"] - self.init.shape[:1]).square().mean()
-        total = total + _box(self.values["shape"], self.model.shape_bounds)
+        total = total + cfg.range_weight * _box(self.values["shape"], self.model.shape_bounds)
         # In units of the 2D sigma: a residual of one sigma costs ~1, so L-BFGS's step and
         # curvature estimates start at a sensible scale whatever the image size.
         return total / cfg.sigma_2d**2
@@ -428,10 +436,11 @@ def _mask(n: int, indices) -> Tensor:
 
 
 def _box(x: Tensor, bounds: tuple[float, float] | None) -> Tensor:
+    """Squared distance of ``x``'s entries outside [lo, hi], summed (0 without bounds)."""
     if bounds is None:
         return x.new_zeros(())
     lo, hi = bounds
-    return 10.0 * ((lo - x).clamp_min(0).square().sum() + (x - hi).clamp_min(0).square().sum())
+    return (lo - x).clamp_min(0).square().sum() + (x - hi).clamp_min(0).square().sum()
 
 
 def _rotation_distance(a: Tensor, b: Tensor) -> Tensor:
