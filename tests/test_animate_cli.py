@@ -1,5 +1,5 @@
 """``eva render`` and ``eva animate`` as a user runs them: an avatar directory (the part-coloured
-teacher avatar of ``test_avatar_scenes``, saved with training frames) -> a PNG in a pose, and an
+teacher avatar of ``scenes``, saved with training frames) -> a PNG in a pose, and an
 mp4 of the avatar performing a JSON motion or a video of a different synthetic person (another
 body shape and look from the synthetic benchmark, through MediaPipe and the body fit). Checked:
 sizes, frame counts, that frames change exactly when the motion does, and every bad input."""
@@ -11,9 +11,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import test_service_helpers as helpers
+import service_helpers as helpers
 from PIL import Image
-from test_avatar_scenes import front_camera, random_params, teacher_avatar
+from scenes import front_camera, random_params, teacher_avatar
 from typer.testing import CliRunner
 
 from eva_engine.avatar import read_avatar_info, save_avatar, save_avatar_frames

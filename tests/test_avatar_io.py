@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 from plyfile import PlyData
-from test_avatar_scenes import front_camera, random_params
+from scenes import front_camera, random_params
 
 from eva_engine.avatar import (
     Avatar,

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from test_avatar_scenes import SceneDataset, teacher_scene
+from scenes import SceneDataset, teacher_scene
 
 from eva_engine.avatar import Avatar, AvatarConfig, Camera
 from eva_engine.eval import METRICS, EvalResult, ImageMetrics, RegionMetrics, evaluate_avatar, metrics_table

@@ -15,8 +15,8 @@ import threading
 import time
 
 import pytest
-import test_service_helpers as helpers
-from test_service_helpers import FAST_OPTIONS, gradient_video, wait_for
+import service_helpers as helpers
+from service_helpers import FAST_OPTIONS, gradient_video, wait_for
 
 from jobs import JobLost, JobOptions, JobQueue, JobRun, JobsConfig, JobStore, JobStoreError, sweep
 from jobs import store as store_module

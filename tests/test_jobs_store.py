@@ -11,7 +11,7 @@ import threading
 import time
 
 import pytest
-from test_service_helpers import no_person_video, wait_for
+from service_helpers import no_person_video, wait_for
 
 from jobs import InvalidIdError, JobOptions, JobQueue, JobsConfig, JobStore, Storage
 

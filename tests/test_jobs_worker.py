@@ -12,9 +12,9 @@ import subprocess
 import time
 
 import pytest
-import test_service_helpers as helpers
+import service_helpers as helpers
 from fastapi.testclient import TestClient
-from test_service_helpers import (
+from service_helpers import (
     EVA,
     FAST_OPTIONS,
     free_port,

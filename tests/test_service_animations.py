@@ -15,10 +15,10 @@ import json
 
 import numpy as np
 import pytest
-import test_service_helpers as helpers
+import service_helpers as helpers
 from fastapi.testclient import TestClient
-from test_avatar_scenes import teacher_avatar
-from test_service_helpers import no_person_video, run_job_here
+from scenes import teacher_avatar
+from service_helpers import no_person_video, run_job_here
 
 from eva_engine.avatar import save_avatar
 from eva_engine.data import read_video

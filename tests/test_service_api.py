@@ -4,9 +4,9 @@ lifecycle of a job nobody runs yet (409 until ready, cancel), the API key and th
 from __future__ import annotations
 
 import pytest
-import test_service_helpers as helpers
+import service_helpers as helpers
 from fastapi.testclient import TestClient
-from test_service_helpers import FAST_OPTIONS, no_person_video
+from service_helpers import FAST_OPTIONS, no_person_video
 
 from jobs import JobsConfig
 from service import ServiceSettings, create_app

@@ -13,9 +13,9 @@ from types import SimpleNamespace
 import httpx
 import numpy as np
 import pytest
-import test_service_helpers as helpers
+import service_helpers as helpers
 from PIL import Image
-from test_service_helpers import (
+from service_helpers import (
     EVA,
     FAST_OPTIONS,
     free_port,

@@ -14,9 +14,9 @@ import time
 
 import httpx
 import pytest
-import test_service_helpers as helpers
+import service_helpers as helpers
 from fastapi.testclient import TestClient
-from test_service_helpers import free_port, log_tail, rss_mb, start_service, stop
+from service_helpers import free_port, log_tail, rss_mb, start_service, stop
 from typer.testing import CliRunner
 
 from jobs import JobsConfig

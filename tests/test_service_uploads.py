@@ -12,9 +12,9 @@ import subprocess
 import sys
 
 import pytest
-import test_service_helpers as helpers
+import service_helpers as helpers
 from fastapi.testclient import TestClient
-from test_service_helpers import FAST_OPTIONS, free_port, gradient_video
+from service_helpers import FAST_OPTIONS, free_port, gradient_video
 
 from jobs import JobsConfig
 from service import ServiceSettings, create_app

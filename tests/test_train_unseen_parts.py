@@ -7,7 +7,7 @@ import dataclasses
 from types import SimpleNamespace
 
 import torch
-from test_avatar_scenes import SceneDataset, front_camera, teacher_scene
+from scenes import SceneDataset, front_camera, teacher_scene
 
 from eva_engine.train import LossConfig, preset, train_avatar, with_method
 

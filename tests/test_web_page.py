@@ -17,9 +17,9 @@ from types import SimpleNamespace
 import httpx
 import numpy as np
 import pytest
-import test_service_helpers as helpers
+import service_helpers as helpers
 from PIL import Image
-from test_service_helpers import EVA, free_port, log_tail, start_process, start_worker, stop, wait_for
+from service_helpers import EVA, free_port, log_tail, start_process, start_worker, stop, wait_for
 
 signer_video = helpers.signer_video  # fixtures
 other_signer_video = helpers.other_signer_video
