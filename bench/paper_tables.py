@@ -29,13 +29,14 @@ import dataclasses
 import datetime as dt
 import json
 import os
+import statistics
 import sys
 import time
 from pathlib import Path
 
 import torch
 from machine import describe
-from stats import compare, fmt, mean_std
+from stats import compare_paired, fmt, mean_std
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ROWS = ("3dgs+body", "eva-no-cadc-no-cl", "eva-no-cadc", "eva-no-cl", "eva")
@@ -93,6 +94,16 @@ def run_one(ds, config, metrics, label: str) -> dict:
     return entry
 
 
+def same_settings(a: dict, b: dict) -> bool:
+    """Two result configs of one benchmark setting: equal but for the seeds, the data-derived
+    entries and the set of methods (a method both ran must have run with the same config)."""
+    keys = ("size", "preset", "iterations", "refine", "threads", "pixel_norm")
+    if any(a.get(k) != b.get(k) for k in keys):
+        return False
+    ta, tb = a.get("train_config", {}), b.get("train_config", {})
+    return all(ta[m] == tb[m] for m in ta.keys() & tb.keys())
+
+
 def aggregate(runs: list[dict]) -> dict:
     """Per-method summary over its per-seed runs (the result file's shape)."""
     out = {
@@ -114,12 +125,9 @@ def merge(docs: list[dict]) -> dict:
     union of their runs (a seed run twice keeps its first run), re-aggregated."""
     if not docs:
         raise ValueError("nothing to merge")
-    base = {k: v for k, v in docs[0]["config"].items() if k != "seeds"}
     for doc in docs[1:]:
-        other = {k: v for k, v in doc["config"].items() if k != "seeds"}
-        if other != base:
-            changed = sorted(k for k in base.keys() | other.keys() if base.get(k) != other.get(k))
-            raise ValueError(f"cannot merge results of different settings: {changed}")
+        if not same_settings(docs[0]["config"], doc["config"]):
+            raise ValueError("cannot merge results of different settings (see their config)")
     runs: dict[str, dict[int, dict]] = {}
     for doc in docs:
         for method, entry in doc["methods"].items():
@@ -133,30 +141,46 @@ def merge(docs: list[dict]) -> dict:
         "load_average": [max(x) for x in zip(*(d["load_average"] for d in docs), strict=True)],
         "total_seconds": sum(d["total_seconds"] for d in docs),
         "wall_seconds": max(d["total_seconds"] for d in docs),
-        "config": {**docs[0]["config"], "seeds": seeds},
+        "config": {
+            **docs[0]["config"],
+            "seeds": seeds,
+            "train_config": {m: c for d in docs for m, c in d["config"]["train_config"].items()},
+        },  # fmt: skip
         "methods": {m: aggregate([by_seed[s] for s in sorted(by_seed)]) for m, by_seed in runs.items()},
     }
 
 
 def findings(methods: dict) -> list[str]:
-    """Each comparison, per region, on LPIPS-VGG (headline), PSNR and SSIM: better / worse /
-    no difference by the combined-std rule."""
+    """Each comparison, per region, on LPIPS-VGG (headline), PSNR and SSIM, paired over the seeds
+    both methods ran: better / worse / no difference by ``stats.compare_paired``."""
     lines = []
     for a, b, what in COMPARISONS:
         if a not in methods or b not in methods:
             continue
+        by_seed_a = {r["seed"]: r for r in methods[a]["runs"]}
+        by_seed_b = {r["seed"]: r for r in methods[b]["runs"]}
+        seeds = sorted(by_seed_a.keys() & by_seed_b.keys())
+        if not seeds:
+            continue
         parts = []
         for region in REGIONS:
-            if region not in methods[a] or region not in methods[b]:
+            if any(region not in by_seed_a[s] or region not in by_seed_b[s] for s in seeds):
                 continue
             cells = []
             for metric, label in (("lpips_vgg", "LPIPS-VGG"), ("psnr", "PSNR"), ("ssim", "SSIM")):
-                ma, mb = methods[a][region][metric], methods[b][region][metric]
-                verdict, rel = compare(ma, mb, LOWER_IS_BETTER[metric])
-                cells.append(f"{label} {verdict}" + (f" ({rel:+.1f}%)" if verdict != "no difference" else ""))
+                verdict, gap = compare_paired(
+                    [by_seed_a[s][region][metric] for s in seeds],
+                    [by_seed_b[s][region][metric] for s in seeds],
+                    LOWER_IS_BETTER[metric],
+                )
+                if verdict == "too few seeds":
+                    cells.append(f"{label} {gap['mean']:+.1f}% (one seed: not judged)")
+                else:
+                    cells.append(f"{label} {verdict} ({gap['mean']:+.1f} ± {gap['std']:.1f}%)")
             parts.append(f"{region}: " + ", ".join(cells))
-        na, nb = methods[a]["n_gaussians"]["mean"], methods[b]["n_gaussians"]["mean"]
-        lines.append(f"- **{a} vs {b}** ({what}; N-GS {na:,.0f} vs {nb:,.0f}): " + "; ".join(parts) + ".")
+        na, nb = (statistics.fmean(by[s]["n_gaussians"] for s in seeds) for by in (by_seed_a, by_seed_b))
+        head = f"- **{a} vs {b}** ({what}; seeds {seeds}; N-GS {na:,.0f} vs {nb:,.0f}): "
+        lines.append(head + "; ".join(parts) + ".")
     return lines
 
 
@@ -197,7 +221,8 @@ def markdown(doc: dict) -> str:
         lines.extend([f"## {title}", "", head + " | Train (s) |", "|---|---|---:|" + "---:|" * 13])
         for name in names:
             e = doc["methods"][name]
-            cells = [name, trained_on(name), fmt(e["n_gaussians"], digits=0)]
+            seeds = "" if len(e["seeds"]) == len(cfg["seeds"]) else f" (seeds {e['seeds']})"
+            cells = [name + seeds, trained_on(name), fmt(e["n_gaussians"], digits=0)]
             for r in REGIONS:
                 m = e.get(r)
                 cells += (
@@ -222,7 +247,12 @@ def markdown(doc: dict) -> str:
                       f"face {fmt(box['face']['box_px'], digits=0)} px."]  # fmt: skip
     lines += [
         "",
-        "## Findings (a gap counts only when it exceeds the combined std)",
+        "## Findings",
+        "",
+        "Paired over the seeds both methods ran (a seed is the same subject, motions and training "
+        "seed for every method): each cell is the mean ± std over seeds of the relative gap of the "
+        "first method against the second; a gap counts (better / worse) only when its mean exceeds "
+        "its std (`bench/stats.py`), otherwise it is reported as no difference.",
         "",
         *findings(doc["methods"]),
     ]
@@ -291,13 +321,11 @@ def main() -> None:
         "train_config": {m: with_method(base, m).to_dict() for m in args.methods},
     }  # fmt: skip
     doc = json.loads(path.read_text()) if path.is_file() else {}
-    wanted = json.loads(json.dumps({k: v for k, v in config.items() if k != "seeds"}, default=str))
-    same = {
-        k: v for k, v in doc.get("config", {}).items() if k in wanted
-    } == wanted  # as JSON: tuples are lists
+    # Resume only a run of the same settings (compared as JSON: tuples are lists there).
+    same = bool(doc) and same_settings(doc["config"], json.loads(json.dumps(config, default=str)))
     runs: dict[str, list[dict]] = (
         {m: list(e["runs"]) for m, e in doc.get("methods", {}).items()} if same else {}
-    )  # resume only a run of the same settings
+    )
     started, previous = time.perf_counter(), doc.get("total_seconds", 0.0) if same else 0.0
     metrics = ImageMetrics()
     for seed in args.seeds:

@@ -1,6 +1,8 @@
-"""Mean ± std over seeds, and the rule for stating a finding: a gap counts only when it exceeds
-the combined standard deviation of the two rows, sqrt(std_a² + std_b²); otherwise it is "no
-difference"."""
+"""Mean ± std over seeds, and the rules for stating a finding: a gap counts only when it exceeds
+its noise, otherwise it is "no difference". Unpaired (two rows): the combined standard
+deviation sqrt(std_a² + std_b²). Paired (two methods on the same seeds, i.e. the same subjects
+and training seeds): the per-seed relative gaps, whose mean must exceed their standard
+deviation; subjects differ more from each other than methods do, so this is the fairer test."""
 
 from __future__ import annotations
 
@@ -30,3 +32,18 @@ def compare(a: dict[str, float], b: dict[str, float], lower_is_better: bool) -> 
         return "no difference", rel
     improved = gap < 0 if lower_is_better else gap > 0
     return ("better" if improved else "worse"), rel
+
+
+def compare_paired(a: list[float], b: list[float], lower_is_better: bool) -> tuple[str, dict[str, float]]:
+    """("better" | "worse" | "no difference" | "too few seeds", mean_std of the per-seed
+    relative gaps of a against b in %) for the values of two methods on the same seeds, in the
+    same order. Better/worse only when |mean gap| > std of the gaps, with at least 2 seeds."""
+    if len(a) != len(b) or not a:
+        raise ValueError("paired values need the same, non-zero number of seeds")
+    gaps = mean_std([100.0 * (x - y) / abs(y) if y else math.inf for x, y in zip(a, b, strict=True)])
+    if len(a) < 2:
+        return "too few seeds", gaps
+    if abs(gaps["mean"]) <= gaps["std"]:
+        return "no difference", gaps
+    improved = gaps["mean"] < 0 if lower_is_better else gaps["mean"] > 0
+    return ("better" if improved else "worse"), gaps
