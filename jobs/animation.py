@@ -28,6 +28,7 @@ from pydantic import Field
 
 from eva_engine.animate.animation import AnimationConfig, AnimationError, output_frames, output_size
 from jobs.options import MAX_FRAMES, MAX_SIZE, MIN_SIZE
+from jobs.progress import preprocess_progress
 
 if TYPE_CHECKING:
     from jobs.pipeline import JobRun, Reporter
@@ -133,16 +134,7 @@ def _driving(run: JobRun, work: Path, dataset_dir: Path, body, options: Animatio
     check_frame_budget(info, options.max_frames, options.max_size, run.config.max_frame_pixels)
     report("preprocess", 0.0, message="decoding the driving video", force=True)
 
-    def progress(stage: str, done: int, total: int) -> None:
-        frac = done / max(total, 1)
-        if stage == "decode":
-            report("preprocess", 0.1, message=f"decoded {done} frames")
-        elif stage == "detect":
-            report("preprocess", 0.1 + 0.9 * frac, message=f"detecting the person: frame {done}/{total}")
-        elif stage == "align":
-            report("align", 0.7 * frac, message="fitting the body model to the driving video", force=True)
-        else:
-            report("align", 0.7 + 0.3 * frac, message=f"writing frame {done}/{total}")
+    progress = preprocess_progress(report, fitted=" to the driving video")
 
     config = PreprocessConfig(max_frames=options.max_frames, max_size=options.max_size,
                               fitting=scaled_fit_config(options.fit_scale))  # fmt: skip

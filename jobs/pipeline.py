@@ -31,6 +31,7 @@ from pathlib import Path
 
 from jobs.config import JobsConfig
 from jobs.options import JobOptions
+from jobs.progress import preprocess_progress
 from jobs.storage import Storage
 from jobs.store import STAGES, JobLost, JobRecord, JobStore
 
@@ -176,18 +177,7 @@ class JobRun:
         report("preprocess", 0.0, message="decoding the video", force=True)
         model = self.body_model(options.body_model)
 
-        def progress(stage: str, done: int, total: int) -> None:
-            frac = done / max(total, 1)
-            if stage == "decode":
-                report("preprocess", 0.1, message=f"decoded {done} frames")
-            elif stage == "detect":
-                report("preprocess", 0.1 + 0.9 * frac, message=f"detecting the person: frame {done}/{total}")
-            elif stage == "align":
-                report("align", 0.7 * frac, message="fitting the body model", force=True)
-            elif stage == "regions":
-                report("align", 0.8, message="rendering hand and face regions", force=True)
-            else:
-                report("align", 0.8 + 0.2 * frac, message=f"writing frame {done}/{total}")
+        progress = preprocess_progress(report)
 
         config = PreprocessConfig(max_frames=options.max_frames, max_size=options.max_size,
                                   fitting=options.fit_config())  # fmt: skip
