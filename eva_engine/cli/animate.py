@@ -11,6 +11,7 @@ from rich.console import Console
 
 from eva_engine.cli.app import app
 from eva_engine.cli.parsing import background_value, camera_value, validation_message
+from eva_engine.cli.progress import stage_bars
 
 
 @app.command()
@@ -47,7 +48,6 @@ def animate(
     """Retarget the driving motion onto the avatar (its joint rotations and expressions; the avatar
     keeps its shape, the root's travel scales with height), smooth it, render every frame, encode."""
     from pydantic import ValidationError
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from eva_engine.align import PreprocessConfig, scaled_fit_config
     from eva_engine.animate import (
@@ -79,15 +79,7 @@ def animate(
     fitting = scaled_fit_config(fit_scale)
     preprocess = PreprocessConfig(max_frames=max_frames, max_size=max_size, fitting=fitting)
     started = time.perf_counter()
-    columns = (TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    with Progress(*columns, console=console) as bar:
-        tasks: dict[str, int] = {}
-
-        def report(stage: str, done: int, total: int) -> None:
-            if stage not in tasks:
-                tasks[stage] = bar.add_task(stage, total=total or None)
-            bar.update(tasks[stage], completed=done, total=total or None)
-
+    with stage_bars(console) as report:
         try:
             motion = load_driving(driving, model.body, preprocess, progress=report)
             result = run_animation(model, motion, config, progress=lambda d, t: report("render", d, t))

@@ -9,6 +9,7 @@ import typer
 from rich.console import Console
 
 from eva_engine.cli.app import app
+from eva_engine.cli.progress import stage_bars
 
 
 @app.command()
@@ -24,7 +25,6 @@ def preprocess(
     overwrite: bool = typer.Option(False, help="Replace an existing dataset at --out."),
 ) -> None:
     """Decode, detect body/hands/face (MediaPipe), fit the body model (EVA §3.2), write a dataset."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from eva_engine.align import PreprocessConfig, PreprocessError, preprocess_video
     from eva_engine.data import VideoError
@@ -38,16 +38,7 @@ def preprocess(
     config = PreprocessConfig(
         every=every, max_frames=max_frames, max_size=max_size, fov_y_deg=fov, test_every=test_every, fit=fit
     )
-    columns = (TextColumn("{task.description:>8}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-               TimeElapsedColumn())  # fmt: skip
-    with Progress(*columns, console=console) as bar:
-        tasks: dict[str, int] = {}
-
-        def report(stage: str, done: int, total: int) -> None:
-            if stage not in tasks:
-                tasks[stage] = bar.add_task(stage, total=total or None)
-            bar.update(tasks[stage], completed=done, total=total or None)
-
+    with stage_bars(console) as report:
         try:
             result = preprocess_video(video, out, config, progress=report, overwrite=overwrite)
         except (VideoError, PreprocessError, FileExistsError) as err:
