@@ -256,7 +256,7 @@ def train_avatar(
         t = tick("skinning", t)
         render = avatar.rasterize_posed(posed, cam, background)
         t = tick("rasterize", t)
-        terms = loss_fn(render, targets[i], masks[i])
+        terms = loss_fn(render, targets[i], masks[i], key=i)
         total = (terms["total"] + correction.prior(i)) if correcting else terms["total"]
         t = tick("losses", t)
         total.backward()
