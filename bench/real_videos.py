@@ -76,6 +76,14 @@ def preprocess(video: Path, out: Path, frames: int, max_size: int) -> dict:
     return report
 
 
+def same_settings(saved: dict, wanted: dict) -> bool:
+    """Whether a saved train config has ``wanted``'s values (fields added to the config since it
+    was saved, e.g. a cache size, are not compared)."""
+    if not isinstance(saved, dict) or not isinstance(wanted, dict):
+        return saved == wanted
+    return all(k not in saved or same_settings(saved[k], v) for k, v in wanted.items())
+
+
 def train_and_eval(
     ds, method: str, preset_name: str, seed: int, threads: int, metrics, out: Path, refinement, reuse: bool
 ) -> tuple:
@@ -89,7 +97,7 @@ def train_and_eval(
     entry: dict = {"iterations": config.iterations}
     if reuse and (out / "avatar.json").is_file():
         info = read_avatar_info(out)
-        if info.get("train_config") != json.loads(json.dumps(config.to_dict())):
+        if not same_settings(info.get("train_config") or {}, json.loads(json.dumps(config.to_dict()))):
             raise SystemExit(f"{out} was trained with other settings; drop --reuse to train again")
         avatar, train_seconds = load_avatar(out), info["train_seconds"]
         entry["reused"] = str(out)
