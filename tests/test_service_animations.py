@@ -23,7 +23,8 @@ from service_helpers import no_person_video, run_job_here
 from eva_engine.avatar import save_avatar
 from eva_engine.data import read_video
 from jobs import JobQueue, JobRun, JobsConfig
-from service import ServiceSettings, create_app
+from service.app import create_app
+from service.settings import ServiceSettings
 
 signer_video = helpers.signer_video  # a fixture
 RAISED = {"joints": {"upperarm01.L": [0.0, 0.0, 1.2]}, "expression": {"jawOpen": 0.6}}

@@ -9,7 +9,8 @@ from fastapi.testclient import TestClient
 from service_helpers import FAST_OPTIONS, no_person_video
 
 from jobs import JobsConfig
-from service import ServiceSettings, create_app
+from service.app import create_app
+from service.settings import ServiceSettings
 
 signer_video = helpers.signer_video  # a fixture
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import typer
 from rich.console import Console
 
-from eva_engine.cli.app import app
+from service.cli.app import app
 
 
 @app.command()
