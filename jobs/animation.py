@@ -114,7 +114,7 @@ def _driving(run: JobRun, work: Path, dataset_dir: Path, body, options: Animatio
     from eva_engine.animate import driving_from_dataset, driving_from_poses
     from eva_engine.animate.driving import DrivingError
     from jobs.media import check_frame_budget, probe_video
-    from jobs.pipeline import input_file, move_into_place
+    from jobs.storage import input_file, move_into_place
 
     upload = input_file(work)
     if dataset_dir.is_dir():  # aligned before the last worker died
@@ -149,7 +149,7 @@ def _driving(run: JobRun, work: Path, dataset_dir: Path, body, options: Animatio
 def _render(run: JobRun, job: JobRecord, avatar, driving, options: AnimationOptions, out: Path,
             report: Reporter) -> None:  # fmt: skip
     from eva_engine.animate import animate, write_animation
-    from jobs.pipeline import move_into_place
+    from jobs.storage import move_into_place
 
     report("render", 0.0, message=f"rendering {len(driving)} driving frames", force=True)
     started = time.monotonic()
