@@ -6,28 +6,29 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-# eva_engine.train.METHODS, spelled out so that the options import without torch (a test checks
-# the two agree).
-Method = Literal["3dgs+body", "eva", "eva-no-cadc", "eva-no-cl", "eva-no-cadc-no-cl", "eva-part-mean"]
+from eva_engine.recipes import METHODS, PRESETS
+
+Preset = Literal[*PRESETS]
+Method = Literal[*METHODS]
 # Bounds of what one job may ask for (with JobsConfig's frame budget and Gaussian cap, they bound
 # its memory and time): the paper trains 2,000 iterations, 3DGS 30,000 on a GPU.
 MAX_FRAMES, MIN_SIZE, MAX_SIZE, MAX_ITERATIONS = 2000, 64, 2048, 20_000
 
 
 class JobOptions(BaseModel):
-    """preset: training preset (``tiny`` for tests, ``fast`` ~minutes on a laptop CPU, ``default``
-    the paper's 2,000 iterations); max_frames: frames of the video used (evenly from the start);
-    max_size: longest image side the frames are resized to; body_model: ``anny`` (embedded) or
-    ``smplx`` (needs the user's own model files); iterations / image_scale: override the preset's;
-    fit_scale: scales the body-model alignment's L-BFGS iterations (1 = the paper's 60/40/60);
-    method: the training method (``eva_engine.train.METHODS``: ``eva`` is the paper's full
-    method, ``3dgs+body`` its baseline); None: the preset's own (3DGS density control with the
-    full objective).
+    """preset: training preset (``eva_engine.recipes.PRESETS``: ``tiny`` for tests, ``fast``
+    ~minutes on a laptop CPU, ``default`` the paper's 2,000 iterations); max_frames: frames of the
+    video used (evenly from the start); max_size: longest image side the frames are resized to;
+    body_model: ``anny`` (embedded) or ``smplx`` (needs the user's own model files); iterations /
+    image_scale: override the preset's; fit_scale: scales the body-model alignment's L-BFGS
+    iterations (1 = the paper's 60/40/60); method: the training method
+    (``eva_engine.recipes.METHODS``: ``eva`` is the paper's full method, ``3dgs+body`` its
+    baseline); None: the preset's own (3DGS density control with the full objective).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    preset: Literal["tiny", "fast", "default"] = "fast"
+    preset: Preset = "fast"
     max_frames: int = Field(120, ge=1, le=MAX_FRAMES)
     max_size: int = Field(512, ge=MIN_SIZE, le=MAX_SIZE)
     body_model: Literal["anny", "smplx"] = "anny"

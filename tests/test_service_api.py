@@ -50,6 +50,20 @@ def test_health_and_docs(client):
     assert render["examples"][0]["pose"]["joints"]
 
 
+def test_the_page_offers_the_registered_presets_and_methods(client):
+    import re
+
+    from eva_engine.recipes import METHODS, PRESETS
+
+    page = client.get("/").text
+    presets = re.search(r'<select id="preset".*?</select>', page, re.S).group(0)
+    methods = re.search(r'<select id="method".*?</select>', page, re.S).group(0)
+    assert re.findall(r'value="([^"]*)"', presets) == list(PRESETS)
+    assert re.findall(r'value="([^"]*)"', methods) == ["", *METHODS]  # "": the preset's own
+    assert re.findall(r'value="([^"]*)" selected', presets) == ["fast"]  # JobOptions' default
+    assert 'value="3dgs+body">3dgs+body (baseline)</option>' in methods
+
+
 def test_upload_queues_a_job_that_can_be_cancelled(client, signer_video, tmp_path):
     res = upload(client, signer_video.read_bytes(), name="me.mp4", **FAST_OPTIONS)
     assert res.status_code == 202, res.text

@@ -9,7 +9,7 @@ from fastapi.responses import FileResponse
 
 from eva_engine.avatar import read_avatar_info
 from eva_engine.avatar.render_spec import frame_params, spec_camera, spec_params
-from jobs.options import MAX_FRAMES, MAX_ITERATIONS, MAX_SIZE, MIN_SIZE, JobOptions, Method
+from jobs.options import MAX_FRAMES, MAX_ITERATIONS, MAX_SIZE, MIN_SIZE, JobOptions, Method, Preset
 from jobs.store import JobRecord, new_id
 from service import rendering
 from service.deps import (
@@ -45,7 +45,7 @@ _DEFAULTS = JobOptions()
 )  # fmt: skip
 async def create_avatar(
     video: UploadFile = File(..., description="A video of one person (mp4, mov, mkv, webm or avi)."),
-    preset: Literal["tiny", "fast", "default"] = Form(_DEFAULTS.preset),
+    preset: Preset = Form(_DEFAULTS.preset),
     max_frames: int = Form(_DEFAULTS.max_frames, ge=1, le=MAX_FRAMES),
     max_size: int = Form(_DEFAULTS.max_size, ge=MIN_SIZE, le=MAX_SIZE),
     body_model: Literal["anny", "smplx"] = Form(_DEFAULTS.body_model),
