@@ -46,3 +46,13 @@ METHODS: dict[str, Method] = {
     "eva-part-mean": Method("eva, per-part-mean thresholds", cadc=True, confidence=True, history="part_mean"),
 }
 """Method name -> its switches (Tables 1 and 2 of the paper: ``eva_engine.train.methods``)."""
+
+
+def describe_presets() -> str:
+    """The presets in words, for help texts: ``tiny (seconds, a test), fast (minutes), ...``."""
+    return ", ".join(f"{name} ({what})" for name, what in PRESETS.items())
+
+
+def describe_methods() -> str:
+    """The methods in words, for help texts: ``3dgs+body (baseline), eva (the paper's), ...``."""
+    return ", ".join(f"{name} ({method.summary})" for name, method in METHODS.items())

@@ -9,11 +9,7 @@ import typer
 from rich.console import Console
 
 from eva_engine.cli.app import app
-from eva_engine.recipes import METHODS, PRESETS
-
-PRESET_HELP = "Training preset: " + ", ".join(f"{name} ({what})" for name, what in PRESETS.items()) + "."
-METHOD_HELP = ("Method: " + ", ".join(f"{name} ({m.summary})" for name, m in METHODS.items())
-               + "; default: the preset's.")  # fmt: skip
+from eva_engine.recipes import METHODS, PRESETS, describe_methods, describe_presets
 
 
 @app.command()
@@ -22,8 +18,8 @@ def train(
         ..., help="Dataset folder (eva-dataset layout, see docs/dataset-format.md)."
     ),
     out: Path = typer.Option(..., "--out", "-o", help="Avatar directory to write."),
-    preset: str = typer.Option("default", help=PRESET_HELP),
-    method: str | None = typer.Option(None, help=METHOD_HELP),
+    preset: str = typer.Option("default", help=f"Training preset: {describe_presets()}."),
+    method: str | None = typer.Option(None, help=f"Method: {describe_methods()}; default: the preset's."),
     iterations: int | None = typer.Option(None, min=1, help="Override the preset's iteration count."),
     image_scale: float | None = typer.Option(None, min=0.05, max=4.0, help="Resample frames by this factor."),
     device: str = typer.Option("cpu", help="cpu or cuda."),
