@@ -41,15 +41,20 @@ ANIMATION_STAGE_SPANS = {"preprocess": (0.0, 0.25), "align": (0.25, 0.45), "rend
 VIDEO_NAME, INFO_NAME = "animation.mp4", "animation.json"
 
 
-class AnimationOptions(AnimationConfig):
+class AnimationRequest(AnimationConfig):
     """What a user chooses for one animation: how it is rendered (``AnimationConfig``) and how a
     driving video is read -- max_frames (from the start), max_size (longest side, pixels),
-    fit_scale (the body fit's iterations, 1 = the paper's). avatar_id: the avatar animated."""
+    fit_scale (the body fit's iterations, 1 = the paper's)."""
 
-    avatar_id: str = Field(..., pattern=r"^[0-9a-f]{32}$")
     max_frames: int = Field(300, ge=1, le=MAX_FRAMES)
     max_size: int = Field(512, ge=MIN_SIZE, le=MAX_SIZE)
     fit_scale: float = Field(1.0, gt=0.0, le=4.0)
+
+
+class AnimationOptions(AnimationRequest):
+    """An animation job's options: what the user chose, and avatar_id, the avatar animated."""
+
+    avatar_id: str = Field(..., pattern=r"^[0-9a-f]{32}$")
 
 
 def animation_pixels(options: AnimationConfig, frames: int, fps: float,
