@@ -12,7 +12,15 @@ from scenes import teacher_scene
 from eva_engine.eval import ImageMetrics, evaluate_avatar, metrics_table
 from eva_engine.metrics import LPIPS, psnr
 from eva_engine.render import RenderOutput
-from eva_engine.train import AvatarLoss, LossConfig, TrainingError, composite_target, preset, train_avatar
+from eva_engine.train import (
+    PRESETS,
+    AvatarLoss,
+    LossConfig,
+    TrainingError,
+    composite_target,
+    preset,
+    train_avatar,
+)
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +100,12 @@ def test_clear_errors(scene, anny_model):
         preset("huge")
     with pytest.raises(ValueError, match="photometric"):
         AvatarLoss(LossConfig(photometric="nope"), lpips=None)
+
+
+@pytest.mark.parametrize("name", PRESETS)
+def test_every_registered_preset_has_a_configuration(name):
+    config = preset(name, iterations=7)
+    assert config.iterations == 7 and config.strategy.refine_stop_iter > config.strategy.refine_start_iter
 
 
 def test_loss_terms_are_finite_and_use_the_crop(lpips):
