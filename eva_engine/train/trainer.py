@@ -172,10 +172,15 @@ def train_avatar(
     config: TrainConfig | None = None,
     body: BodyModel | None = None,
     progress: Callable[[TrainProgress], None] | None = None,
+    checkpoint: Callable[[int, Avatar, float], None] | None = None,
+    checkpoint_steps: tuple[int, ...] = (),
 ) -> TrainResult:
     """Train an avatar on ``dataset.splits["train"]`` (an ``eva-dataset``, see docs).
 
     body: the body model the dataset's parameters are for (default: ``meta.body_model``).
+    checkpoint: called as ``checkpoint(step, avatar, seconds)`` after each of
+    ``checkpoint_steps`` (1-based iteration counts) with the avatar as it trains (e.g. to
+    evaluate it) and the training seconds so far; its own time is not counted as training.
     """
     config = config or TrainConfig()
     device = resolve_device(config.device)
@@ -230,6 +235,7 @@ def train_avatar(
     losses: list[float] = []
     refinements: list[dict] = []
     start = time.perf_counter()
+    paused = 0.0  # seconds spent in ``checkpoint``
 
     def tick(stage: str, t0: float) -> float:
         if device.type == "cuda":
@@ -275,8 +281,13 @@ def train_avatar(
             raise TrainingError(f"the loss became {loss} at iteration {step}")
         losses.append(loss)
         done = step + 1
+        if checkpoint is not None and done in checkpoint_steps:
+            t = time.perf_counter()
+            checkpoint(done, avatar, t - start - paused)
+            avatar.train()
+            paused += time.perf_counter() - t
         if progress and (done % config.progress_every == 0 or done == config.iterations):
-            elapsed = time.perf_counter() - start
+            elapsed = time.perf_counter() - start - paused
             eta = elapsed / done * (config.iterations - done)
             progress(
                 TrainProgress("train", done, config.iterations, loss, len(avatar.gaussians), elapsed, eta)
@@ -288,7 +299,7 @@ def train_avatar(
         refinements.append({"step": config.iterations, **stats})
         logger.info("after training: %s", stats)
     tick("densify", t)
-    train_seconds = time.perf_counter() - start
+    train_seconds = time.perf_counter() - start - paused
     avatar.eval()
     if progress:
         progress(TrainProgress("done", config.iterations, config.iterations, losses[-1],
