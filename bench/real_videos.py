@@ -82,7 +82,7 @@ def train_and_eval(ds, method: str, preset_name: str, seed: int, threads: int, m
                   f"{p.elapsed:.0f}s", file=sys.stderr, flush=True)  # fmt: skip
 
     result = train_avatar(ds, config, progress=report)
-    save_avatar(result.avatar, out, {"train_config": config.to_dict(), "train_seconds": result.train_seconds})
+    save_avatar(result.avatar, out, result.record(config, preset=preset_name, method=method))
     ev = evaluate_avatar(result.avatar, ds, metrics=metrics, train_seconds=result.train_seconds)
     entry = {
         "n_gaussians": len(result.avatar.gaussians),

@@ -71,9 +71,7 @@ def main() -> None:
     result = train_avatar(ds, config, progress=report)
     ev = evaluate_avatar(result.avatar, ds, train_seconds=result.train_seconds)
     if args.out:
-        save_avatar(
-            result.avatar, args.out, {"train_config": config.to_dict(), "train_seconds": result.train_seconds}
-        )
+        save_avatar(result.avatar, args.out, result.record(config, preset=args.preset), result.frames(ds))
     n = config.iterations
     entry = {
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),

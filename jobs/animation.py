@@ -78,8 +78,7 @@ def check_animation_budget(options: AnimationConfig, frames: int, fps: float,
 
 def animation_stages(run: JobRun, job: JobRecord, report: Reporter) -> None:
     """Run (or resume) animation job ``job`` in ``run`` (its storage, limits and body models)."""
-    from eva_engine.avatar import read_avatar_info
-    from eva_engine.avatar.io import load_avatar
+    from eva_engine.avatar import load_avatar, read_avatar_meta
 
     options = AnimationOptions.model_validate(job.options)
     storage = run.storage
@@ -92,7 +91,7 @@ def animation_stages(run: JobRun, job: JobRecord, report: Reporter) -> None:
         avatar_dir = storage.avatar_dir(options.avatar_id)
         if not avatar_dir.is_dir():
             raise FileNotFoundError(f"avatar {options.avatar_id} no longer exists")
-        body = run.body_model(read_avatar_info(avatar_dir)["body_model"])
+        body = run.body_model(read_avatar_meta(avatar_dir).body_model)
         avatar = load_avatar(avatar_dir, body=body).eval()
         driving = _driving(run, work, dataset_dir, body, options, report)
         report.completed("align")

@@ -7,7 +7,7 @@ last completed stage.
 
     work/<job_id>/input.<ext>   the upload (written by the API)
     work/<job_id>/dataset/      eva_engine.align.preprocess_video (stages preprocess, align)
-    work/<job_id>/avatar/       eva_engine.avatar.save_avatar + metrics + frames (stage train)
+    work/<job_id>/avatar/       eva_engine.avatar.save_avatar: with its metrics and frames (stage train)
     avatars/<avatar_id>/        the same folder, renamed (stage export)
 
 Every record write is conditional on this attempt still owning the job (``JobStore`` ``owner=``);
@@ -192,7 +192,6 @@ class JobRun:
         import dataclasses
 
         from eva_engine.avatar import save_avatar
-        from eva_engine.avatar.frames import save_avatar_frames
         from eva_engine.data import load_dataset
         from eva_engine.train import preset, train_avatar, with_method
 
@@ -219,28 +218,14 @@ class JobRun:
 
         result = train_avatar(ds, config, body=body, progress=progress)
         report("train", 0.95, message="measuring the fit on training frames", force=True)
-        metrics = _training_metrics(result.avatar, ds)
-        info = {
-            "avatar_id": job.avatar_id,
-            "job_id": job.id,
-            "source_video": job.filename,
-            "preset": options.preset,
-            "options": options.model_dump(),
-            "train_config": config.to_dict(),
-            "train_seconds": result.train_seconds,
-            "iterations": config.iterations,
-            "final_loss": result.losses[-1],
-            "timings": result.timings,
-            "gaussians_per_part": result.gaussians_per_part,
-            "pose_correction": result.pose_correction,
-            "metrics": metrics,
-            "created_at": time.time(),
-        }
+        record = result.record(
+            config, preset=options.preset, method=options.method, options=options.model_dump(),
+            metrics=_training_metrics(result.avatar, ds), avatar_id=job.avatar_id, job_id=job.id,
+            source_video=job.filename, created_at=time.time(),
+        )  # fmt: skip
         partial = out.with_name(f"{out.name}.partial-{self.attempt}")
-        partial.mkdir(parents=True)
-        # Each training frame's pose and camera, so a client can render it to compare with the input.
-        info["frames"] = save_avatar_frames(partial, ds, result.frame_params(ds.params))  # as trained
-        save_avatar(result.avatar, partial, info)
+        # Each training frame's pose (as trained) and camera: a client renders one to compare with the input.
+        save_avatar(result.avatar, partial, record, frames=result.frames(ds))
         report("train", 1.0, message="avatar trained", force=True)  # still ours: put it in place
         move_into_place(partial, out)
 

@@ -31,7 +31,7 @@ def train(
     """Train an avatar on the dataset's training frames (EVA: 2,000 iterations)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from eva_engine.avatar import save_avatar, save_avatar_frames
+    from eva_engine.avatar import save_avatar
     from eva_engine.data import DatasetError, load_dataset
     from eva_engine.train import METHODS, PRESETS, TrainingError, train_avatar, with_method
     from eva_engine.train import preset as make_preset
@@ -79,23 +79,9 @@ def train(
         except TrainingError as err:
             console.print(f"[red]error:[/] {err}")
             raise typer.Exit(2) from err
-    info = {
-        "dataset": str(dataset.resolve()),
-        "preset": preset,
-        "method": method,
-        "train_config": config.to_dict(),
-        "train_seconds": result.train_seconds,
-        "iterations": config.iterations,
-        "final_loss": result.losses[-1],
-        "timings": result.timings,
-        "refinements": result.refinements,
-        "gaussians_per_part": result.gaussians_per_part,
-        "pose_correction": result.pose_correction,
-    }
-    out.mkdir(parents=True, exist_ok=True)
+    record = result.record(config, preset=preset, method=method, dataset=str(dataset.resolve()))
     # Training poses (as trained) and cameras: `eva render --pose frame:N`.
-    info["frames"] = save_avatar_frames(out, ds, result.frame_params(ds.params))
-    save_avatar(result.avatar, out, info)
+    save_avatar(result.avatar, out, record, frames=result.frames(ds))
     console.print(
         f"[green]wrote[/] {out}: {len(result.avatar.gaussians):,} Gaussians, "
         f"{config.iterations} iterations in {result.train_seconds:.1f} s "

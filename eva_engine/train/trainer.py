@@ -13,17 +13,21 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from eva_engine.avatar import Avatar, Camera
+from eva_engine.avatar import Avatar, AvatarFrames, Camera, TrainingRecord
 from eva_engine.body.model import PART_NAMES, BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.train.config import TrainConfig
 from eva_engine.train.losses import AvatarLoss, composite_target
 from eva_engine.train.pose_correction import PoseCorrection
+
+if TYPE_CHECKING:
+    from eva_engine.data.dataset import Dataset
 
 logger = logging.getLogger(__name__)
 
@@ -79,6 +83,27 @@ class TrainResult:
         for k, v in self.train_params.tensors().items():
             getattr(out, k)[rows] = v.detach().cpu().float()
         return out
+
+    def frames(self, dataset: Dataset) -> AvatarFrames:
+        """``dataset``'s frames to keep with the avatar, posed as trained (``frame_params``)."""
+        if dataset.params is None:
+            raise TrainingError("the dataset has no body parameters to keep with the avatar")
+        return AvatarFrames.of_dataset(dataset, self.frame_params(dataset.params))
+
+    def record(self, config: TrainConfig, **provenance: Any) -> TrainingRecord:
+        """What ``avatar.json`` keeps of this run of ``config``; ``provenance``: the other
+        :class:`TrainingRecord` fields (preset, method, metrics, where the data came from)."""
+        return TrainingRecord(
+            train_config=config.to_dict(),
+            iterations=config.iterations,
+            train_seconds=self.train_seconds,
+            final_loss=self.losses[-1],
+            timings=self.timings,
+            refinements=self.refinements,
+            gaussians_per_part=self.gaussians_per_part,
+            pose_correction=self.pose_correction,
+            **provenance,
+        )
 
 
 def part_counts(part_ids: Tensor) -> dict[str, int]:
