@@ -312,7 +312,7 @@ def main() -> None:
     if unknown:
         ap.error(f"unknown methods {unknown}; choose from {METHODS}")
     torch.set_num_threads(args.threads)
-    base = with_pixel_norm(preset(args.preset, threads=args.threads), args.pixel_norm)
+    base = with_pixel_norm(preset(args.preset), args.pixel_norm)
     s = base.strategy
     config = {
         "size": args.size, "seeds": args.seeds, "preset": args.preset, "iterations": base.iterations,
@@ -341,7 +341,7 @@ def main() -> None:
             label = f"{method} seed {seed}"
             print(f"{label} ...", file=sys.stderr, flush=True)
             cfg = with_method(
-                with_pixel_norm(preset(args.preset, threads=args.threads, seed=seed), args.pixel_norm), method
+                with_pixel_norm(preset(args.preset, seed=seed), args.pixel_norm), method
             )
             entry = {"seed": seed, **run_one(ds, cfg, metrics, label)}
             runs.setdefault(method, []).append(entry)

@@ -69,12 +69,12 @@ def preprocess(video: Path, out: Path, frames: int, max_size: int) -> dict:
     return report
 
 
-def train_and_eval(ds, method: str, preset_name: str, seed: int, threads: int, metrics, out: Path) -> tuple:
+def train_and_eval(ds, method: str, preset_name: str, seed: int, metrics, out: Path) -> tuple:
     from eva_engine.avatar import save_avatar
     from eva_engine.eval import evaluate_avatar
     from eva_engine.train import preset, train_avatar, with_method
 
-    config = with_method(preset(preset_name, threads=threads, seed=seed), method)
+    config = with_method(preset(preset_name, seed=seed), method)
 
     def report(p) -> None:
         if p.stage == "train" and p.iteration % 200 == 0:
@@ -261,7 +261,7 @@ def main() -> None:
             print(f"{video.name}: {method} ...", file=sys.stderr, flush=True)
             tag = method.replace("+", "_")
             entry["methods"][method], avatars[method] = train_and_eval(
-                ds, method, args.preset, args.seed, args.threads, metrics, folder / f"avatar-{tag}"
+                ds, method, args.preset, args.seed, metrics, folder / f"avatar-{tag}"
             )
         test = ds.splits["test_pose"]
         picks = [test[i] for i in np.linspace(0, len(test) - 1, 5).round().astype(int)]

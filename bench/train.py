@@ -58,7 +58,7 @@ def main() -> None:
             print(f"generating {path} ...", file=sys.stderr)
             generate(args.synthetic, args.size, args.seed, path)
     ds = load_dataset(path)
-    overrides = {"threads": args.threads, "device": args.device}
+    overrides = {"device": args.device}
     if args.iterations:
         overrides["iterations"] = args.iterations
     config = preset(args.preset, **overrides)

@@ -197,7 +197,7 @@ class JobRun:
 
         ds = load_dataset(dataset_dir)
         body = self.body_model(ds.meta.body_model or options.body_model)
-        overrides: dict = {"threads": self.config.threads}
+        overrides: dict = {}
         if options.iterations is not None:
             overrides["iterations"] = options.iterations
         if options.image_scale is not None:

@@ -29,6 +29,7 @@ def train(
     seed: int = typer.Option(0, help="Random seed (runs are deterministic given it)."),
 ) -> None:
     """Train an avatar on the dataset's training frames (EVA: 2,000 iterations)."""
+    import torch
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from eva_engine.avatar import save_avatar
@@ -53,7 +54,9 @@ def train(
     except DatasetError as err:
         console.print(f"[red]error:[/] {err}")
         raise typer.Exit(2) from err
-    overrides: dict = {"device": device, "seed": seed, "threads": threads}
+    if threads is not None:  # this process's, set once here (a training run leaves them alone)
+        torch.set_num_threads(threads)
+    overrides: dict = {"device": device, "seed": seed}
     if iterations is not None:
         overrides["iterations"] = iterations
     if image_scale is not None:

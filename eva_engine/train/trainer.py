@@ -204,9 +204,6 @@ def train_avatar(
     """
     config = config or TrainConfig()
     device = resolve_device(config.device)
-    if config.threads:
-        torch.set_num_threads(config.threads)
-    torch.manual_seed(config.seed)
     t_setup = time.perf_counter()
     if progress:
         progress(TrainProgress("setup", 0, config.iterations, float("nan"), 0, 0.0, float("nan")))
@@ -231,9 +228,13 @@ def train_avatar(
     params = frames.params.to(device)
 
     shape = params.shape.mean(dim=0)
-    avatar = Avatar.create(body.to(device), shape, config.avatar, seed=config.seed).to(device)
+    # Every random draw of the run comes from generators seeded here, never from torch's global
+    # state: the initial weights (the avatar's MLPs, then the loss's), and the frame order.
+    weights = torch.Generator().manual_seed(config.seed)
+    avatar = Avatar.create(body.to(device), shape, config.avatar, seed=config.seed, generator=weights)
+    avatar = avatar.to(device)
     avatar.active_sh_degree = 0
-    loss_fn = AvatarLoss(config.loss).to(device)
+    loss_fn = AvatarLoss(config.loss, generator=weights).to(device)
     optimizers = make_optimizers(avatar, config)
     extra = make_extra_optimizers(avatar, config, loss_fn)
     correction, correction_opt = None, None
@@ -249,7 +250,7 @@ def train_avatar(
     logger.info("setup %.1fs: %d frames, %d Gaussians", time.perf_counter() - t_setup, len(train_ids),
                 len(avatar.gaussians))  # fmt: skip
 
-    gen = torch.Generator().manual_seed(config.seed)
+    frame_order = torch.Generator().manual_seed(config.seed)
     order: list[int] = []
     timings = dict.fromkeys(STAGES, 0.0)
     losses: list[float] = []
@@ -266,7 +267,7 @@ def train_avatar(
     for step in range(config.iterations):
         t = time.perf_counter()
         if not order:
-            order = torch.randperm(len(train_ids), generator=gen).tolist()
+            order = torch.randperm(len(train_ids), generator=frame_order).tolist()
         i = order.pop()
         if step > 0 and step % config.sh_degree_interval == 0:
             avatar.active_sh_degree = min(avatar.active_sh_degree + 1, avatar.gaussians.sh_degree)
