@@ -30,7 +30,8 @@ import torch
 from torch import Tensor
 
 from eva_engine.avatar import Avatar, Camera
-from eva_engine.data.dataset import REGION_MASKS
+from eva_engine.body.params import BodyParams
+from eva_engine.data.dataset import REGION_MASKS, DatasetLike
 from eva_engine.metrics import LPIPS, crop_box, mask_bbox, psnr, ssim
 
 REGIONS = ("full", "hand", "face")
@@ -117,8 +118,8 @@ def _box_side(mask: Tensor) -> int:
     return max(x1 - x0, y1 - y0)
 
 
-def _eval_params(dataset):
-    params = dataset.params if dataset.params is not None else getattr(dataset, "gt_params", None)
+def _eval_params(dataset: DatasetLike) -> BodyParams:
+    params = dataset.params if dataset.params is not None else dataset.gt_params
     if params is None:
         raise ValueError("the dataset has no body parameters to drive the avatar (params or ground truth)")
     return params
@@ -127,7 +128,7 @@ def _eval_params(dataset):
 @torch.no_grad()
 def evaluate_avatar(
     avatar: Avatar,
-    dataset,
+    dataset: DatasetLike,
     split: str = "test_pose",
     metrics: ImageMetrics | None = None,
     background: Tensor | None = None,
@@ -142,7 +143,7 @@ def evaluate_avatar(
     params = _eval_params(dataset)
     metrics = metrics or ImageMetrics()
     if background is None:
-        bg = getattr(dataset.meta, "background", None)
+        bg = dataset.meta.background
         background = torch.tensor(bg if bg is not None else (1.0, 1.0, 1.0), dtype=torch.float32)
     avatar.eval()
     device = avatar.shape.device

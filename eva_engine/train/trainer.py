@@ -13,21 +13,19 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from eva_engine.avatar import Avatar, AvatarFrames, Camera, TrainingRecord
 from eva_engine.body.model import PART_NAMES, BodyModel
 from eva_engine.body.params import BodyParams
+from eva_engine.data.dataset import Dataset, DatasetLike
+from eva_engine.data.resampled import ResampledDataset
 from eva_engine.train.config import TrainConfig
 from eva_engine.train.losses import AvatarLoss, composite_target
 from eva_engine.train.pose_correction import PoseCorrection
-
-if TYPE_CHECKING:
-    from eva_engine.data.dataset import Dataset
 
 logger = logging.getLogger(__name__)
 
@@ -121,8 +119,8 @@ class TrainingFrames:
     params: BodyParams
 
 
-def load_training_frames(dataset, indices: list[int], image_scale: float = 1.0) -> TrainingFrames:
-    """Read (and resample by ``image_scale``) the frames ``indices`` of an ``eva-dataset``."""
+def load_training_frames(dataset: DatasetLike, indices: list[int]) -> TrainingFrames:
+    """Read the frames ``indices`` of ``dataset`` into memory."""
     if dataset.params is None:
         raise TrainingError(
             "the dataset has no body parameters (params.safetensors); fit them first (alignment), "
@@ -133,26 +131,19 @@ def load_training_frames(dataset, indices: list[int], image_scale: float = 1.0) 
     images, masks, cameras = [], [], []
     for i in indices:
         frame = dataset[i]
-        img, mask, k = frame.image.float(), frame.mask.float(), frame.K.float().clone()
-        if image_scale != 1.0:
-            h, w = img.shape[:2]
-            size = (max(1, round(h * image_scale)), max(1, round(w * image_scale)))
-            img = F.interpolate(img.permute(2, 0, 1)[None], size=size, mode="area")[0].permute(1, 2, 0)
-            mask = F.interpolate(mask[None, None], size=size, mode="area")[0, 0]
-            k[0] *= size[1] / w
-            k[1] *= size[0] / h
+        img, mask = frame.image.float(), frame.mask.float()
         images.append(img)
         masks.append(mask)
-        cameras.append(Camera(k, frame.viewmat.float(), img.shape[1], img.shape[0]))
+        cameras.append(Camera(frame.K.float(), frame.viewmat.float(), img.shape[1], img.shape[0]))
     params = BodyParams.cat([dataset.params[i] for i in indices])
     return TrainingFrames(torch.stack(images), torch.stack(masks), cameras, params)
 
 
-def dataset_background(dataset, config: TrainConfig) -> Tensor:
+def dataset_background(dataset: DatasetLike, config: TrainConfig) -> Tensor:
     """[3] the background renders and targets use: the config's, the dataset's, or white."""
     if config.background is not None:
         return torch.tensor(config.background, dtype=torch.float32)
-    bg = getattr(dataset.meta, "background", None)
+    bg = dataset.meta.background
     return torch.tensor(bg if bg is not None else (1.0, 1.0, 1.0), dtype=torch.float32)
 
 
@@ -193,12 +184,13 @@ def means_lr(config: TrainConfig, step: int) -> float:
 
 
 def train_avatar(
-    dataset,
+    dataset: DatasetLike,
     config: TrainConfig | None = None,
     body: BodyModel | None = None,
     progress: Callable[[TrainProgress], None] | None = None,
 ) -> TrainResult:
-    """Train an avatar on ``dataset.splits["train"]`` (an ``eva-dataset``, see docs).
+    """Train an avatar on ``dataset.splits["train"]``, its frames resampled by
+    ``config.image_scale`` (:class:`~eva_engine.data.resampled.ResampledDataset`).
 
     body: the body model the dataset's parameters are for (default: ``meta.body_model``).
     """
@@ -211,12 +203,12 @@ def train_avatar(
     if body is None:
         from eva_engine.body import load_body_model
 
-        name = getattr(dataset.meta, "body_model", None)
+        name = dataset.meta.body_model
         if name is None:
             raise TrainingError("the dataset names no body model (meta.body_model)")
         body = load_body_model(name)
     train_ids = list(dataset.splits.get("train", []))
-    frames = load_training_frames(dataset, train_ids, config.image_scale)
+    frames = load_training_frames(ResampledDataset(dataset, config.image_scale), train_ids)
     background = dataset_background(dataset, config).to(device)
     targets = torch.stack(
         [
