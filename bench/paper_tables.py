@@ -65,10 +65,9 @@ def run_one(ds, config, metrics, label: str) -> dict:
     from eva_engine.eval import evaluate_avatar
     from eva_engine.train import train_avatar
 
-    def report(p) -> None:
-        if p.stage == "train" and p.iteration % 200 == 0:
-            print(f"  [{label}] {p.iteration}/{p.total} loss {p.loss:.4f} GS {p.num_gaussians} "
-                  f"{p.elapsed:.0f}s", file=sys.stderr, flush=True)  # fmt: skip
+    def report(e) -> None:
+        if e.stage == "train" and e.done % 200 == 0:
+            print(f"  [{label}] {e.message}, {e.elapsed:.0f}s", file=sys.stderr, flush=True)
 
     result = train_avatar(ds, config, progress=report)
     t0 = time.perf_counter()

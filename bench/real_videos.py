@@ -76,10 +76,9 @@ def train_and_eval(ds, method: str, preset_name: str, seed: int, metrics, out: P
 
     config = with_method(preset(preset_name, seed=seed), method)
 
-    def report(p) -> None:
-        if p.stage == "train" and p.iteration % 200 == 0:
-            print(f"  [{method}] {p.iteration}/{p.total} loss {p.loss:.4f} GS {p.num_gaussians} "
-                  f"{p.elapsed:.0f}s", file=sys.stderr, flush=True)  # fmt: skip
+    def report(e) -> None:
+        if e.stage == "train" and e.done % 200 == 0:
+            print(f"  [{method}] {e.message}, {e.elapsed:.0f}s", file=sys.stderr, flush=True)
 
     result = train_avatar(ds, config, progress=report)
     save_avatar(result.avatar, out, result.record(config, preset=preset_name, method=method))

@@ -63,10 +63,10 @@ def main() -> None:
         overrides["iterations"] = args.iterations
     config = preset(args.preset, **overrides)
 
-    def report(p) -> None:
-        if p.stage != "train" or p.iteration % 100 == 0:
-            print(f"{p.stage} {p.iteration}/{p.total} loss {p.loss:.4f} GS {p.num_gaussians} "
-                  f"{p.elapsed:.0f}s eta {p.eta:.0f}s", file=sys.stderr, flush=True)  # fmt: skip
+    def report(e) -> None:
+        if e.stage != "train" or e.done % 100 == 0:
+            print(f"{e.stage}: {e.message}, {e.elapsed:.0f}s eta {e.eta or 0:.0f}s", file=sys.stderr,
+                  flush=True)  # fmt: skip
 
     result = train_avatar(ds, config, progress=report)
     ev = evaluate_avatar(result.avatar, ds, train_seconds=result.train_seconds)

@@ -70,7 +70,7 @@ def test_training_fits_and_generalises_to_novel_poses(trained, scene, lpips):
     # Progress: setup, train reports with a falling ETA, done.
     assert reports[0].stage == "setup" and reports[-1].stage == "done"
     train = [r for r in reports if r.stage == "train"]
-    assert train[-1].iteration == preset("tiny").iterations and train[-1].eta == 0.0
+    assert train[-1].done == preset("tiny").iterations and train[-1].eta == 0.0
     assert all(r.num_gaussians > 0 for r in train)
     assert set(result.timings) >= {"skinning", "rasterize", "losses", "backward", "densify"}
     print(metrics_table({"tiny": ev}), f"trivial PSNR {baseline:.2f}")

@@ -34,6 +34,7 @@ def train(
 
     from eva_engine.avatar import save_avatar
     from eva_engine.data import DatasetError, load_dataset
+    from eva_engine.progress import ProgressEvent
     from eva_engine.train import METHODS, PRESETS, TrainingError, train_avatar, with_method
     from eva_engine.train import preset as make_preset
 
@@ -72,10 +73,10 @@ def train(
     with Progress(*columns, console=console, transient=False) as bar:
         task = bar.add_task("setup", total=config.iterations, loss=float("nan"), gaussians=0)
 
-        def report(p) -> None:
-            bar.update(
-                task, description=p.stage, completed=p.iteration, loss=p.loss, gaussians=p.num_gaussians
-            )
+        def report(event: ProgressEvent) -> None:
+            loss = event.loss if event.loss is not None else float("nan")
+            bar.update(task, description=event.stage, completed=event.done, loss=loss,
+                       gaussians=event.num_gaussians or 0)  # fmt: skip
 
         try:
             result = train_avatar(ds, config, progress=report)

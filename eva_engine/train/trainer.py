@@ -2,8 +2,9 @@
 
 One frame per step (a seeded random order, epoch by epoch), as 3DGS does:
 pose (skinning) -> rasterize -> losses -> backward -> Adam steps -> density control. Progress
-goes to an optional callback (:class:`TrainProgress`); per-stage wall time is accumulated in
-``TrainResult.timings`` (what ``bench/train.py`` reports).
+goes to an optional callback (``eva_engine.progress.ProgressEvent``: stages "setup", "train",
+"done"); per-stage wall time is accumulated in ``TrainResult.timings`` (what ``bench/train.py``
+reports).
 """
 
 from __future__ import annotations
@@ -11,7 +12,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,6 +23,7 @@ from eva_engine.body.model import PART_NAMES, BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.data.dataset import Dataset, DatasetLike
 from eva_engine.data.resampled import ResampledDataset
+from eva_engine.progress import Progress, ProgressEvent
 from eva_engine.train.config import TrainConfig
 from eva_engine.train.losses import AvatarLoss, composite_target
 from eva_engine.train.pose_correction import PoseCorrection
@@ -36,18 +37,14 @@ class TrainingError(RuntimeError):
     """The data cannot be trained on (no body parameters, no training frames, ...)."""
 
 
-@dataclass
-class TrainProgress:
-    """One progress report: stage ("setup", "train", "done"), iteration (1-based) of total,
-    current loss, Gaussian count, elapsed and estimated remaining seconds."""
-
-    stage: str
-    iteration: int
-    total: int
-    loss: float
-    num_gaussians: int
-    elapsed: float
-    eta: float
+def _train_event(stage: str, done: int, total: int, loss: float | None, num_gaussians: int,
+                elapsed: float, eta: float | None) -> ProgressEvent:  # fmt: skip
+    """A training progress report: stage "setup", "train" or "done", iteration ``done`` (1-based)
+    of ``total``, the current loss, the Gaussian count, elapsed and remaining seconds."""
+    message = f"iteration {done}/{total}, {num_gaussians} Gaussians"
+    if loss is not None:
+        message += f", loss {loss:.4f}"
+    return ProgressEvent(stage, done, total, message, loss, num_gaussians, elapsed, eta)
 
 
 @dataclass
@@ -187,7 +184,7 @@ def train_avatar(
     dataset: DatasetLike,
     config: TrainConfig | None = None,
     body: BodyModel | None = None,
-    progress: Callable[[TrainProgress], None] | None = None,
+    progress: Progress | None = None,
 ) -> TrainResult:
     """Train an avatar on ``dataset.splits["train"]``, its frames resampled by
     ``config.image_scale`` (:class:`~eva_engine.data.resampled.ResampledDataset`).
@@ -198,7 +195,7 @@ def train_avatar(
     device = resolve_device(config.device)
     t_setup = time.perf_counter()
     if progress:
-        progress(TrainProgress("setup", 0, config.iterations, float("nan"), 0, 0.0, float("nan")))
+        progress(ProgressEvent("setup", 0, config.iterations, "setting up training", elapsed=0.0))
 
     if body is None:
         from eva_engine.body import load_body_model
@@ -296,9 +293,8 @@ def train_avatar(
         if progress and (done % config.progress_every == 0 or done == config.iterations):
             elapsed = time.perf_counter() - start
             eta = elapsed / done * (config.iterations - done)
-            progress(
-                TrainProgress("train", done, config.iterations, loss, len(avatar.gaussians), elapsed, eta)
-            )
+            event = _train_event("train", done, config.iterations, loss, len(avatar.gaussians), elapsed, eta)
+            progress(event)
 
     t = time.perf_counter()
     stats = strategy.finalize(avatar.gaussians, optimizers, state)
@@ -309,8 +305,8 @@ def train_avatar(
     train_seconds = time.perf_counter() - start
     avatar.eval()
     if progress:
-        progress(TrainProgress("done", config.iterations, config.iterations, losses[-1],
-                               len(avatar.gaussians), train_seconds, 0.0))  # fmt: skip
+        n = config.iterations
+        progress(_train_event("done", n, n, losses[-1], len(avatar.gaussians), train_seconds, 0.0))
     per_part = {"before": parts_before, "after": part_counts(avatar.gaussians.part_ids)}
     trained = (correction.corrected(params) if correction is not None else params).to("cpu")
     return TrainResult(
