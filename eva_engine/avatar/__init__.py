@@ -5,6 +5,7 @@ learned weight offsets and a pose-refinement MLP, rendered by ``eva_engine.rende
     avatar = load_avatar("data/avatars/alice")
     image = avatar.render(avatar.body.params_from_pose({...}), Camera(K, viewmat, 512, 512))
     still = render_spec(avatar, RenderSpec(pose={...}, camera="left"))   # the API's render JSON
+    saved = load_saved_avatar("data/avatars/alice")   # .avatar, .meta (avatar.json), .frames
 """
 
 from eva_engine.avatar.config import AvatarConfig

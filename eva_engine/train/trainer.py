@@ -217,8 +217,9 @@ def train_avatar(
     params = frames.params.to(device)
 
     shape = params.shape.mean(dim=0)
-    # Every random draw of the run comes from generators seeded here, never from torch's global
-    # state: the initial weights (the avatar's MLPs, then the loss's), and the frame order.
+    # Every random draw of the run comes from generators seeded here (the strategy has its own),
+    # never from torch's global state: the initial weights (the avatar's MLPs, then the loss's)
+    # and the frame order.
     weights = torch.Generator().manual_seed(config.seed)
     avatar = Avatar.create(body.to(device), shape, config.avatar, seed=config.seed, generator=weights)
     avatar = avatar.to(device)
