@@ -309,7 +309,7 @@ def main() -> None:
 
     unknown = [m for m in args.methods if m not in METHODS]
     if unknown:
-        ap.error(f"unknown methods {unknown}; choose from {METHODS}")
+        ap.error(f"unknown methods {unknown}; choose from {list(METHODS)}")
     torch.set_num_threads(args.threads)
     base = with_pixel_norm(preset(args.preset), args.pixel_norm)
     s = base.strategy

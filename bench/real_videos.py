@@ -17,6 +17,13 @@ Writes ``bench/results/<name>.json`` (``{"videos": {file: {"frames": {"train", "
 "lpips_vgg", "lpips_alex"}}}}}}`` plus settings and counts), ``<name>.md`` and one JPEG contact
 sheet per video, ``<name>_<video>.jpg``: for 5 test frames, input | target | one render per
 method | the same for a close-up of the larger hand in view.
+
+A second protocol, never mixed with the first in one table: ``--refine-poses N`` refines each
+test frame's pose for N steps against its image with the avatar frozen before scoring
+(``eva_engine.eval.PoseRefinement``); with ``--reuse`` it scores the avatars an earlier run saved
+in ``--work`` instead of training them again:
+
+    .venv/bin/python bench/real_videos.py --preset fast --reuse --refine-poses 20 --name real_videos_refined
 """
 
 from __future__ import annotations
@@ -69,34 +76,51 @@ def preprocess(video: Path, out: Path, frames: int, max_size: int) -> dict:
     return report
 
 
-def train_and_eval(ds, method: str, preset_name: str, seed: int, metrics, out: Path) -> tuple:
-    from eva_engine.avatar import save_avatar
+def same_settings(saved: dict, wanted: dict) -> bool:
+    """Whether a saved train config has ``wanted``'s values (fields added to the config since it
+    was saved, e.g. a cache size, are not compared)."""
+    if not isinstance(saved, dict) or not isinstance(wanted, dict):
+        return saved == wanted
+    return all(k not in saved or same_settings(saved[k], v) for k, v in wanted.items())
+
+
+def train_and_eval(
+    ds, method: str, preset_name: str, seed: int, metrics, out: Path, refinement, reuse: bool
+) -> tuple:
+    """Train ``method`` (or, with ``reuse``, load the avatar an earlier run saved in ``out`` with
+    the same settings) and evaluate it: (table entry, avatar, ``EvalResult``)."""
+    from eva_engine.avatar import load_saved_avatar, save_avatar
     from eva_engine.eval import evaluate_avatar
     from eva_engine.train import preset, train_avatar, with_method
 
     config = with_method(preset(preset_name, seed=seed), method)
+    entry: dict = {"iterations": config.iterations}
+    if reuse and (out / "avatar.json").is_file():
+        saved = load_saved_avatar(out)
+        if not same_settings(saved.meta.train_config or {}, json.loads(json.dumps(config.to_dict()))):
+            raise SystemExit(f"{out} was trained with other settings; drop --reuse to train again")
+        avatar, train_seconds = saved.avatar, saved.meta.train_seconds
+        entry["reused"] = str(out)
+    else:
 
-    def report(e) -> None:
-        if e.stage == "train" and e.done % 200 == 0:
-            print(f"  [{method}] {e.message}, {e.elapsed:.0f}s", file=sys.stderr, flush=True)
+        def report(e) -> None:
+            if e.stage == "train" and e.done % 200 == 0:
+                print(f"  [{method}] {e.message}, {e.elapsed:.0f}s", file=sys.stderr, flush=True)
 
-    result = train_avatar(ds, config, progress=report)
-    save_avatar(result.avatar, out, result.record(config, preset=preset_name, method=method))
-    ev = evaluate_avatar(result.avatar, ds, metrics=metrics, train_seconds=result.train_seconds)
-    entry = {
-        "n_gaussians": len(result.avatar.gaussians),
-        "train_seconds": result.train_seconds,
-        "iterations": config.iterations,
-        "gaussians_per_part": result.gaussians_per_part,
-        "notes": ev.notes,
-    }
+        result = train_avatar(ds, config, progress=report)
+        avatar, train_seconds = result.avatar, result.train_seconds
+        save_avatar(avatar, out, result.record(config, preset=preset_name, method=method))
+        entry["gaussians_per_part"] = result.gaussians_per_part
+    ev = evaluate_avatar(avatar, ds, metrics=metrics, train_seconds=train_seconds, refinement=refinement)
+    entry.update(n_gaussians=len(avatar.gaussians), train_seconds=train_seconds, notes=ev.notes)
     for region, m in ev.regions.items():
         entry[region] = {k: getattr(m, k) for k in (*METRICS, "frames", "crops", "box_px")}
-    return entry, result.avatar
+    return entry, avatar, ev
 
 
-def contact_sheet(ds, avatars: dict, indices: list[int], tile: int = 192) -> np.ndarray:
-    """Rows of [input | target | render per method | hand close-ups of target and renders]."""
+def contact_sheet(ds, avatars: dict, params: dict, indices: list[int], tile: int = 192) -> np.ndarray:
+    """Rows of [input | target | render per method | hand close-ups of target and renders];
+    ``params``: method -> the body parameters its renders use (the protocol's poses)."""
     import cv2
 
     from eva_engine.avatar import Camera
@@ -110,7 +134,7 @@ def contact_sheet(ds, avatars: dict, indices: list[int], tile: int = 192) -> np.
         cam = Camera(f.K.float(), f.viewmat.float(), w, h)
         target = composite_target(f.image, f.mask, white)
         with torch.no_grad():
-            renders = [a(ds.params[i], cam, white).image.clamp(0, 1) for a in avatars.values()]
+            renders = [a(params[m][i], cam, white).image.clamp(0, 1) for m, a in avatars.items()]
         full = [f.image, target, *renders]
         # The larger hand in view (by mask area), padded by half its size, for finger detail.
         hands = [f.regions[r] for r in ("hand_left", "hand_right") if r in f.regions]
@@ -146,6 +170,7 @@ def markdown(doc: dict) -> str:
         f"{cfg['max_size']} px, alternate frames train / test (`eva preprocess --test-every 2`); "
         f"preset `{cfg['preset']}` ({cfg['iterations']} iterations), seed {cfg['seed']}, "
         f"{cfg['threads']} threads",
+        f"- poses of the test frames: {cfg.get('protocol', 'fitted poses')}",
         "",
         "LPIPS ×1000. LPIPS-VGG is held out (no method trains on it); the EVA rows train on LPIPS-Alex, "
         "3dgs+body on L1 + D-SSIM. Targets: the person composited on white; region boxes from the "
@@ -210,6 +235,10 @@ def main() -> None:
     ap.add_argument("--name", default="real_videos", help="result file stem")
     ap.add_argument("--work", type=Path, help="datasets and avatars (default: <data dir>/real_videos)")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument(
+        "--refine-poses", type=int, default=0, help="second protocol: test poses refined N steps (0: off)"
+    )
+    ap.add_argument("--reuse", action="store_true", help="score the avatars saved in --work (same settings)")
     args = ap.parse_args()
     videos = (
         sorted(p for p in args.videos.glob("*") if p.suffix.lower() in VIDEO_SUFFIXES)
@@ -222,13 +251,15 @@ def main() -> None:
         return
 
     from eva_engine.data import load_dataset
-    from eva_engine.eval import ImageMetrics
+    from eva_engine.eval import ImageMetrics, PoseRefinement
+    from eva_engine.eval.evaluate import FITTED_POSES
     from eva_engine.paths import data_dir
     from eva_engine.train import preset
 
     torch.set_num_threads(args.threads)
     work = args.work or data_dir() / "real_videos"
     metrics = ImageMetrics()
+    refinement = PoseRefinement(steps=args.refine_poses) if args.refine_poses else None
     doc = {
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "command": "python bench/real_videos.py " + " ".join(sys.argv[1:]),
@@ -241,6 +272,7 @@ def main() -> None:
             "threads": args.threads,
             "iterations": preset(args.preset).iterations,
             "methods": args.methods,
+            "protocol": refinement.protocol if refinement else FITTED_POSES,
         },  # fmt: skip
         "videos": {},
     }
@@ -255,16 +287,18 @@ def main() -> None:
             "preprocess": pre,
             "methods": {},
         }
-        avatars = {}
+        avatars, poses = {}, {}
         for method in args.methods:
             print(f"{video.name}: {method} ...", file=sys.stderr, flush=True)
             tag = method.replace("+", "_")
-            entry["methods"][method], avatars[method] = train_and_eval(
-                ds, method, args.preset, args.seed, metrics, folder / f"avatar-{tag}"
-            )
+            entry["methods"][method], avatars[method], ev = train_and_eval(
+                ds, method, args.preset, args.seed, metrics, folder / f"avatar-{tag}",
+                refinement, args.reuse,
+            )  # fmt: skip
+            poses[method] = ev.refined_params if ev.refined_params is not None else ds.params
         test = ds.splits["test_pose"]
         picks = [test[i] for i in np.linspace(0, len(test) - 1, 5).round().astype(int)]
-        sheet = contact_sheet(ds, avatars, picks)
+        sheet = contact_sheet(ds, avatars, poses, picks)
         name = f"{args.name}_{video.stem}.jpg"
         from PIL import Image
 

@@ -23,6 +23,8 @@ from pathlib import Path
 import torch
 from machine import describe
 
+from eva_engine.recipes import METHODS, PRESETS, describe_methods, describe_presets
+
 RESULTS = Path(__file__).resolve().parent / "results"
 TARGET_SECONDS = 600.0
 
@@ -35,7 +37,8 @@ def main() -> None:
     ap.add_argument("--synthetic", default="controlled", help="synthetic preset (controlled has parameters)")
     ap.add_argument("--size", default="bench", help="synthetic size: tiny or bench")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--preset", default="default", help="training preset: tiny, fast, default")
+    ap.add_argument("--preset", default="default", choices=list(PRESETS), help=describe_presets())
+    ap.add_argument("--method", choices=list(METHODS), help=f"default: the preset's; {describe_methods()}")
     ap.add_argument("--iterations", type=int, help="override the preset's iteration count")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="cpu")
@@ -46,7 +49,7 @@ def main() -> None:
     from eva_engine.data import load_dataset
     from eva_engine.eval import evaluate_avatar, metrics_table
     from eva_engine.paths import data_dir
-    from eva_engine.train import preset, train_avatar
+    from eva_engine.train import preset, train_avatar, with_method
 
     torch.set_num_threads(args.threads)
     path = args.dataset
@@ -62,6 +65,9 @@ def main() -> None:
     if args.iterations:
         overrides["iterations"] = args.iterations
     config = preset(args.preset, **overrides)
+    if args.method:
+        config = with_method(config, args.method)
+    name = args.preset if not args.method else f"{args.preset}/{args.method}"
 
     def report(e) -> None:
         if e.stage != "train" or e.done % 100 == 0:
@@ -81,6 +87,7 @@ def main() -> None:
         "image_size": list(ds.image_size),
         "train_frames": len(ds.splits["train"]),
         "preset": args.preset,
+        "method": args.method,
         "iterations": n,
         "train_seconds": result.train_seconds,
         "seconds_per_iteration": result.train_seconds / n,
@@ -93,10 +100,10 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     json_path = RESULTS / "train.json"
     runs = json.loads(json_path.read_text()) if json_path.is_file() else {}
-    runs[f"{Path(path).name}/{args.preset}"] = entry
+    runs[f"{Path(path).name}/{name}"] = entry
     json_path.write_text(json.dumps(runs, indent=2))
     (RESULTS / "train.md").write_text(markdown(runs, metrics_table))
-    print(markdown({f"{Path(path).name}/{args.preset}": entry}, metrics_table))
+    print(markdown({f"{Path(path).name}/{name}": entry}, metrics_table))
 
 
 def region_metrics(v: dict):

@@ -42,15 +42,20 @@ ANIMATION_STAGE_SPANS = {"preprocess": (0.0, 0.25), "align": (0.25, 0.45), "rend
 VIDEO_NAME, INFO_NAME = "animation.mp4", "animation.json"
 
 
-class AnimationOptions(AnimationConfig):
+class AnimationRequest(AnimationConfig):
     """What a user chooses for one animation: how it is rendered (``AnimationConfig``) and how a
     driving video is read -- max_frames (from the start), max_size (longest side, pixels),
-    fit_scale (the body fit's iterations, 1 = the paper's). avatar_id: the avatar animated."""
+    fit_scale (the body fit's iterations, 1 = the paper's)."""
 
-    avatar_id: str = Field(..., pattern=r"^[0-9a-f]{32}$")
     max_frames: int = Field(300, ge=1, le=MAX_FRAMES)
     max_size: int = Field(512, ge=MIN_SIZE, le=MAX_SIZE)
     fit_scale: float = Field(1.0, gt=0.0, le=4.0)
+
+
+class AnimationOptions(AnimationRequest):
+    """An animation job's options: what the user chose, and avatar_id, the avatar animated."""
+
+    avatar_id: str = Field(..., pattern=r"^[0-9a-f]{32}$")
 
 
 def animation_pixels(options: AnimationConfig, frames: int, fps: float,
@@ -114,7 +119,7 @@ def _driving(run: JobRun, work: Path, dataset_dir: Path, body, options: Animatio
     from eva_engine.animate import driving_from_dataset, driving_from_poses
     from eva_engine.animate.driving import DrivingError
     from jobs.media import check_frame_budget, probe_video
-    from jobs.pipeline import input_file, move_into_place
+    from jobs.storage import input_file, move_into_place
 
     upload = input_file(work)
     if dataset_dir.is_dir():  # aligned before the last worker died
@@ -149,7 +154,7 @@ def _driving(run: JobRun, work: Path, dataset_dir: Path, body, options: Animatio
 def _render(run: JobRun, job: JobRecord, avatar, driving, options: AnimationOptions, out: Path,
             report: Reporter) -> None:  # fmt: skip
     from eva_engine.animate import animate, write_animation
-    from jobs.pipeline import move_into_place
+    from jobs.storage import move_into_place
 
     report(ProgressEvent("render", message=f"rendering {len(driving)} driving frames"), force=True)
     started = time.monotonic()

@@ -6,35 +6,40 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-# eva_engine.train.METHODS, spelled out so that the options import without torch (a test checks
-# the two agree).
-Method = Literal["3dgs+body", "eva", "eva-no-cadc", "eva-no-cl", "eva-no-cadc-no-cl", "eva-part-mean"]
+from eva_engine.recipes import METHODS, PRESETS, describe_methods, describe_presets
+
+Preset = Literal[*PRESETS]
+Method = Literal[*METHODS]
 # Bounds of what one job may ask for (with JobsConfig's frame budget and Gaussian cap, they bound
 # its memory and time): the paper trains 2,000 iterations, 3DGS 30,000 on a GPU.
 MAX_FRAMES, MIN_SIZE, MAX_SIZE, MAX_ITERATIONS = 2000, 64, 2048, 20_000
 
 
 class JobOptions(BaseModel):
-    """preset: training preset (``tiny`` for tests, ``fast`` ~minutes on a laptop CPU, ``default``
-    the paper's 2,000 iterations); max_frames: frames of the video used (evenly from the start);
-    max_size: longest image side the frames are resized to; body_model: ``anny`` (embedded) or
-    ``smplx`` (needs the user's own model files); iterations / image_scale: override the preset's;
-    fit_scale: scales the body-model alignment's L-BFGS iterations (1 = the paper's 60/40/60);
-    method: the training method (``eva_engine.train.METHODS``: ``eva`` is the paper's full
-    method, ``3dgs+body`` its baseline); None: the preset's own (3DGS density control with the
-    full objective).
-    """
+    """What a user chooses for one avatar job; the fields, defaults and bounds of the form of
+    ``POST /avatars``."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    preset: Literal["tiny", "fast", "default"] = "fast"
-    max_frames: int = Field(120, ge=1, le=MAX_FRAMES)
-    max_size: int = Field(512, ge=MIN_SIZE, le=MAX_SIZE)
-    body_model: Literal["anny", "smplx"] = "anny"
-    iterations: int | None = Field(None, ge=1, le=MAX_ITERATIONS)
-    image_scale: float | None = Field(None, gt=0.05, le=1.0)
-    fit_scale: float = Field(1.0, gt=0.0, le=4.0)
-    method: Method | None = None
+    preset: Preset = Field("fast", description=f"Training preset: {describe_presets()}.")
+    max_frames: int = Field(
+        120, ge=1, le=MAX_FRAMES, description="Frames of the video used, evenly from the start."
+    )
+    max_size: int = Field(
+        512, ge=MIN_SIZE, le=MAX_SIZE, description="Longest image side the frames are resized to (pixels)."
+    )
+    body_model: Literal["anny", "smplx"] = Field(
+        "anny", description="anny (embedded) or smplx (needs the user's own model files)."
+    )
+    iterations: int | None = Field(None, ge=1, le=MAX_ITERATIONS, description="Overrides the preset's.")
+    image_scale: float | None = Field(None, gt=0.05, le=1.0, description="Overrides the preset's.")
+    fit_scale: float = Field(
+        1.0, gt=0.0, le=4.0, description="Scales the body fit's L-BFGS iterations (1: the paper's)."
+    )
+    method: Method | None = Field(
+        None, description=f"Training method: {describe_methods()}; none: the preset's own (3DGS density "
+        "control with the full objective)."
+    )  # fmt: skip
 
     def fit_config(self):
         """The alignment's ``FitConfig`` with ``fit_scale`` applied."""

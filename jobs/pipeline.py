@@ -21,9 +21,7 @@ from __future__ import annotations
 import errno
 import logging
 import math
-import os
 import re
-import shutil
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -33,7 +31,7 @@ from eva_engine.progress import ProgressEvent
 from jobs.config import JobsConfig
 from jobs.options import JobOptions
 from jobs.progress import preprocess_progress
-from jobs.storage import Storage
+from jobs.storage import Storage, input_file, move_into_place
 from jobs.store import STAGES, JobLost, JobRecord, JobStore
 
 logger = logging.getLogger("eva.jobs")
@@ -45,11 +43,6 @@ METRIC_FRAMES = 8
 
 class JobCancelled(Exception):
     """The job was cancelled while running (raised from a progress callback)."""
-
-
-def input_file(work: Path) -> Path | None:
-    found = sorted(p for p in work.glob("input.*") if p.is_file()) if work.is_dir() else []
-    return found[0] if found else None
 
 
 class Reporter:
@@ -230,17 +223,6 @@ class JobRun:
         move_into_place(partial, out)
 
 
-def move_into_place(partial: Path, dest: Path) -> None:
-    """Rename this attempt's complete folder to ``dest``; if another attempt got there first
-    (its folder is just as complete), keep that one."""
-    try:
-        os.replace(partial, dest)
-    except OSError as err:
-        if err.errno not in (errno.ENOTEMPTY, errno.EEXIST) or not dest.is_dir():
-            raise
-        shutil.rmtree(partial, ignore_errors=True)
-
-
 def _training_metrics(avatar, ds) -> dict:
     """PSNR / SSIM / LPIPS of the avatar on up to METRIC_FRAMES of its training frames."""
     from eva_engine.eval import evaluate_avatar
@@ -304,4 +286,4 @@ def failure_reason(err: Exception, stage: str | None, config: JobsConfig) -> str
     return f"internal error{where}: {type(err).__name__} (details in the worker's log)"
 
 
-__all__ = ["STAGES", "STAGE_SPANS", "JobCancelled", "JobRun", "Reporter", "failure_reason", "move_into_place"]
+__all__ = ["STAGES", "STAGE_SPANS", "JobCancelled", "JobRun", "Reporter", "failure_reason"]

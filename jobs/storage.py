@@ -1,8 +1,10 @@
 """Avatar and work folders on disk. Ids are checked before they become paths, and a finished
-avatar appears only by an atomic rename of a complete folder (never half-written)."""
+avatar appears only by an atomic rename of a complete folder (never half-written); so does each
+stage's result in a job's work folder (``move_into_place``)."""
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 import uuid
@@ -80,3 +82,20 @@ class Storage:
 
     def remove_work(self, job_id: str) -> None:
         shutil.rmtree(self.work_dir(job_id), ignore_errors=True)
+
+
+def input_file(work: Path) -> Path | None:
+    """The upload in a job's work folder (``input.<ext>``), or None."""
+    found = sorted(p for p in work.glob("input.*") if p.is_file()) if work.is_dir() else []
+    return found[0] if found else None
+
+
+def move_into_place(partial: Path, dest: Path) -> None:
+    """Rename this attempt's complete folder to ``dest``; if another attempt got there first
+    (its folder is just as complete), keep that one."""
+    try:
+        os.replace(partial, dest)
+    except OSError as err:
+        if err.errno not in (errno.ENOTEMPTY, errno.EEXIST) or not dest.is_dir():
+            raise
+        shutil.rmtree(partial, ignore_errors=True)

@@ -3,13 +3,15 @@ an animation's state, and the pose controls (sliders) of an avatar."""
 
 from __future__ import annotations
 
+import json
 from datetime import UTC, datetime
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from eva_engine.animate.controls import PoseControl
-from jobs.animation import AnimationOptions
+from eva_engine.render.view import CameraSpec
+from jobs.animation import AnimationOptions, AnimationRequest
 from jobs.store import JobRecord
 
 AnimationState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
@@ -17,6 +19,32 @@ AnimationState = Literal["queued", "running", "succeeded", "failed", "cancelled"
 
 def _time(ts: float | None) -> datetime | None:
     return datetime.fromtimestamp(ts, UTC) if ts is not None else None
+
+
+class AnimationForm(AnimationRequest):
+    """The form fields of ``POST /avatars/{id}/animations`` beside the upload: ``AnimationRequest``,
+    its names, defaults and bounds, with ``camera`` also a ``CameraSpec`` as JSON text. Other
+    fields are ignored (the upload is one of them)."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    camera: Literal["driving"] | CameraSpec = Field(
+        "front", validate_default=True, description="A preset (front, left, ...), 'driving' (the video's "
+        "own camera) or a CameraSpec as JSON; an orbit without target/distance is framed on the avatar."
+    )  # fmt: skip
+
+    @field_validator("camera", mode="before")
+    @classmethod
+    def _json_text(cls, value):
+        if not isinstance(value, str):
+            return value
+        text = value.strip()
+        if not text.startswith("{"):
+            return text
+        try:
+            return json.loads(text)
+        except ValueError as err:
+            raise ValueError(f"camera is not a preset name, 'driving' or valid JSON: {err}") from err
 
 
 class AnimationCreated(BaseModel):

@@ -159,8 +159,8 @@ def encode_image(image: np.ndarray, fmt: str) -> bytes:
     from PIL import Image
 
     buf = io.BytesIO()
-    if fmt == "png":
-        Image.fromarray(image).save(buf, format="PNG")
+    if fmt == "png":  # level 1: a third faster than the default 6, ~2% larger on renders
+        Image.fromarray(image).save(buf, format="PNG", compress_level=1)
     else:
         Image.fromarray(image).save(buf, format="JPEG", quality=92)
     return buf.getvalue()

@@ -40,6 +40,13 @@ class Health(BaseModel):
     renders: dict[str, int] = Field(default_factory=dict, description="Renders running and waiting.")
 
 
+class AvatarForm(JobOptions):
+    """The form fields of ``POST /avatars`` beside the video: ``JobOptions``, its names, defaults
+    and bounds. Other fields are ignored, as they always were (the video is one of them)."""
+
+    model_config = ConfigDict(extra="ignore")
+
+
 class AvatarCreated(BaseModel):
     avatar_id: str = Field(examples=["9f1c2b7e4a5d4c3b8e7f6a5b4c3d2e1f"])
     job_id: str = Field(examples=["0a1b2c3d4e5f60718293a4b5c6d7e8f9"])

@@ -173,3 +173,10 @@ def body_models(anny_model, smplx_model) -> dict:
 @pytest.fixture
 def torch_seed():
     torch.manual_seed(0)
+
+
+@pytest.fixture(autouse=True)
+def wide_terminal(monkeypatch):
+    """CLI errors are drawn in rich boxes as wide as the terminal (80 columns here): a long
+    temporary path would otherwise break the phrase a test looks for across two lines."""
+    monkeypatch.setenv("COLUMNS", "400")

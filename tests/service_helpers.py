@@ -160,7 +160,7 @@ def run_job_here(queue, job_id: str, *models) -> str | None:
 
 
 SERVE_CODE = (
-    "import sys; from service import ServiceSettings; from service.server import serve; "
+    "import sys; from service.settings import ServiceSettings; from service.server import serve; "
     "serve(ServiceSettings.model_validate_json(sys.argv[1]), log_level='warning')"
 )
 

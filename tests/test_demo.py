@@ -47,7 +47,7 @@ def test_eva_demo_runs_the_product_end_to_end(tmp_path):
     from PIL import Image
     from typer.testing import CliRunner
 
-    from eva_engine.cli import app
+    from service.cli import app
 
     out, work, mp4 = tmp_path / "demo.png", tmp_path / "work", tmp_path / "demo.mp4"
     args = ["demo", "--out", str(out), "--workdir", str(work), "--preset", "tiny", "--iterations", "3",

@@ -109,3 +109,25 @@ def test_table_in_the_papers_layout():
         "– | – | – | – | 300 | 12.5 |"
     )
     assert "held out" in table and "hand 3 frames / 5 crops" in table and "hand regions are small" in table
+
+
+def test_test_time_refinement_is_a_separate_protocol(anny_model, metrics):
+    """With the test frame's pose off, the refined protocol scores the teacher higher than the
+    fitted one, only the test rows move, and one table never mixes the two protocols."""
+    from eva_engine.eval import PoseRefinement
+
+    ds, teacher = teacher_scene(anny_model, n_frames=3, size=64)
+    off = ds.params.map(lambda t: t.clone())
+    off.joints[2, anny_model.pose_joint_names.index("lowerarm01.L"), 2] += 0.3
+    off.transl[2, 0] += 0.03
+    shifted = SceneDataset(ds.frames, off, ds.splits)
+    fitted = evaluate_avatar(teacher, shifted, metrics=metrics)
+    refinement = PoseRefinement(steps=40, image_scale=1.0, lr=5e-3)
+    refined = evaluate_avatar(teacher, shifted, metrics=metrics, refinement=refinement)
+    assert fitted.protocol == "fitted poses" and refined.protocol == refinement.protocol
+    assert refined.regions["full"].psnr > fitted.regions["full"].psnr + 2
+    assert torch.equal(shifted.params.joints, off.joints)  # the dataset's own params are untouched
+    with pytest.raises(ValueError, match="one protocol"):
+        metrics_table({"fitted": fitted, "refined": refined})
+    with pytest.raises(ValueError):
+        PoseRefinement(steps=0)

@@ -109,5 +109,5 @@ def test_job_methods_are_the_engines():
     from eva_engine.train import METHODS
     from jobs.options import Method
 
-    assert typing.get_args(Method) == METHODS
+    assert typing.get_args(Method) == tuple(METHODS)
     assert JobOptions(method="eva").method == "eva"

@@ -28,7 +28,8 @@ from service_helpers import (
 )
 
 from jobs import JobsConfig
-from service import ServiceSettings, create_app
+from service.app import create_app
+from service.settings import ServiceSettings
 
 pytestmark = pytest.mark.slow
 signer_video = helpers.signer_video  # a fixture

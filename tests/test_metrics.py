@@ -187,6 +187,53 @@ def test_lpips_is_frozen_but_differentiable(lpips_model):
     assert lpips_model(img, target[:1]).item() < start
 
 
+def test_lpips_against_a_fixed_reference_equals_the_batched_pass(lpips_model):
+    """A loss against a fixed target runs the target without backward, or reuses its features:
+    same value and gradient as both images in one batch."""
+    torch.manual_seed(2)
+    img, target = torch.rand(1, 3, 48, 40), torch.rand(1, 3, 48, 40)
+    values, grads = [], []
+    for mode in ("batched", "reference", "cached"):
+        x = img.clone().requires_grad_(True)
+        if mode == "batched":  # a target that requires grad forces the one-batch pass
+            value = lpips_model(x, target.clone().requires_grad_(True))
+        elif mode == "reference":
+            value = lpips_model(x, target)
+        else:
+            value = lpips_model(x, target, img1_features=lpips_model.reference_features(target))
+        value.sum().backward()
+        values.append(value.detach())
+        grads.append(x.grad)
+    for v, g in zip(values[1:], grads[1:], strict=True):
+        assert torch.allclose(v, values[0], atol=1e-6) and torch.allclose(g, grads[0], atol=1e-7)
+
+
+def test_the_training_loss_computes_a_targets_lpips_features_once(monkeypatch):
+    from types import SimpleNamespace
+
+    from eva_engine.train import AvatarLoss, LossConfig
+
+    loss = AvatarLoss(LossConfig())
+    calls = []
+    reference = loss.lpips.reference_features
+    monkeypatch.setattr(loss.lpips, "reference_features", lambda x: calls.append(1) or reference(x))
+    torch.manual_seed(3)
+    mask = torch.zeros(64, 64)
+    mask[8:56, 16:48] = 1.0
+    target = torch.rand(64, 64, 3)
+    image, depth = torch.rand(64, 64, 3), torch.ones(64, 64, 1)
+    render = SimpleNamespace(image=image, alpha=mask[..., None].clone(), depth=depth)
+    plain = loss(render, target, mask)["lpips"]
+    first = loss(render, target, mask, key=7)["lpips"]
+    again = loss(render, target, mask, key=7)["lpips"]
+    assert len(calls) == 2  # without a key, then once for key 7
+    assert torch.allclose(plain, first) and torch.allclose(first, again)
+    tight = AvatarLoss(LossConfig(lpips_cache_mb=0.0), lpips=loss.lpips)
+    tight(render, target, mask, key=7)
+    tight(render, target, mask, key=7)
+    assert len(calls) == 4  # over the budget: recomputed each time
+
+
 @pytest.mark.parametrize(
     ("shape0", "shape1", "match"),
     [

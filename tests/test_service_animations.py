@@ -23,7 +23,9 @@ from service_helpers import no_person_video, run_job_here
 from eva_engine.avatar import TrainingRecord, save_avatar
 from eva_engine.data import read_video
 from jobs import JobQueue, JobRun, JobsConfig
-from service import ServiceSettings, create_app
+from jobs.animation import AnimationOptions
+from service.app import create_app
+from service.settings import ServiceSettings
 
 signer_video = helpers.signer_video  # a fixture
 RAISED = {"joints": {"upperarm01.L": [0.0, 0.0, 1.2]}, "expression": {"jawOpen": 0.6}}
@@ -114,6 +116,21 @@ def test_animate_a_video(service, signer_video):
     info = client.get(created["animation_url"]).json()
     assert info["frames"] == helpers.SIGNER_FRAMES and (info["width"], info["height"]) == (512, 256)
     assert info["driving_frames_without_person"] == 0 and info["source"] == "signer.mp4"
+
+
+def test_form_fields_are_the_animation_request(service):
+    """The form is AnimationRequest: the camera defaults to the front preset (a name or JSON text
+    otherwise), empty fields take their default, unknown fields are ignored."""
+    client, queue, avatar_id = service
+    form = {"fps": "", "max_size": "256", "hat": "red", "background": ["0", "0.5", "1"]}
+    res = client.post(f"/avatars/{avatar_id}/animations", files={"poses": poses_file([{}])}, data=form)
+    assert res.status_code == 202, res.text
+    options = client.get(res.json()["job_url"]).json()["options"]
+    expected = AnimationOptions(avatar_id=avatar_id, camera="front", max_size=256, background=(0, 0.5, 1))
+    assert options == expected.model_dump(mode="json")
+    res = client.post(f"/avatars/{avatar_id}/animations", files={"poses": poses_file([{}])},
+                      data={"camera": ' {"yaw": 30} '})  # fmt: skip
+    assert client.get(res.json()["job_url"]).json()["options"]["camera"]["yaw"] == 30.0
 
 
 def test_no_driving_upload_is_422(service):

@@ -3,13 +3,18 @@ lifecycle of a job nobody runs yet (409 until ready, cancel), the API key and th
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import service_helpers as helpers
 from fastapi.testclient import TestClient
 from service_helpers import FAST_OPTIONS, no_person_video
 
+from eva_engine.recipes import METHODS, PRESETS
 from jobs import JobsConfig
-from service import ServiceSettings, create_app
+from jobs.options import MAX_FRAMES, JobOptions
+from service.app import create_app
+from service.settings import ServiceSettings
 
 signer_video = helpers.signer_video  # a fixture
 
@@ -47,6 +52,16 @@ def test_health_and_docs(client):
         assert path in paths, path
     render = spec["components"]["schemas"]["RenderRequest"]
     assert render["examples"][0]["pose"]["joints"]
+
+
+def test_the_page_offers_the_registered_presets_and_methods(client):
+    page = client.get("/").text
+    presets = re.search(r'<select id="preset".*?</select>', page, re.S).group(0)
+    methods = re.search(r'<select id="method".*?</select>', page, re.S).group(0)
+    assert re.findall(r'value="([^"]*)"', presets) == list(PRESETS)
+    assert re.findall(r'value="([^"]*)"', methods) == ["", *METHODS]  # "": the preset's own
+    assert re.findall(r'value="([^"]*)" selected', presets) == ["fast"]  # JobOptions' default
+    assert 'value="3dgs+body">3dgs+body (baseline)</option>' in methods
 
 
 def test_upload_queues_a_job_that_can_be_cancelled(client, signer_video, tmp_path):
@@ -136,6 +151,17 @@ def test_video_over_the_length_limit_is_422(tmp_path, signer_video):
         res = upload(client, signer_video.read_bytes())
     assert res.status_code == 422 and "limit" in res.json()["detail"], res.text
     assert leftovers(tmp_path) == []
+
+
+def test_form_fields_are_the_job_options(client, signer_video):
+    """The form is JobOptions: empty fields take their default, unknown fields are ignored, and the
+    OpenAPI schema shows the model's bounds."""
+    res = upload(client, signer_video.read_bytes(), preset="tiny", iterations="", max_size="256", hat="red")
+    assert res.status_code == 202, res.text
+    options = client.get(f"/jobs/{res.json()['job_id']}").json()["options"]
+    assert options == {**JobOptions(preset="tiny", max_size=256).model_dump(), "preset": "tiny"}
+    form = client.get("/openapi.json").json()["components"]["schemas"]["AvatarForm"]["properties"]
+    assert form["max_frames"]["maximum"] == MAX_FRAMES and form["preset"]["enum"] == list(PRESETS)
 
 
 @pytest.mark.parametrize(

@@ -20,8 +20,9 @@ from service_helpers import free_port, log_tail, rss_mb, start_service, stop
 from typer.testing import CliRunner
 
 from jobs import JobsConfig
-from service import ServiceSettings, create_app
 from service import guard as guard_module
+from service.app import create_app
+from service.settings import ServiceSettings
 
 KEY = "k3y-for-tests-0123456789"
 signer_video = helpers.signer_video  # a fixture
@@ -219,7 +220,7 @@ def test_no_open_api_on_a_network_address(tmp_path):
         ServiceSettings(jobs=jobs, host="0.0.0.0")
     assert ServiceSettings(jobs=jobs, host="0.0.0.0", api_key=KEY).trusted_hosts == ["*"]
     assert "127.0.0.1" in ServiceSettings(jobs=jobs, host="::1").trusted_hosts
-    from eva_engine.cli import app
+    from service.cli import app
 
     result = CliRunner().invoke(app, ["serve", "--host", "0.0.0.0", "--data-dir", str(tmp_path / "data")],
                                 env={"EVA_API_KEY": ""})  # fmt: skip

@@ -15,9 +15,10 @@ from fastapi.testclient import TestClient
 from service_helpers import publish_seeded_avatar
 
 from jobs import JobQueue, JobsConfig
-from service import ServiceSettings, create_app
 from service import rendering as rendering_module
+from service.app import create_app
 from service.rendering import RenderBusy, RenderGate
+from service.settings import ServiceSettings
 
 
 def settings(tmp_path, **overrides) -> ServiceSettings:

@@ -17,8 +17,9 @@ from fastapi.testclient import TestClient
 from service_helpers import FAST_OPTIONS, free_port, gradient_video
 
 from jobs import JobsConfig
-from service import ServiceSettings, create_app
+from service.app import create_app
 from service.routers import avatars as avatars_router
+from service.settings import ServiceSettings
 
 signer_video = helpers.signer_video  # fixtures
 huge_frame_video = helpers.huge_frame_video

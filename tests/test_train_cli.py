@@ -41,7 +41,12 @@ def test_train_then_eval(dataset, tmp_path):
     assert 10 < full["psnr"] < 60 and 0 < full["ssim"] <= 1
     assert 0 <= full["lpips_vgg"] < 1 and 0 <= full["lpips_alex"] < 1
     assert doc["regions"]["hand"]["crops"] >= doc["regions"]["hand"]["frames"] > 0
-    assert "| Method | N-GS |" in doc["table"]
+    assert "| Method | N-GS |" in doc["table"] and doc["protocol"] == "fitted poses"
+    # the second protocol says so in its JSON and table
+    res = runner.invoke(app, ["eval", str(out), str(dataset), "--refine-poses", "2", "--json", str(report)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(report.read_text())
+    assert doc["protocol"].startswith("test-time refined poses (2 steps") and doc["protocol"] in doc["table"]
 
 
 def test_cli_errors(tmp_path, dataset):

@@ -136,8 +136,40 @@ def test_degenerate_inputs_give_finite_values_and_gradients(case):
     assert torch.isfinite(image.grad).all()
     for p in loss.parameters():
         assert p.grad is None or torch.isfinite(p.grad).all()
-    assert loss.last_confidence.min() > loss.config.mu
+    assert loss.last_confidence.min() >= loss.config.mu
     assert loss.last_confidence.max() <= loss.config.max_confidence + 1e-4
+
+
+def test_confidence_on_the_region_box_equals_the_whole_frame():
+    """E runs only on the person region's box (grown by its reach): the loss, the avatar's
+    gradient and E's gradients are those of running it on the whole frame."""
+    size = 40
+    g = torch.Generator().manual_seed(3)
+    loss = ConfidenceLoss()
+    with torch.no_grad():
+        for p in loss.parameters():
+            p.copy_(torch.randn(p.shape, generator=g) * 0.5)
+    image = torch.rand(size, size, 3, generator=g)
+    target = torch.rand(size, size, 3, generator=g)
+    alpha, mask = torch.zeros(size, size, 1), torch.zeros(size, size)
+    alpha[10:25, 12:30] = 0.9
+    mask[8:20, 15:33] = 1.0
+    depth = alpha * 2.5
+    full = ConfidenceLoss()
+    full.load_state_dict(loss.state_dict())
+    full.confidence_on_region = lambda image, depth, alpha, region: full.confidence(image, depth, alpha)
+    values, grads = [], []
+    for fn in (loss, full):
+        img = image.clone().requires_grad_(True)
+        value = fn(img, target, alpha, depth, mask)
+        value.backward()
+        values.append(value.detach())
+        grads.append([img.grad, *[p.grad for p in fn.parameters()]])
+    assert torch.allclose(values[0], values[1], atol=1e-6)
+    for a, b in zip(*grads, strict=True):
+        assert torch.allclose(a, b, atol=1e-6)
+    region = (mask > 0.5) | (alpha[..., 0] > 0.5)
+    assert torch.allclose(loss.last_confidence[region], full.last_confidence[region], atol=1e-6)
 
 
 def test_invalid_config_is_refused():

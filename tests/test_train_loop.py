@@ -13,6 +13,7 @@ from eva_engine.eval import ImageMetrics, evaluate_avatar, metrics_table
 from eva_engine.metrics import LPIPS, psnr
 from eva_engine.render import RenderOutput
 from eva_engine.train import (
+    PRESETS,
     AvatarLoss,
     LossConfig,
     TrainingError,
@@ -108,6 +109,33 @@ def test_training_leaves_the_process_state_alone(scene, anny_model):
     assert not torch.equal(other.avatar.gaussians.means, a.avatar.gaussians.means)
 
 
+def test_checkpoints_see_the_avatar_and_their_time_is_not_training_time(scene, anny_model, lpips):
+    """The hook runs at the asked steps with the training avatar; it may evaluate it (eval mode,
+    no grad) and training goes on as without it; its time is left out of train_seconds."""
+    import time
+
+    ds, _ = scene
+    cfg = preset("tiny", iterations=6)
+    seen = []
+
+    metrics = ImageMetrics(lpips_alex=lpips)
+
+    def hook(step, avatar, seconds):
+        seen.append((step, len(avatar.gaussians), seconds))
+        if step == 3:
+            evaluate_avatar(avatar, ds, metrics=metrics)
+        time.sleep(0.4)
+
+    started = time.perf_counter()
+    hooked = train_avatar(ds, cfg, body=anny_model, checkpoint=hook, checkpoint_steps=(3, 6))
+    wall = time.perf_counter() - started
+    plain = train_avatar(ds, cfg, body=anny_model)
+    assert [s for s, _, _ in seen] == [3, 6] and all(n > 0 for _, n, _ in seen)
+    assert 0 < seen[0][2] < seen[1][2] < seen[0][2] + 0.4  # the first hook's sleep is not counted
+    assert hooked.losses == plain.losses
+    assert hooked.train_seconds < wall - 0.8
+
+
 def test_clear_errors(scene, anny_model):
     ds, _ = scene
     no_params = dataclasses.replace(ds, params=None)
@@ -120,6 +148,12 @@ def test_clear_errors(scene, anny_model):
         preset("huge")
     with pytest.raises(ValueError, match="photometric"):
         AvatarLoss(LossConfig(photometric="nope"), lpips=None)
+
+
+@pytest.mark.parametrize("name", PRESETS)
+def test_every_registered_preset_has_a_configuration(name):
+    config = preset(name, iterations=7)
+    assert config.iterations == 7 and config.strategy.refine_stop_iter > config.strategy.refine_start_iter
 
 
 def test_loss_terms_are_finite_and_use_the_crop(lpips):

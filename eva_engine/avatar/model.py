@@ -91,6 +91,7 @@ class Avatar(nn.Module):
             else None
         )
         self.active_sh_degree = gaussians.sh_degree
+        self._weights_cache: tuple[list[Tensor], list[int], Tensor] | None = None
 
     # -- construction ------------------------------------------------------------------------
     @classmethod
@@ -148,11 +149,28 @@ class Avatar(nn.Module):
         )
 
     def skinning_weights(self) -> Tensor:
-        """[N, J] per-Gaussian LBS weights (body-model weights of the nearest vertex + offsets)."""
+        """[N, J] per-Gaussian LBS weights (body-model weights of the nearest vertex + offsets).
+        Without autograd (rendering a trained avatar) they are computed once and reused until a
+        tensor they depend on changes (a new tensor or an in-place update)."""
         g = self.gaussians
+        inputs = [g.means, g.vertex_ids, self.body.skinning_weights]
+        if self.weight_offsets is not None:
+            inputs += list(self.weight_offsets.parameters())
+        versions = [t._version for t in inputs]
+        cached = self._weights_cache
+        if (
+            cached is not None
+            and not torch.is_grad_enabled()
+            and len(cached[0]) == len(inputs)
+            and all(a is b for a, b in zip(cached[0], inputs, strict=True))
+            and cached[1] == versions
+        ):
+            return cached[2]
         base = self.body.skinning_weights[g.vertex_ids]
         offsets = self.weight_offsets(g.means) if self.weight_offsets is not None else None
-        return blend_skinning_weights(base, offsets, self.config.lbs_eps)
+        weights = blend_skinning_weights(base, offsets, self.config.lbs_eps)
+        self._weights_cache = (inputs, versions, weights) if not torch.is_grad_enabled() else None
+        return weights
 
     def pose(self, params: BodyParams) -> PosedGaussians:
         """Pose the Gaussians for one frame: ``params`` with batch 1."""

@@ -18,11 +18,16 @@ def evaluate(
     json_out: Path | None = typer.Option(None, "--json", help="Write the metrics as JSON here."),
     split: str = typer.Option("test_pose", help="Split to evaluate: test_pose or test_view."),
     name: str | None = typer.Option(None, help="Row name in the table (default: the avatar folder)."),
+    refine_poses: int = typer.Option(
+        0, "--refine-poses", min=0,
+        help="Second protocol: refine each test frame's pose for this many steps against its image, "
+        "the avatar frozen, before scoring (0: the fitted poses, the main protocol).",
+    ),
 ) -> None:
     """PSNR / SSIM / LPIPS on full image, hands and face; Gaussian count, training time, FPS."""
     from eva_engine.avatar import AvatarFileError, load_saved_avatar
     from eva_engine.data import DatasetError, load_dataset
-    from eva_engine.eval import evaluate_avatar, metrics_table
+    from eva_engine.eval import PoseRefinement, evaluate_avatar, metrics_table
 
     console = Console(stderr=True)
     try:
@@ -35,7 +40,10 @@ def evaluate(
         raise typer.Exit(2)
     try:
         ds = load_dataset(dataset)
-        result = evaluate_avatar(saved.avatar, ds, split=split, train_seconds=saved.meta.train_seconds)
+        refinement = PoseRefinement(steps=refine_poses) if refine_poses else None
+        result = evaluate_avatar(
+            saved.avatar, ds, split=split, train_seconds=saved.meta.train_seconds, refinement=refinement
+        )
     except (DatasetError, ValueError) as err:
         console.print(f"[red]error:[/] {err}")
         raise typer.Exit(2) from err

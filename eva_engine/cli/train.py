@@ -9,6 +9,7 @@ import typer
 from rich.console import Console
 
 from eva_engine.cli.app import app
+from eva_engine.recipes import METHODS, PRESETS, describe_methods, describe_presets
 
 
 @app.command()
@@ -17,11 +18,8 @@ def train(
         ..., help="Dataset folder (eva-dataset layout, see docs/dataset-format.md)."
     ),
     out: Path = typer.Option(..., "--out", "-o", help="Avatar directory to write."),
-    preset: str = typer.Option("default", help="Training preset: tiny, fast or default (the paper's)."),
-    method: str | None = typer.Option(
-        None,
-        help="Method: eva (the paper's), 3dgs+body (its baseline) or an ablation; default: the preset's.",
-    ),
+    preset: str = typer.Option("default", help=f"Training preset: {describe_presets()}."),
+    method: str | None = typer.Option(None, help=f"Method: {describe_methods()}; default: the preset's."),
     iterations: int | None = typer.Option(None, min=1, help="Override the preset's iteration count."),
     image_scale: float | None = typer.Option(None, min=0.05, max=4.0, help="Resample frames by this factor."),
     device: str = typer.Option("cpu", help="cpu or cuda."),
@@ -35,7 +33,7 @@ def train(
     from eva_engine.avatar import save_avatar
     from eva_engine.data import DatasetError, load_dataset
     from eva_engine.progress import ProgressEvent
-    from eva_engine.train import METHODS, PRESETS, TrainingError, train_avatar, with_method
+    from eva_engine.train import TrainingError, train_avatar, with_method
     from eva_engine.train import preset as make_preset
 
     console = Console(stderr=True)

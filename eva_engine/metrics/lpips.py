@@ -255,21 +255,39 @@ class LPIPS(nn.Module):
                 x = F.max_pool2d(x, kernel_size=kernel, stride=stride)
         return taps
 
-    def forward(self, img0: Tensor, img1: Tensor, normalize: bool = True) -> Tensor:
-        """img0, img1: ``[B, 3, H, W]``, in [0, 1] if ``normalize`` else in [-1, 1] -> ``[B]``."""
+    def forward(
+        self, img0: Tensor, img1: Tensor, normalize: bool = True, img1_features: list[Tensor] | None = None
+    ) -> Tensor:
+        """img0, img1: ``[B, 3, H, W]``, in [0, 1] if ``normalize`` else in [-1, 1] -> ``[B]``.
+        ``img1_features``: ``reference_features(img1)`` computed before (img1 is then unused
+        beyond its shape), e.g. a training target's, reused across steps."""
         _check_pair(img0, img1, self.spec)
         dtype = self.convs[0].weight.dtype
-        img0, img1 = img0.to(dtype), img1.to(dtype)
-        if normalize:
-            img0, img1 = img0 * 2.0 - 1.0, img1 * 2.0 - 1.0
-        # Both images through the trunk in one batch (same result, one pass of im2col setup).
-        taps = self.features(torch.cat([img0, img1], dim=0))
+        img0 = img0.to(dtype) * 2.0 - 1.0 if normalize else img0.to(dtype)
         batch = img0.shape[0]
+        fixed_reference = torch.is_grad_enabled() and img0.requires_grad and not img1.requires_grad
+        if img1_features is None and not fixed_reference:
+            # Both images through the trunk in one batch (same result, one pass of im2col setup).
+            img1 = img1.to(dtype) * 2.0 - 1.0 if normalize else img1.to(dtype)
+            taps = self.features(torch.cat([img0, img1], dim=0))
+            f0s = [_unit_normalize(t[:batch]) for t in taps]
+            f1s = [_unit_normalize(t[batch:]) for t in taps]
+        else:
+            # A loss against a fixed reference: the reference's pass needs no backward.
+            f1s = img1_features if img1_features is not None else self.reference_features(img1, normalize)
+            f0s = [_unit_normalize(t) for t in self.features(img0)]
         total = img0.new_zeros(batch)
-        for tap, lin in zip(taps, self.lins, strict=True):
-            f0, f1 = _unit_normalize(tap[:batch]), _unit_normalize(tap[batch:])
+        for f0, f1, lin in zip(f0s, f1s, self.lins, strict=True):
             total = total + lin((f0 - f1) ** 2).mean(dim=(1, 2, 3))
         return total
+
+    @torch.no_grad()
+    def reference_features(self, img: Tensor, normalize: bool = True) -> list[Tensor]:
+        """The unit-normalised trunk taps of a fixed image ``[B, 3, H, W]`` (``forward``'s
+        ``img1_features``)."""
+        dtype = self.convs[0].weight.dtype
+        img = img.to(dtype) * 2.0 - 1.0 if normalize else img.to(dtype)
+        return [_unit_normalize(t) for t in self.features(img)]
 
 
 def _unit_normalize(feat: Tensor) -> Tensor:

@@ -6,8 +6,9 @@ control strategies, and the loop.
     result = train_avatar(load_dataset(path), preset("default"), progress=print)
 """
 
+from eva_engine.recipes import METHODS, PRESETS
 from eva_engine.train.confidence import ConfidenceConfig, ConfidenceLoss, ConfidenceNet
-from eva_engine.train.config import PRESETS, OptimConfig, TrainConfig, preset
+from eva_engine.train.config import OptimConfig, TrainConfig, preset
 from eva_engine.train.losses import (
     PHOTOMETRIC_LOSSES,
     AvatarLoss,
@@ -16,7 +17,7 @@ from eva_engine.train.losses import (
     PhotometricLoss,
     composite_target,
 )
-from eva_engine.train.methods import METHODS, with_method
+from eva_engine.train.methods import with_method
 from eva_engine.train.pose_correction import PoseCorrection, PoseCorrectionConfig
 from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy, Strategy
 from eva_engine.train.trainer import (

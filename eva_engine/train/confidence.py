@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from eva_engine.layers import seeded_layer
+from eva_engine.metrics import crop_box
 from eva_engine.train.losses import PHOTOMETRIC_LOSSES, PhotometricLoss
 
 
@@ -71,16 +72,20 @@ class ConfidenceNet(nn.Module):
             nn.ReLU(),
         )
         self.head = seeded_layer(nn.Conv2d, hidden, 1, 1, generator=g)
+        self.reach = 2  # pixels an output sees on each side (two 3x3 convolutions)
         with torch.no_grad():
             nn.init.zeros_(self.head.weight)
             nn.init.zeros_(self.head.bias)
+        self.to(memory_format=torch.channels_last)
 
     def forward(self, image: Tensor, depth: Tensor, alpha: Tensor) -> Tensor:
         covered = alpha > 0.5
         z = depth / alpha.clamp_min(1e-6)
         ref = z[covered].mean() if bool(covered.any()) else depth.new_tensor(1.0)
         rel_depth = depth / ref.clamp_min(1e-6)  # premultiplied: ~alpha × relative depth
+        # [H, W, 4] is already channels-last memory: oneDNN's fast layout for few channels.
         x = torch.cat([image, rel_depth], dim=-1).permute(2, 0, 1)[None]
+        x = x.contiguous(memory_format=torch.channels_last)
         raw = self.head(self.body(x))[0, 0]
         return self.max_log - F.softplus(self.max_log - raw)
 
@@ -123,10 +128,21 @@ class ConfidenceLoss(PhotometricLoss):
             return torch.ones_like(conf)
         return torch.where(region, conf / conf[region].mean(), torch.ones_like(conf))
 
+    def confidence_on_region(self, image: Tensor, depth: Tensor, alpha: Tensor, region: Tensor) -> Tensor:
+        """[H, W] C, computed only on R's box grown by E's reach (μ outside it): C is used only
+        on R, where this equals ``confidence`` on the whole frame (R holds every covered pixel,
+        so E's depth reference is the same too) at a fraction of the cost."""
+        if not bool(region.any()):
+            return self.confidence(image, depth, alpha)
+        h, w = region.shape
+        x0, y0, x1, y1 = crop_box(region[None, None], pad=self.net.reach)
+        crop = self.confidence(image[y0:y1, x0:x1], depth[y0:y1, x0:x1], alpha[y0:y1, x0:x1])
+        return F.pad(crop, (x0, w - x1, y0, h - y1), value=self.config.mu)
+
     def forward(self, image: Tensor, target: Tensor, alpha: Tensor, depth: Tensor, mask: Tensor) -> Tensor:
         residual = (image - target).abs().mean(dim=-1)  # [H, W]
-        conf = self.confidence(image, depth, alpha)
         region = self.region(alpha, mask)
+        conf = self.confidence_on_region(image, depth, alpha, region)
         self.last_confidence = conf.detach()
         return (self.weights(conf, region) * residual).mean() + self.fit_term(conf, residual, region)
 

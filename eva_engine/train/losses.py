@@ -20,7 +20,7 @@ EVA: λ_p = 1, λ_m = 0.1, λ_s = 0.01, λ_l = 0.04. 3DGS: λ_p = 0.8, λ_s = 0.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 
 import torch
@@ -45,6 +45,9 @@ class LossConfig:
     pixel_norm: str = "person_box"
     crop_pad: int = 4
     min_crop: int = 32
+    lpips_cache_mb: float = 512.0
+    """Memory for the targets' LPIPS features, kept per training frame (a target never changes, so
+    its pass through the network is done once); frames past the budget are recomputed."""
 
     def __post_init__(self) -> None:
         if self.pixel_norm not in PIXEL_NORMS:
@@ -87,6 +90,21 @@ class AvatarLoss(nn.Module):
         self.config = config
         self.photometric = PHOTOMETRIC_LOSSES[config.photometric](generator=generator)
         self.lpips = lpips if lpips is not None or config.lambda_lpips == 0 else LPIPS()
+        self._target_features: dict[Hashable, tuple[tuple[int, int, int, int], list[Tensor]]] = {}
+        self._cached_bytes = 0
+
+    def target_features(self, key: Hashable | None, box: tuple[int, ...], target: Tensor) -> list[Tensor]:
+        """LPIPS features of the target crop [1, 3, h, w], cached under ``key`` (a frame id) within
+        ``lpips_cache_mb``."""
+        hit = self._target_features.get(key) if key is not None else None
+        if hit is not None and hit[0] == box:
+            return hit[1]
+        features = self.lpips.reference_features(target)
+        size = sum(f.numel() * f.element_size() for f in features)
+        if key is not None and self._cached_bytes + size <= self.config.lpips_cache_mb * 2**20:
+            self._target_features[key] = (box, features)
+            self._cached_bytes += size
+        return features
 
     def person_box(self, mask: Tensor) -> tuple[int, int, int, int]:
         """``(x0, y0, x1, y1)``: the crop of the SSIM / LPIPS terms and the area the pixel terms
@@ -97,9 +115,13 @@ class AvatarLoss(nn.Module):
             return 0, 0, w, h
         return crop_box(m, pad=self.config.crop_pad, min_size=self.config.min_crop)
 
-    def forward(self, render: RenderOutput, target: Tensor, mask: Tensor) -> dict[str, Tensor]:
+    def forward(
+        self, render: RenderOutput, target: Tensor, mask: Tensor, key: Hashable | None = None
+    ) -> dict[str, Tensor]:
         """render: the rasterizer output; target: [H, W, 3] composited on the render background;
-        mask: [H, W] person coverage in [0, 1]. Returns the terms and ``"total"``."""
+        mask: [H, W] person coverage in [0, 1]; key: the target's identity (e.g. its frame
+        index) when the same target comes back, so its LPIPS features are reused. Returns the
+        terms and ``"total"``."""
         cfg = self.config
         image = render.image
         h, w = mask.shape
@@ -119,7 +141,8 @@ class AvatarLoss(nn.Module):
                 terms["ssim"] = 1.0 - ssim(img, tgt)[0]
                 total = total + cfg.lambda_ssim * terms["ssim"]
             if cfg.lambda_lpips:
-                terms["lpips"] = self.lpips(img, tgt)[0]
+                features = self.target_features(key, (x0, y0, x1, y1), tgt)
+                terms["lpips"] = self.lpips(img, tgt, img1_features=features)[0]
                 total = total + cfg.lambda_lpips * terms["lpips"]
         terms["total"] = total
         return terms

@@ -1,4 +1,5 @@
-"""The paper's methods and ablations as switches on one ``TrainConfig`` (no copies):
+"""The paper's methods and ablations (``eva_engine.recipes.METHODS``) as switches on one
+``TrainConfig`` (no copies):
 
 - ``3dgs+body``: the Table-1 baseline, 3DGS on the articulated body: ``DefaultStrategy``
   (constant threshold, template-distance pruning) and 3DGS's own objective, 0.8 L1 + 0.2 D-SSIM
@@ -22,29 +23,26 @@ from __future__ import annotations
 
 import dataclasses
 
+from eva_engine.recipes import METHODS
 from eva_engine.train.config import TrainConfig
 from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy
-
-METHODS = ("3dgs+body", "eva", "eva-no-cadc", "eva-no-cl", "eva-no-cadc-no-cl", "eva-part-mean")
 
 
 def with_method(config: TrainConfig, method: str) -> TrainConfig:
     """``config`` (its schedule, seeds, learning rates) switched to ``method`` (module docstring).
     The config's strategy must be a ``DefaultStrategy`` (its schedule is kept)."""
     if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; choose one of {METHODS}")
+        raise ValueError(f"unknown method {method!r}; choose one of {list(METHODS)}")
+    switches = METHODS[method]
     base = config.strategy
     if not isinstance(base, DefaultStrategy):
         raise TypeError(f"with_method needs a DefaultStrategy-based config, got {type(base).__name__}")
     if type(base) is not DefaultStrategy:  # back to the baseline fields only
         base = DefaultStrategy(**{f.name: getattr(base, f.name) for f in dataclasses.fields(DefaultStrategy)})
-    cadc = method in ("eva", "eva-no-cl", "eva-part-mean")
-    confidence = method in ("eva", "eva-no-cadc", "eva-part-mean")
     strategy = base
-    if cadc:
-        history = "part_mean" if method == "eva-part-mean" else "per_gaussian"
-        strategy = ContextAwareStrategy.from_default(base, history=history)
-    loss = dataclasses.replace(config.loss, photometric="confidence" if confidence else "l1")
-    if method == "3dgs+body":
+    if switches.cadc:
+        strategy = ContextAwareStrategy.from_default(base, history=switches.history)
+    loss = dataclasses.replace(config.loss, photometric="confidence" if switches.confidence else "l1")
+    if switches.objective == "3dgs":
         loss = dataclasses.replace(loss, lambda_photometric=0.8, lambda_ssim=0.2, lambda_lpips=0.0)
     return dataclasses.replace(config, strategy=strategy, loss=loss)

@@ -182,7 +182,7 @@ def refine_poses(
         for _ in range(steps):
             for t in range(n):
                 render = avatar(correction.apply(params[t], t), cameras[t], background)
-                total = loss(render, images[t], masks[t])["total"] + correction.prior(t)
+                total = loss(render, images[t], masks[t], key=t)["total"] + correction.prior(t)
                 total.backward()
                 opt.step()
                 opt.zero_grad(set_to_none=True)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -185,11 +186,16 @@ def train_avatar(
     config: TrainConfig | None = None,
     body: BodyModel | None = None,
     progress: Progress | None = None,
+    checkpoint: Callable[[int, Avatar, float], None] | None = None,
+    checkpoint_steps: tuple[int, ...] = (),
 ) -> TrainResult:
     """Train an avatar on ``dataset.splits["train"]``, its frames resampled by
     ``config.image_scale`` (:class:`~eva_engine.data.resampled.ResampledDataset`).
 
     body: the body model the dataset's parameters are for (default: ``meta.body_model``).
+    checkpoint: called as ``checkpoint(step, avatar, seconds)`` after each of
+    ``checkpoint_steps`` (1-based iteration counts) with the avatar as it trains (e.g. to
+    evaluate it) and the training seconds so far; its own time is not counted as training.
     """
     config = config or TrainConfig()
     device = resolve_device(config.device)
@@ -246,6 +252,7 @@ def train_avatar(
     losses: list[float] = []
     refinements: list[dict] = []
     start = time.perf_counter()
+    paused = 0.0  # seconds spent in ``checkpoint``
 
     def tick(stage: str, t0: float) -> float:
         if device.type == "cuda":
@@ -272,7 +279,7 @@ def train_avatar(
         t = tick("skinning", t)
         render = avatar.rasterize_posed(posed, cam, background)
         t = tick("rasterize", t)
-        terms = loss_fn(render, targets[i], masks[i])
+        terms = loss_fn(render, targets[i], masks[i], key=i)
         total = (terms["total"] + correction.prior(i)) if correcting else terms["total"]
         t = tick("losses", t)
         total.backward()
@@ -291,8 +298,13 @@ def train_avatar(
             raise TrainingError(f"the loss became {loss} at iteration {step}")
         losses.append(loss)
         done = step + 1
+        if checkpoint is not None and done in checkpoint_steps:
+            t = time.perf_counter()
+            checkpoint(done, avatar, t - start - paused)
+            avatar.train()
+            paused += time.perf_counter() - t
         if progress and (done % config.progress_every == 0 or done == config.iterations):
-            elapsed = time.perf_counter() - start
+            elapsed = time.perf_counter() - start - paused
             eta = elapsed / done * (config.iterations - done)
             event = _train_event("train", done, config.iterations, loss, len(avatar.gaussians), elapsed, eta)
             progress(event)
@@ -303,7 +315,7 @@ def train_avatar(
         refinements.append({"step": config.iterations, **stats})
         logger.info("after training: %s", stats)
     tick("densify", t)
-    train_seconds = time.perf_counter() - start
+    train_seconds = time.perf_counter() - start - paused
     avatar.eval()
     if progress:
         n = config.iterations

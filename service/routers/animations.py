@@ -11,15 +11,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import BinaryIO
+from typing import Annotated, BinaryIO
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Response, UploadFile
 from fastapi.concurrency import run_in_threadpool
-from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
-from pydantic import ValidationError
 
-from eva_engine.animate.animation import MAX_SIDE, AnimationError
+from eva_engine.animate.animation import AnimationError
 from jobs.animation import (
     VIDEO_NAME,
     AnimationOptions,
@@ -27,9 +25,15 @@ from jobs.animation import (
     check_animation_budget,
     read_animation_info,
 )
-from jobs.options import MAX_FRAMES, MAX_SIZE, MIN_SIZE
 from jobs.store import JobRecord, is_valid_id, new_id
-from service.animation_schemas import AnimationCreated, AnimationInfo, AnimationList, Framing, PoseControls
+from service.animation_schemas import (
+    AnimationCreated,
+    AnimationForm,
+    AnimationInfo,
+    AnimationList,
+    Framing,
+    PoseControls,
+)
 from service.deps import (
     ServiceContext,
     avatar_record,
@@ -44,7 +48,6 @@ from service.uploads import check_video, remove_tree, safe_suffix, save_upload
 router = APIRouter(tags=["animations"])
 NOT_FOUND = {404: {"model": ErrorMessage, "description": "Unknown or malformed id"}}
 BUSY = {503: {"model": ErrorMessage, "description": "Busy or over quota: retry after `Retry-After` seconds"}}
-_DEFAULTS = AnimationOptions(avatar_id="0" * 32)
 
 
 def animation_record(animation_id: str, ctx: ServiceContext = Depends(context)) -> JobRecord:
@@ -58,17 +61,6 @@ def animation_record(animation_id: str, ctx: ServiceContext = Depends(context)) 
 def _info(job: JobRecord, ctx: ServiceContext) -> AnimationInfo:
     folder = ctx.queue.storage.animation_dir(job.avatar_id)
     return AnimationInfo.of(job, read_animation_info(folder) if job.state == "succeeded" else None)
-
-
-def _camera(value: str):
-    """The form's ``camera``: a preset name, ``driving``, or a CameraSpec as JSON."""
-    text = value.strip()
-    if not text.startswith("{"):
-        return text
-    try:
-        return json.loads(text)
-    except ValueError as err:
-        raise HTTPException(422, f"camera is not a preset name, 'driving' or valid JSON: {err}") from err
 
 
 @router.post(
@@ -91,30 +83,13 @@ def _camera(value: str):
     },
 )  # fmt: skip
 async def create_animation(
+    form: Annotated[AnimationForm, Form()],
     video: UploadFile | None = File(None, description="A driving video of one person (mp4, webm, ...)."),
     poses: UploadFile | None = File(None, description='Or a JSON pose sequence {"fps", "poses": [...]}.'),
-    camera: str = Form("front", description="A preset (front, left, ...), 'driving' (the video's own "
-                       "camera) or a CameraSpec as JSON; an orbit without target/distance is framed on the "
-                       "avatar."),
-    side_by_side: bool = Form(False, description="The driving frame beside the avatar (videos only)."),
-    fps: float | None = Form(None, gt=0.0, le=120.0, description="Output fps (default: the driving's)."),
-    width: int | None = Form(None, ge=16, le=MAX_SIDE),
-    height: int | None = Form(None, ge=16, le=MAX_SIDE),
-    smooth_s: float = Form(_DEFAULTS.smooth_s, ge=0.0, le=2.0, description="Temporal smoothing (s)."),
-    max_frames: int = Form(_DEFAULTS.max_frames, ge=1, le=MAX_FRAMES),
-    max_size: int = Form(_DEFAULTS.max_size, ge=MIN_SIZE, le=MAX_SIZE),
-    fit_scale: float = Form(_DEFAULTS.fit_scale, gt=0.0, le=4.0),
     avatar: JobRecord = Depends(ready_avatar),
     ctx: ServiceContext = Depends(context),
 ) -> AnimationCreated:  # fmt: skip
-    try:
-        options = AnimationOptions(
-            avatar_id=avatar.avatar_id, camera=_camera(camera), side_by_side=side_by_side, fps=fps,
-            width=width, height=height, smooth_s=smooth_s, max_frames=max_frames, max_size=max_size,
-            fit_scale=fit_scale,
-        )  # fmt: skip
-    except ValidationError as err:
-        raise RequestValidationError(err.errors(include_input=False)) from err
+    options = AnimationOptions(**form.model_dump(), avatar_id=avatar.avatar_id)
     upload = _one_upload(video, poses)
     if poses is not None and (options.camera == "driving" or options.side_by_side):
         raise HTTPException(422, "camera 'driving' and side_by_side need a driving video, not poses")

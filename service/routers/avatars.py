@@ -1,7 +1,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import BinaryIO, Literal
+from typing import Annotated, BinaryIO, Literal
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Response, UploadFile
 from fastapi.concurrency import run_in_threadpool
@@ -9,7 +9,7 @@ from fastapi.responses import FileResponse
 
 from eva_engine.avatar import read_avatar_meta
 from eva_engine.avatar.render_spec import frame_params, spec_camera, spec_params
-from jobs.options import MAX_FRAMES, MAX_ITERATIONS, MAX_SIZE, MIN_SIZE, JobOptions, Method
+from jobs.options import JobOptions
 from jobs.store import JobRecord, new_id
 from service import rendering
 from service.deps import (
@@ -20,14 +20,13 @@ from service.deps import (
     ready_avatar,
     render_admission,
 )
-from service.schemas import AvatarCreated, AvatarInfo, AvatarList, ErrorMessage, RenderRequest
+from service.schemas import AvatarCreated, AvatarForm, AvatarInfo, AvatarList, ErrorMessage, RenderRequest
 from service.uploads import check_video, remove_tree, safe_suffix, save_upload
 
 router = APIRouter(prefix="/avatars", tags=["avatars"])
 NOT_FOUND = {404: {"model": ErrorMessage, "description": "Unknown or malformed avatar id"}}
 NOT_READY = {409: {"model": ErrorMessage, "description": "The avatar's job has not succeeded"}}
 BUSY = {503: {"model": ErrorMessage, "description": "Busy or over quota: retry after `Retry-After` seconds"}}
-_DEFAULTS = JobOptions()
 
 
 @router.post(
@@ -44,20 +43,10 @@ _DEFAULTS = JobOptions()
     },
 )  # fmt: skip
 async def create_avatar(
-    video: UploadFile = File(..., description="A video of one person (mp4, mov, mkv, webm or avi)."),
-    preset: Literal["tiny", "fast", "default"] = Form(_DEFAULTS.preset),
-    max_frames: int = Form(_DEFAULTS.max_frames, ge=1, le=MAX_FRAMES),
-    max_size: int = Form(_DEFAULTS.max_size, ge=MIN_SIZE, le=MAX_SIZE),
-    body_model: Literal["anny", "smplx"] = Form(_DEFAULTS.body_model),
-    iterations: int | None = Form(None, ge=1, le=MAX_ITERATIONS),
-    image_scale: float | None = Form(None, gt=0.05, le=1.0),
-    fit_scale: float = Form(1.0, gt=0.0, le=4.0),
-    method: Method | None = Form(None, description="Training method (eva, 3dgs+body, ablations)."),
+    video: Annotated[UploadFile, File(description="A video of one person (mp4, mov, mkv, webm or avi).")],
+    options: Annotated[AvatarForm, Form()],
     ctx: ServiceContext = Depends(context),
 ) -> AvatarCreated:
-    options = JobOptions(preset=preset, max_frames=max_frames, max_size=max_size, body_model=body_model,
-                         iterations=iterations, image_scale=image_scale, fit_scale=fit_scale,
-                         method=method)  # fmt: skip
     # File copies, the probe's child process and SQLite block: off the event loop.
     return await run_in_threadpool(_create, ctx, options, video.file, video.filename)
 

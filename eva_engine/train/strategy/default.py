@@ -31,10 +31,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+import eva_engine.train.strategy.ops as ops
 from eva_engine.avatar.gaussians import CanonicalGaussians
 from eva_engine.body.model import PART_NAMES
 from eva_engine.render import RenderOutput
-from eva_engine.train.strategy import ops
 from eva_engine.train.strategy.base import Strategy
 from eva_engine.train.strategy.ops import Optimizers
 

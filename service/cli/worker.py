@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from eva_engine.cli.app import app
+from service.cli.app import app
 
 
 @app.command()

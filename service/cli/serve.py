@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from eva_engine.cli.app import app
+from service.cli.app import app
 
 
 @app.command()
@@ -29,8 +29,8 @@ def serve(
     """Serve the API: POST /avatars, GET /jobs/{id}, POST /avatars/{id}/render ... (docs at /docs).
     Run ``eva worker`` beside it (same data dir and queue) to process the jobs."""
     from jobs.config import JobsConfig
-    from service import ServiceSettings
     from service.server import serve as run_server
+    from service.settings import ServiceSettings
 
     try:
         jobs = JobsConfig.from_env(data_dir=data_dir, queue_url=queue_url)

@@ -8,7 +8,8 @@ from pathlib import Path
 import typer
 from rich.console import Console
 
-from eva_engine.cli.app import app
+from eva_engine.recipes import PRESETS
+from service.cli.app import app
 
 
 @app.command()
@@ -17,7 +18,7 @@ def demo(
     workdir: Path = typer.Option(
         Path("out/demo"), help="Folder for the demo's video, service data, avatar and logs (replaced)."
     ),
-    preset: str = typer.Option("fast", help="Training preset: tiny, fast or default."),
+    preset: str = typer.Option("fast", help=f"Training preset: {', '.join(PRESETS)}."),
     iterations: int | None = typer.Option(None, min=1, help="Override the preset's iteration count."),
     animation: Path | None = typer.Option(
         None, "--animation", help="Also write this mp4: the avatar performing a video of someone else."
@@ -40,9 +41,9 @@ def demo(
     console = Console(stderr=True)
     if out.suffix.lower() != ".png":
         raise typer.BadParameter(f"the output must be a .png file, got {out}", param_hint="--out")
-    if preset not in ("tiny", "fast", "default"):
+    if preset not in PRESETS:
         raise typer.BadParameter(
-            f"unknown preset {preset!r}; choose tiny, fast or default", param_hint="--preset"
+            f"unknown preset {preset!r}; choose one of {list(PRESETS)}", param_hint="--preset"
         )
     started = time.perf_counter()
     if body_only:

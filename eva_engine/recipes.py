@@ -1,0 +1,58 @@
+"""Training recipes by name, the one list of each: the presets (schedule and model size) and the
+methods (the paper's, its baseline, its ablations). ``eva_engine.train`` builds them (``preset``,
+``with_method``); ``eva train``, ``eva demo``, the job options of the service and its web page
+offer exactly these.
+
+Plain data: reading it imports no torch, so the job queue's processes and ``eva --help`` start
+without it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+PRESETS: dict[str, str] = {
+    "tiny": "seconds, a test",
+    "fast": "minutes",
+    "default": "the paper's",
+}
+"""Preset name -> what it is for (the schedules: ``eva_engine.train.config.preset``)."""
+
+
+@dataclass(frozen=True)
+class Method:
+    """What a method switches on a preset's config (``eva_engine.train.with_method``).
+
+    cadc: context-aware density control (EVA §3.3; else 3DGS's ``DefaultStrategy``), its history
+    ``per_gaussian`` (the paper's) or ``part_mean`` (the official code's thresholds). confidence:
+    the confidence-aware loss (§3.4; else plain L1). objective: ``full`` (mask, SSIM and LPIPS
+    terms, eq. 11) or ``3dgs`` (3DGS's 0.8 L1 + 0.2 D-SSIM, and the mask term; no LPIPS).
+    """
+
+    summary: str
+    cadc: bool
+    confidence: bool
+    history: Literal["per_gaussian", "part_mean"] = "per_gaussian"
+    objective: Literal["full", "3dgs"] = "full"
+
+
+METHODS: dict[str, Method] = {
+    "3dgs+body": Method("baseline", cadc=False, confidence=False, objective="3dgs"),
+    "eva": Method("the paper's", cadc=True, confidence=True),
+    "eva-no-cadc": Method("eva without CADC", cadc=False, confidence=True),
+    "eva-no-cl": Method("eva without CL", cadc=True, confidence=False),
+    "eva-no-cadc-no-cl": Method("eva without CADC and CL", cadc=False, confidence=False),
+    "eva-part-mean": Method("eva, per-part-mean thresholds", cadc=True, confidence=True, history="part_mean"),
+}
+"""Method name -> its switches (Tables 1 and 2 of the paper: ``eva_engine.train.methods``)."""
+
+
+def describe_presets() -> str:
+    """The presets in words, for help texts: ``tiny (seconds, a test), fast (minutes), ...``."""
+    return ", ".join(f"{name} ({what})" for name, what in PRESETS.items())
+
+
+def describe_methods() -> str:
+    """The methods in words, for help texts: ``3dgs+body (baseline), eva (the paper's), ...``."""
+    return ", ".join(f"{name} ({method.summary})" for name, method in METHODS.items())
