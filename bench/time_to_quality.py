@@ -41,11 +41,11 @@ def checkpoints_for(iterations: int, count: int = 6) -> list[int]:
     return sorted(steps)
 
 
-def run_one(ds, method: str, preset_name: str, seed: int, threads: int, metrics) -> dict:
+def run_one(ds, method: str, preset_name: str, seed: int, metrics) -> dict:
     from eva_engine.eval import evaluate_avatar
     from eva_engine.train import preset, train_avatar, with_method
 
-    config = with_method(preset(preset_name, threads=threads, seed=seed), method)
+    config = with_method(preset(preset_name, seed=seed), method)
     points = []
 
     def evaluate(step: int, avatar, seconds: float) -> None:
@@ -181,7 +181,7 @@ def main() -> None:
             if any(r["method"] == method and r["seed"] == seed for r in doc["runs"]):
                 continue
             print(f"seed {seed}: {method} ...", file=sys.stderr, flush=True)
-            doc["runs"].append(run_one(ds, method, args.preset, seed, args.threads, metrics))
+            doc["runs"].append(run_one(ds, method, args.preset, seed, metrics))
             write(doc, args.out, args.name)
     write(doc, args.out, args.name)
     print(markdown(doc))

@@ -61,7 +61,7 @@ def main() -> None:
             print(f"generating {path} ...", file=sys.stderr)
             generate(args.synthetic, args.size, args.seed, path)
     ds = load_dataset(path)
-    overrides = {"threads": args.threads, "device": args.device}
+    overrides = {"device": args.device}
     if args.iterations:
         overrides["iterations"] = args.iterations
     config = preset(args.preset, **overrides)
@@ -69,17 +69,15 @@ def main() -> None:
         config = with_method(config, args.method)
     name = args.preset if not args.method else f"{args.preset}/{args.method}"
 
-    def report(p) -> None:
-        if p.stage != "train" or p.iteration % 100 == 0:
-            print(f"{p.stage} {p.iteration}/{p.total} loss {p.loss:.4f} GS {p.num_gaussians} "
-                  f"{p.elapsed:.0f}s eta {p.eta:.0f}s", file=sys.stderr, flush=True)  # fmt: skip
+    def report(e) -> None:
+        if e.stage != "train" or e.done % 100 == 0:
+            print(f"{e.stage}: {e.message}, {e.elapsed:.0f}s eta {e.eta or 0:.0f}s", file=sys.stderr,
+                  flush=True)  # fmt: skip
 
     result = train_avatar(ds, config, progress=report)
     ev = evaluate_avatar(result.avatar, ds, train_seconds=result.train_seconds)
     if args.out:
-        save_avatar(
-            result.avatar, args.out, {"train_config": config.to_dict(), "train_seconds": result.train_seconds}
-        )
+        save_avatar(result.avatar, args.out, result.record(config, preset=args.preset), result.frames(ds))
     n = config.iterations
     entry = {
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
