@@ -181,9 +181,8 @@ def default_stages() -> tuple[FitStage, ...]:
     """The paper's three stages (appendix: body init; hands; fine-tune with hands and face
     emphasised), with the face's expression fitted in a stage of its own before the fine-tune.
     The body and fine-tune stages run 120 L-BFGS iterations: one step length serves every frame
-    of the clip, so the joint problem converges slower than one frame would (on the synthetic
-    wild bench, 60 -> 120 brings the in-view body MPJPE from 63 to 57 mm; more hand iterations
-    did not help with real detections: ``bench/results/align.md``)."""
+    of the clip, so the joint problem converges slower than one frame would (``docs/alignment.md``
+    has the measurements)."""
     return (
         FitStage(
             "body", 120, ("root", "transl", "body", "shape"), w_face=0.3, rigid_face_only=True, body_3d=1.0,
