@@ -53,7 +53,7 @@ VIDEOS = ROOT.parent / "shared" / "reference" / "videos"
 
 
 def synthetic(model, frames: int, dataset: Path | None) -> dict:
-    from eva_engine.data.synthetic import generate
+    from eva_engine.synth import generate
 
     if dataset is None:
         dataset = data_dir() / "synthetic" / "wild-bench-seed0"
@@ -224,7 +224,7 @@ def _overlay(model, ds, path: Path, picks: int = 4) -> None:
     """The fitted mesh (shaded, 60% opacity) over a few frames, side by side, as a JPEG."""
     from PIL import Image
 
-    from eva_engine.data.mesh_render import MeshRenderConfig, MeshRenderer
+    from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
 
     h, w = ds.image_size
     idx = np.linspace(0, len(ds) - 1, picks).round().astype(int).tolist()

@@ -32,7 +32,7 @@ FAST_OPTIONS = {
 def signer_video(anny_model, tmp_path_factory) -> Path:
     """A short mp4 of the synthetic wild signer (256 px, MediaPipe finds the person); made once."""
     from eva_engine.data import load_dataset, write_video
-    from eva_engine.data.synthetic import generate
+    from eva_engine.synth import generate
 
     folder = tmp_path_factory.getbasetemp() / "service-signer"
     video = folder / "signer.mp4"
@@ -51,7 +51,7 @@ def other_signer_video(anny_model, tmp_path_factory) -> Path:
     """Someone else: 8 frames (2 fps) of the synthetic wild signer with seed 1 -- another body shape,
     face, clothes and motion than seed 0's (the demo's) -- at 256 px; made once."""
     from eva_engine.data import load_dataset, write_video
-    from eva_engine.data.synthetic import generate
+    from eva_engine.synth import generate
 
     folder = tmp_path_factory.getbasetemp() / "other-signer"
     video = folder / "someone_else.mp4"

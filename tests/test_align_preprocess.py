@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from eva_engine.align import PreprocessConfig, PreprocessError, preprocess_video
 from eva_engine.cli import app
 from eva_engine.data import load_dataset, write_video
-from eva_engine.data.synthetic import generate
+from eva_engine.synth import generate
 
 
 @pytest.fixture(scope="module")

@@ -111,8 +111,8 @@ def head_camera(model: BodyModel, yaw_deg: float, pitch_deg: float, size: int) -
 def render_face(model: BodyModel, views: tuple[tuple[float, float], ...], size: int = 512) -> list[dict]:
     """The painted neutral face from each (yaw, pitch) view: dicts with rgb [H, W, 3] uint8,
     face_id [H, W], K, viewmat and the rest vertices [V, 3]."""
-    from eva_engine.data.look import Look, bake_texture, face_segments
-    from eva_engine.data.mesh_render import MeshRenderConfig, MeshRenderer
+    from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
+    from eva_engine.synth.texture import Look, bake_texture, face_segments
 
     params = model.default_params(1)
     with torch.no_grad():

@@ -63,7 +63,7 @@ class _Axes:
 
 
 def _subject_axes(body: BodyModel, shape: torch.Tensor) -> _Axes:
-    from eva_engine.data.motion import rest_axes
+    from eva_engine.synth.motion import rest_axes
 
     axes = rest_axes(body, shape.reshape(1, -1))
     return _Axes(axes.elbow, axes.forearm, axes.wrist_flex, axes.finger)

@@ -7,6 +7,9 @@ public too: ``project_gaussians`` (EWA projection, autograd), ``bin_gaussians`` 
 or torch ones, see ``eva_engine.render.native``), ``composite`` (its torch kernels, tile layout)
 and ``composite_autograd`` (the plain-autograd reference). Spherical-harmonics colours:
 ``eval_sh``. Cameras: ``Camera``, ``intrinsics``, ``look_at``, ``orbit_camera``.
+
+``eva_engine.render.mesh`` is the other renderer: triangle meshes through OpenGL (``MeshRenderer``),
+for ground-truth images and region masks, a deliberately different image formation model.
 """
 
 from eva_engine.render.camera import Camera, intrinsics, look_at, orbit_camera

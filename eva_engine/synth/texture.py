@@ -393,7 +393,7 @@ def bake_texture(
     [size, size, 4]: albedo and gloss."""
     from scipy import ndimage
 
-    from eva_engine.data.mesh_render import vertex_normals
+    from eva_engine.render.mesh import vertex_normals
 
     with torch.no_grad():
         rest_params = model.default_params(1)

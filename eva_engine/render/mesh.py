@@ -23,8 +23,6 @@ import dataclasses
 import numpy as np
 import torch
 
-from eva_engine.render.camera import intrinsics, look_at  # noqa: F401  (re-exported for renderer users)
-
 SYSTEM_PACKAGES = "libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri"
 
 _VERTEX_SHADER = """

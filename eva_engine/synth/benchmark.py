@@ -1,6 +1,6 @@
 """The synthetic benchmark: a textured Anny subject signing in front of a static camera, rendered
-by a triangle-mesh rasterizer (``data.mesh_render``, not Gaussians), written in the dataset
-layout with ground truth, per-hand and face region masks included.
+by a triangle-mesh rasterizer (``eva_engine.render.mesh``, not Gaussians), written in the
+dataset layout with ground truth, per-hand and face region masks included.
 
 Presets (modelled on the paper's data):
 
@@ -14,8 +14,8 @@ Presets (modelled on the paper's data):
   align); the ground truth is kept under ``ground_truth/`` for evaluation. Split as UPB:
   alternate frames of one take train and test.
 
-Appearance: a procedural albedo and gloss texture (``data.look``) with millimetre-scale detail on
-the hands, face and clothing, lit by a light fixed in the world with Lambert diffuse and a
+Appearance: a procedural albedo and gloss texture (``synth.texture``) with millimetre-scale
+detail on the hands, face and clothing, lit by a light fixed in the world with Lambert diffuse and a
 Blinn-Phong highlight, so shading changes with the pose and with the view. ``test_view`` frames
 show training poses from a camera turned 35 deg about the subject. Everything is deterministic
 given the seed (which picks the subject and its motions).
@@ -36,10 +36,11 @@ import torch
 
 from eva_engine.body.params import BodyParams
 from eva_engine.data.dataset import DatasetMeta, DatasetWriter, ParamNames
-from eva_engine.data.look import Look, bake_texture, face_segments
-from eva_engine.data.mesh_render import MeshRenderConfig, MeshRenderer, intrinsics, look_at
-from eva_engine.data.motion import FACE_ACTIONS, HELD_OUT_FACE_ACTIONS, MotionConfig, sign_motion
 from eva_engine.data.region_masks import coverage_by_region, face_regions
+from eva_engine.render.camera import intrinsics, look_at
+from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
+from eva_engine.synth.motion import FACE_ACTIONS, HELD_OUT_FACE_ACTIONS, MotionConfig, sign_motion
+from eva_engine.synth.texture import Look, bake_texture, face_segments
 
 SPLIT_STYLES = ("takes", "interleaved")
 
@@ -276,7 +277,7 @@ def generate(
             keypoints=keypoints if give else None, keypoint_names=list(model.keypoint_names),
             keypoints_source="ground_truth", gt_params=params, gt_keypoints=keypoints,
             extra={
-                "generator": "eva_engine.data.synthetic", "preset": preset, "size": size, "seed": seed,
+                "generator": "eva_engine.synth.benchmark", "preset": preset, "size": size, "seed": seed,
                 "split_style": p.split, "take_of_frame": [k for k, _ in plan.frames],
                 "pose_of_frame": pose_of_frame, "look": dataclasses.asdict(look),
                 "view_angle_deg": p.view_angle_deg, "motion": [motions[k] for k in sorted(motions)],
