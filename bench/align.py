@@ -161,9 +161,9 @@ def table3(model, dataset: Path, preset_name: str, iterations: int | None, image
 def face_mesh_px(model, params, targets: FitTargets) -> dict[str, float] | None:
     """Per frame, the median px distance between the detected face-mesh landmarks and the fitted
     face's correspondence points; summarised as the median and 90th percentile over frames."""
-    from eva_engine.align.camera import project, to_camera
     from eva_engine.align.face_mesh import load_correspondence
     from eva_engine.body.keypoints import KeypointRegressor
+    from eva_engine.geometry import project_points, to_camera
 
     corr = load_correspondence(model)
     if corr is None or targets.face_mesh is None:
@@ -172,7 +172,8 @@ def face_mesh_px(model, params, targets: FitTargets) -> dict[str, float] | None:
     names = [f"fm{k}" for k in terms]
     reg = KeypointRegressor(names, dict(zip(names, terms.values(), strict=True)), {}, model.num_joints)
     with torch.no_grad():
-        uv = project(to_camera(model.posed_points(params, reg), targets.frame_viewmat()), targets.frame_K())
+        cam = to_camera(model.posed_points(params, reg), targets.frame_viewmat())
+        uv = project_points(cam, targets.frame_K())
     det = targets.face_mesh[:, list(terms)]
     per_frame = []
     for f in range(uv.shape[0]):

@@ -17,8 +17,8 @@ import torch
 from torch import Tensor
 
 from eva_engine.body import BodyModel
+from eva_engine.geometry import vertex_normals
 from eva_engine.render import intrinsics, orbit_camera, rasterize
-from eva_engine.render.mesh import vertex_normals
 
 # Part colours (body, hand, face): distinct, so a wrong part id is visible at a glance.
 PART_COLORS = ((0.25, 0.45, 0.85), (0.95, 0.55, 0.2), (0.9, 0.75, 0.65))

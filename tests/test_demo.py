@@ -4,8 +4,8 @@ import numpy as np
 import torch
 
 from eva_engine.demo import PART_COLORS, quat_from_z, render_demo, surface_gaussians
+from eva_engine.geometry import vertex_normals
 from eva_engine.render import quat_to_rotmat
-from eva_engine.render.mesh import vertex_normals
 
 
 def test_quat_from_z_maps_z_onto_direction():

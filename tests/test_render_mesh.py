@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 import torch
 
+from eva_engine.geometry import vertex_normals
 from eva_engine.render.camera import intrinsics, look_at
-from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer, vertex_normals
+from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
 
 QUAD = np.array([[0, 1, 2], [0, 2, 3]])
 

@@ -10,7 +10,8 @@ import torch
 
 from eva_engine.body import KEYPOINT_GROUPS, PART_NAMES
 from eva_engine.data import load_dataset, perturb
-from eva_engine.synth.benchmark import PRESETS, generate, project
+from eva_engine.geometry import project_points, to_camera
+from eva_engine.synth.benchmark import PRESETS, generate
 from eva_engine.synth.motion import FACE_ACTIONS, MotionConfig, sign_motion
 
 
@@ -55,7 +56,7 @@ def test_mask_is_exactly_the_rendered_person(datasets, preset, anny_model):
         assert torch.all(person[(f.image - bg).abs().amax(-1) > 1.5 / 255])
         # The mask is where the posed body projects: every projected vertex inside the image
         # lands on the mask, and the mask covers no more than the projected body's extent.
-        uv, _ = project(verts[i : i + 1], f.viewmat, f.K)
+        uv = project_points(to_camera(verts[i : i + 1], f.viewmat), f.K)
         px = uv[0].floor().long().numpy()
         h, w = ds.image_size
         inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)

@@ -164,7 +164,7 @@ def build_correspondence(
 ) -> FaceMeshCorrespondence:
     """The correspondence of ``model`` (module docstring). Needs the mesh renderer (EGL) and
     MediaPipe; takes a few seconds."""
-    from eva_engine.align.camera import project, to_camera
+    from eva_engine.geometry import project_points, to_camera
 
     faces = model.faces.cpu().numpy()
     face_part = model.sided_part_ids.cpu().numpy()
@@ -174,9 +174,8 @@ def build_correspondence(
         pts = detect_face_mesh(r["rgb"])
         if pts is None:
             continue
-        uv = project(to_camera(r["vertices"][None].double(), r["viewmat"].double()), r["K"].double())[
-            0
-        ].numpy()
+        cam = to_camera(r["vertices"][None].double(), r["viewmat"].double())
+        uv = project_points(cam, r["K"].double())[0].numpy()
         face_id = r["face_id"].numpy()
         h, w = face_id.shape
         rest = r["vertices"].double().numpy()

@@ -22,7 +22,7 @@ from eva_engine.render.composite import (
 )
 from eva_engine.render.projection import Projection, project_gaussians, quat_to_rotmat
 from eva_engine.render.rasterize import RasterConfig, RenderOutput, rasterize
-from eva_engine.render.sh import camera_center, eval_sh, num_sh_bases, rgb_to_sh, sh_basis, view_dirs
+from eva_engine.render.sh import eval_sh, num_sh_bases, rgb_to_sh, sh_basis, view_dirs
 from eva_engine.render.tiles import TileBins, bin_gaussians
 
 __all__ = [
@@ -33,7 +33,6 @@ __all__ = [
     "RenderOutput",
     "TileBins",
     "bin_gaussians",
-    "camera_center",
     "composite",
     "composite_autograd",
     "composite_image",

@@ -37,6 +37,7 @@ import torch
 from eva_engine.body.params import BodyParams
 from eva_engine.data.dataset import DatasetMeta, DatasetWriter, ParamNames
 from eva_engine.data.region_masks import coverage_by_region, face_regions
+from eva_engine.geometry import project_points, to_camera
 from eva_engine.render.camera import intrinsics, look_at
 from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
 from eva_engine.synth.motion import FACE_ACTIONS, HELD_OUT_FACE_ACTIONS, MotionConfig, sign_motion
@@ -104,23 +105,6 @@ SIZES: dict[str, Size] = {
 }  # fmt: skip
 MOTION_SECONDS = 6.0
 TRAIN_FACE_ACTIONS = tuple(a for a in FACE_ACTIONS if a not in HELD_OUT_FACE_ACTIONS)
-
-
-def project(
-    vertices: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pinhole projection. vertices: [B, V, 3] world; viewmat: [4, 4] or [B, 4, 4]; K: [3, 3] or
-    [B, 3, 3]. Returns pixel coordinates [B, V, 2] (pixel (x, y) spans [x, x+1) x [y, y+1), so
-    ``floor`` gives the pixel) and camera depth [B, V]."""
-    view = viewmat.to(vertices.dtype)
-    K_ = K.to(vertices.dtype)
-    cam = vertices @ view[..., :3, :3].transpose(-1, -2) + view[..., None, :3, 3]
-    z = cam[..., 2]
-    safe = torch.where(z.abs() > 1e-9, z, torch.full_like(z, 1e-9))
-    x, y = cam[..., 0] / safe, cam[..., 1] / safe
-    u = K_[..., None, 0, 0] * x + K_[..., None, 0, 1] * y + K_[..., None, 0, 2]
-    v = K_[..., None, 1, 1] * y + K_[..., None, 1, 2]
-    return torch.stack([u, v], dim=-1), z
 
 
 @dataclasses.dataclass(frozen=True)
@@ -245,7 +229,8 @@ def generate(
         n_seq = len(plan.frames) - len(plan.views)
         views = [view_main if i < n_seq else view_side for i in range(len(plan.frames))]
         viewmats = torch.stack(views)
-        uv, depth = project(keypoints3d, viewmats, K)
+        cam = to_camera(keypoints3d, viewmats.to(keypoints3d.dtype))
+        uv, depth = project_points(cam, K.to(keypoints3d.dtype)), cam[..., 2]
         h = w = s.image_size
         inside = (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h) & (depth > 0)
         keypoints = torch.cat([uv, inside[..., None].to(uv.dtype)], dim=-1).float()

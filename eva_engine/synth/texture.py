@@ -396,7 +396,7 @@ def bake_texture(
     from scipy import ndimage
 
     from eva_engine.body.rest_axes import rest_axes
-    from eva_engine.render.mesh import vertex_normals
+    from eva_engine.geometry import vertex_normals
 
     with torch.no_grad():
         rest_params = model.default_params(1)
