@@ -20,13 +20,12 @@ from service.deps import (
     ready_avatar,
     render_admission,
 )
-from service.schemas import AvatarCreated, AvatarForm, AvatarInfo, AvatarList, ErrorMessage, RenderRequest
+from service.routers.responses import AVATAR_NOT_READY, BUSY, STILL_RUNNING, UPLOAD, error
+from service.schemas import AvatarCreated, AvatarForm, AvatarInfo, AvatarList, RenderRequest
 from service.uploads import check_video, remove_tree, safe_suffix, save_upload
 
 router = APIRouter(prefix="/avatars", tags=["avatars"])
-NOT_FOUND = {404: {"model": ErrorMessage, "description": "Unknown or malformed avatar id"}}
-NOT_READY = {409: {"model": ErrorMessage, "description": "The avatar's job has not succeeded"}}
-BUSY = {503: {"model": ErrorMessage, "description": "Busy or over quota: retry after `Retry-After` seconds"}}
+NOT_FOUND = error(404, "Unknown or malformed avatar id")
 
 
 @router.post(
@@ -35,11 +34,9 @@ BUSY = {503: {"model": ErrorMessage, "description": "Busy or over quota: retry a
     response_model=AvatarCreated,
     summary="Upload a video of one person; queue the job that learns their avatar",
     responses={
-        413: {"model": ErrorMessage, "description": "Upload over the size limit"},
         422: {"description": "Not an mp4/mov/mkv/webm/avi video, no decodable frame, too long or too large, "
                              "or bad options"},
-        507: {"model": ErrorMessage, "description": "The server's disk is full"},
-        **BUSY,
+        **UPLOAD,
     },
 )  # fmt: skip
 async def create_avatar(
@@ -76,8 +73,7 @@ def _create(
         queue.store.delete(job_id)
         remove_tree(work)
         raise
-    return AvatarCreated(avatar_id=avatar_id, job_id=job_id, job_url=f"/jobs/{job_id}",
-                         avatar_url=f"/avatars/{avatar_id}")  # fmt: skip
+    return AvatarCreated(avatar_id=avatar_id, job_id=job_id)
 
 
 def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
@@ -111,7 +107,7 @@ def get_avatar(job: JobRecord = Depends(avatar_record), ctx: ServiceContext = De
 @router.delete(
     "/{avatar_id}",
     status_code=204,
-    responses={**NOT_FOUND, 409: {"model": ErrorMessage, "description": "Its job is still running"}},
+    responses={**NOT_FOUND, **STILL_RUNNING},
     summary="Delete an avatar and its files",
 )
 def delete_avatar(
@@ -134,7 +130,7 @@ def delete_avatar(
     "with `Retry-After`.",
     responses={
         200: {"content": {"image/png": {}, "image/jpeg": {}}, "description": "The rendered image"},
-        **NOT_FOUND, **NOT_READY, **BUSY,
+        **NOT_FOUND, **AVATAR_NOT_READY, **BUSY,
         422: {"description": "Unknown names, values out of range, wrong lengths, size over the limit"},
     },
     dependencies=[Depends(render_admission)],  # first: a refusal costs no validation or lookup
@@ -169,7 +165,7 @@ def _render(
     summary="Download the avatar: the 3D Gaussians (PLY) or the posed body mesh (GLB)",
     responses={
         200: {"content": {"application/octet-stream": {}, "model/gltf-binary": {}}},
-        **NOT_FOUND, **NOT_READY, **BUSY,
+        **NOT_FOUND, **AVATAR_NOT_READY, **BUSY,
     },
 )  # fmt: skip
 async def export_avatar(
