@@ -247,19 +247,7 @@ def gradient_video(path: Path, frames: int, side: int, fps: int = 10, live: bool
 
 
 def job_processes(job_id: str | None = None) -> dict[int, str]:
-    """pid -> job id of the running job processes (``python -m jobs run JOB_ID``), from /proc;
-    not a helper one of them forked (same command line until it execs)."""
-    found: dict[int, tuple[str, int]] = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            args = (entry / "cmdline").read_bytes().split(b"\0")
-            stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        for i in range(len(args) - 3):
-            if args[i : i + 3] == [b"-m", b"jobs", b"run"] and stat[0] != "Z":
-                if job_id is None or args[i + 3].decode() == job_id:
-                    found[int(entry.name)] = (args[i + 3].decode(), int(stat[1]))
-    return {pid: job for pid, (job, ppid) in found.items() if found.get(ppid, ("",))[0] != job}
+    """pid -> job id of the running job processes (of ``job_id``, or all), not the helpers they fork."""
+    from jobs.runner import job_processes as processes
+
+    return {pid: p.job_id for pid, p in processes().items() if not p.forked and job_id in (None, p.job_id)}
