@@ -44,7 +44,7 @@ from service.deps import (
     render_admission,
 )
 from service.routers.responses import AVATAR_NOT_READY, BUSY, STILL_RUNNING, UPLOAD, error
-from service.uploads import check_video, remove_tree, safe_suffix, save_upload
+from service.uploads import check_video, queued_job, safe_suffix, save_upload
 
 router = APIRouter(tags=["animations"])
 NOT_FOUND = error(404, "Unknown or malformed id")
@@ -91,10 +91,8 @@ def _create(ctx: ServiceContext, avatar: JobRecord, options: AnimationOptions, s
             filename: str | None, is_poses: bool) -> AnimationCreated:  # fmt: skip
     queue, settings = ctx.queue, ctx.settings
     check_job_quota(ctx)
-    job_id, animation_id = new_id(), new_id()
-    work = queue.storage.work_dir(job_id)
-    work.mkdir(parents=True)
-    try:
+    animation_id = new_id()
+    with queued_job(queue) as (job_id, work):
         # The worker tells poses from a video by the suffix: a video is never saved as .json.
         suffix = ".json" if is_poses else safe_suffix(filename).replace(".json", ".video")
         path = work / f"input{suffix}"
@@ -116,15 +114,6 @@ def _create(ctx: ServiceContext, avatar: JobRecord, options: AnimationOptions, s
         name = Path(filename or "upload").name[:200]
         queue.store.create(options.model_dump(mode="json"), filename=name, job_id=job_id,
                            avatar_id=animation_id, kind="animation")  # fmt: skip
-    except BaseException:
-        remove_tree(work)
-        raise
-    try:
-        queue.enqueue(job_id)
-    except BaseException:  # the queue backend is down (503 without its details): nothing stays behind
-        queue.store.delete(job_id)
-        remove_tree(work)
-        raise
     return AnimationCreated(animation_id=animation_id, job_id=job_id)
 
 

@@ -22,7 +22,7 @@ from service.deps import (
 )
 from service.routers.responses import AVATAR_NOT_READY, BUSY, STILL_RUNNING, UPLOAD, error
 from service.schemas import AvatarCreated, AvatarForm, AvatarInfo, AvatarList, RenderRequest
-from service.uploads import check_video, remove_tree, safe_suffix, save_upload
+from service.uploads import check_video, queued_job, safe_suffix, save_upload
 
 router = APIRouter(prefix="/avatars", tags=["avatars"])
 NOT_FOUND = error(404, "Unknown or malformed avatar id")
@@ -53,10 +53,8 @@ def _create(
 ) -> AvatarCreated:
     queue, settings = ctx.queue, ctx.settings
     check_job_quota(ctx)
-    job_id, avatar_id = new_id(), new_id()
-    work = queue.storage.work_dir(job_id)
-    work.mkdir(parents=True)
-    try:
+    avatar_id = new_id()
+    with queued_job(queue) as (job_id, work):
         path = work / f"input{safe_suffix(filename)}"
         if save_upload(source, path, settings.max_upload_bytes) == 0:
             raise HTTPException(422, "the uploaded video is empty (0 bytes)")
@@ -64,15 +62,6 @@ def _create(
                     settings.probe_memory_mb)  # fmt: skip
         name = Path(filename or "video").name[:200]
         queue.store.create(options.model_dump(), filename=name, job_id=job_id, avatar_id=avatar_id)
-    except BaseException:
-        remove_tree(work)
-        raise
-    try:
-        queue.enqueue(job_id)
-    except BaseException:  # the queue backend is down: nothing stays behind
-        queue.store.delete(job_id)
-        remove_tree(work)
-        raise
     return AvatarCreated(avatar_id=avatar_id, job_id=job_id)
 
 
