@@ -112,7 +112,7 @@ def render_face(model: BodyModel, views: tuple[tuple[float, float], ...], size: 
     """The painted neutral face from each (yaw, pitch) view: dicts with rgb [H, W, 3] uint8,
     face_id [H, W], K, viewmat and the rest vertices [V, 3]."""
     from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
-    from eva_engine.synth.texture import Look, bake_texture, face_segments
+    from eva_engine.synth.texture import Look, apply_look
 
     params = model.default_params(1)
     with torch.no_grad():
@@ -121,12 +121,7 @@ def render_face(model: BodyModel, views: tuple[tuple[float, float], ...], size: 
     config = MeshRenderConfig(width=size, height=size, supersample=2)
     out = []
     with MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer:
-        texture = bake_texture(model, params, look, renderer, 2048, face_label=face_segments(model))
-        renderer.set_surface(
-            texture=texture,
-            uv=model.anny.texture_coordinates.cpu().numpy(),
-            face_uv=model.anny.face_texture_coordinate_indices.cpu().numpy(),
-        )
+        apply_look(renderer, model, params, look, 2048)
         for yaw, pitch in views:
             K, view = head_camera(model, yaw, pitch, size)
             r = renderer.render(vertices, view, K)

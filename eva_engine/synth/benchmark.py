@@ -41,7 +41,7 @@ from eva_engine.geometry import project_points, to_camera
 from eva_engine.render.camera import intrinsics, look_at
 from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
 from eva_engine.synth.motion import FACE_ACTIONS, HELD_OUT_FACE_ACTIONS, MotionConfig, sign_motion
-from eva_engine.synth.texture import Look, bake_texture, face_segments
+from eva_engine.synth.texture import Look, apply_look
 
 SPLIT_STYLES = ("takes", "interleaved")
 
@@ -234,19 +234,11 @@ def generate(
         h = w = s.image_size
         inside = (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h) & (depth > 0)
         keypoints = torch.cat([uv, inside[..., None].to(uv.dtype)], dim=-1).float()
-        seg = face_segments(model)
         regions = face_regions(model)
         config = MeshRenderConfig(width=w, height=h, supersample=s.supersample, background=(1.0, 1.0, 1.0),
                                   light=p.light, light_frame="world")  # fmt: skip
         with MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer:
-            texture = bake_texture(
-                model, params[0], look, renderer, s.texture_size, seed=seed, face_label=seg
-            )
-            renderer.set_surface(
-                texture=texture,
-                uv=model.anny.texture_coordinates.cpu().numpy(),
-                face_uv=model.anny.face_texture_coordinate_indices.cpu().numpy(),
-            )
+            apply_look(renderer, model, params[0], look, s.texture_size, seed=seed)
             total = len(plan.frames)
             for i, (_, t) in enumerate(plan.frames):
                 r = renderer.render(posed.vertices[i], views[i], K)

@@ -427,3 +427,16 @@ def bake_texture(
     _, (iy, ix) = ndimage.distance_transform_edt(~valid, return_indices=True)
     tex = tex[iy, ix]
     return np.clip(np.round(tex * 255.0), 0, 255).astype(np.uint8)
+
+
+def apply_look(
+    renderer, model, params, look: Look, size: int, seed: int = 0, face_label: np.ndarray | None = None
+) -> None:
+    """Paint the subject (:func:`bake_texture`, same arguments) and put the texture on ``renderer``
+    (a ``MeshRenderer`` of ``model.faces``) through Anny's UV atlas."""
+    texture = bake_texture(model, params, look, renderer, size, seed=seed, face_label=face_label)
+    renderer.set_surface(
+        texture=texture,
+        uv=model.anny.texture_coordinates.cpu().numpy(),
+        face_uv=model.anny.face_texture_coordinate_indices.cpu().numpy(),
+    )
