@@ -443,14 +443,15 @@ def _check_against_reference(scene, atol=1e-10):
     return out, grads
 
 
-def test_no_gaussians():
+@KERNELS
+def test_no_gaussians(kernel):
     viewmat, K = look_camera(20, 12, 20.0)
     bg = torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64, requires_grad=True)
     empty = torch.zeros(0, 3, dtype=torch.float64, requires_grad=True)
     out = rasterize(
         empty, torch.zeros(0, 4, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64),
         torch.zeros(0, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64), viewmat, K, 20, 12,
-        background=bg,
+        background=bg, config=RasterConfig(kernel=kernel),
     )  # fmt: skip
     assert torch.equal(out.image, bg.detach().expand(12, 20, 3))
     assert torch.all(out.alpha == 0) and torch.all(out.depth == 0)

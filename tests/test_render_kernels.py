@@ -14,7 +14,7 @@ import sys
 
 import pytest
 import torch
-from test_render import PARAMS, cast, look_camera, random_scene, render_with_grads, single, stacked
+from test_render import PARAMS, cast, random_scene, render_with_grads, single, stacked
 
 from eva_engine.render import RasterConfig, bin_gaussians, native, project_gaussians, rasterize
 
@@ -95,21 +95,6 @@ def test_sh_colors(compiled):
 
 
 # ----------------------------------------------------------------------------- degenerate inputs
-
-
-def test_no_gaussians(compiled):
-    viewmat, K = look_camera(20, 12, 20.0)
-    bg = torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64, requires_grad=True)
-    empty = torch.zeros(0, 3, dtype=torch.float64, requires_grad=True)
-    out = rasterize(
-        empty, torch.zeros(0, 4, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64),
-        torch.zeros(0, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64), viewmat, K, 20, 12,
-        background=bg, config=RasterConfig(kernel="cpp"),
-    )  # fmt: skip
-    assert torch.equal(out.image, bg.detach().expand(12, 20, 3))
-    assert torch.all(out.alpha == 0) and torch.all(out.depth == 0)
-    out.image.sum().backward()
-    torch.testing.assert_close(bg.grad, torch.full((3,), 240.0, dtype=torch.float64))
 
 
 @pytest.mark.parametrize("opacity", [0.0, 1.0, 1e-13, 0.004])
