@@ -65,10 +65,9 @@ def run_one(ds, config, metrics, label: str) -> dict:
     from eva_engine.eval import evaluate_avatar
     from eva_engine.train import train_avatar
 
-    def report(p) -> None:
-        if p.stage == "train" and p.iteration % 200 == 0:
-            print(f"  [{label}] {p.iteration}/{p.total} loss {p.loss:.4f} GS {p.num_gaussians} "
-                  f"{p.elapsed:.0f}s", file=sys.stderr, flush=True)  # fmt: skip
+    def report(e) -> None:
+        if e.stage == "train" and e.done % 200 == 0:
+            print(f"  [{label}] {e.message}, {e.elapsed:.0f}s", file=sys.stderr, flush=True)
 
     result = train_avatar(ds, config, progress=report)
     t0 = time.perf_counter()
@@ -312,7 +311,7 @@ def main() -> None:
     if unknown:
         ap.error(f"unknown methods {unknown}; choose from {list(METHODS)}")
     torch.set_num_threads(args.threads)
-    base = with_pixel_norm(preset(args.preset, threads=args.threads), args.pixel_norm)
+    base = with_pixel_norm(preset(args.preset), args.pixel_norm)
     s = base.strategy
     config = {
         "size": args.size, "seeds": args.seeds, "preset": args.preset, "iterations": base.iterations,
@@ -341,7 +340,7 @@ def main() -> None:
             label = f"{method} seed {seed}"
             print(f"{label} ...", file=sys.stderr, flush=True)
             cfg = with_method(
-                with_pixel_norm(preset(args.preset, threads=args.threads, seed=seed), args.pixel_norm), method
+                with_pixel_norm(preset(args.preset, seed=seed), args.pixel_norm), method
             )
             entry = {"seed": seed, **run_one(ds, cfg, metrics, label)}
             runs.setdefault(method, []).append(entry)

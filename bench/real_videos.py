@@ -85,32 +85,31 @@ def same_settings(saved: dict, wanted: dict) -> bool:
 
 
 def train_and_eval(
-    ds, method: str, preset_name: str, seed: int, threads: int, metrics, out: Path, refinement, reuse: bool
+    ds, method: str, preset_name: str, seed: int, metrics, out: Path, refinement, reuse: bool
 ) -> tuple:
     """Train ``method`` (or, with ``reuse``, load the avatar an earlier run saved in ``out`` with
     the same settings) and evaluate it: (table entry, avatar, ``EvalResult``)."""
-    from eva_engine.avatar import load_avatar, read_avatar_info, save_avatar
+    from eva_engine.avatar import load_saved_avatar, save_avatar
     from eva_engine.eval import evaluate_avatar
     from eva_engine.train import preset, train_avatar, with_method
 
-    config = with_method(preset(preset_name, threads=threads, seed=seed), method)
+    config = with_method(preset(preset_name, seed=seed), method)
     entry: dict = {"iterations": config.iterations}
     if reuse and (out / "avatar.json").is_file():
-        info = read_avatar_info(out)
-        if not same_settings(info.get("train_config") or {}, json.loads(json.dumps(config.to_dict()))):
+        saved = load_saved_avatar(out)
+        if not same_settings(saved.meta.train_config or {}, json.loads(json.dumps(config.to_dict()))):
             raise SystemExit(f"{out} was trained with other settings; drop --reuse to train again")
-        avatar, train_seconds = load_avatar(out), info["train_seconds"]
+        avatar, train_seconds = saved.avatar, saved.meta.train_seconds
         entry["reused"] = str(out)
     else:
 
-        def report(p) -> None:
-            if p.stage == "train" and p.iteration % 200 == 0:
-                print(f"  [{method}] {p.iteration}/{p.total} loss {p.loss:.4f} GS {p.num_gaussians} "
-                      f"{p.elapsed:.0f}s", file=sys.stderr, flush=True)  # fmt: skip
+        def report(e) -> None:
+            if e.stage == "train" and e.done % 200 == 0:
+                print(f"  [{method}] {e.message}, {e.elapsed:.0f}s", file=sys.stderr, flush=True)
 
         result = train_avatar(ds, config, progress=report)
         avatar, train_seconds = result.avatar, result.train_seconds
-        save_avatar(avatar, out, {"train_config": config.to_dict(), "train_seconds": train_seconds})
+        save_avatar(avatar, out, result.record(config, preset=preset_name, method=method))
         entry["gaussians_per_part"] = result.gaussians_per_part
     ev = evaluate_avatar(avatar, ds, metrics=metrics, train_seconds=train_seconds, refinement=refinement)
     entry.update(n_gaussians=len(avatar.gaussians), train_seconds=train_seconds, notes=ev.notes)
@@ -293,7 +292,7 @@ def main() -> None:
             print(f"{video.name}: {method} ...", file=sys.stderr, flush=True)
             tag = method.replace("+", "_")
             entry["methods"][method], avatars[method], ev = train_and_eval(
-                ds, method, args.preset, args.seed, args.threads, metrics, folder / f"avatar-{tag}",
+                ds, method, args.preset, args.seed, metrics, folder / f"avatar-{tag}",
                 refinement, args.reuse,
             )  # fmt: skip
             poses[method] = ev.refined_params if ev.refined_params is not None else ds.params

@@ -55,7 +55,7 @@ def main() -> None:
                     args.seed,
                     out,
                     model=model,
-                    progress=lambda done, total, stamps=stamps: stamps.append(time.perf_counter()),
+                    progress=lambda _, stamps=stamps: stamps.append(time.perf_counter()),
                 )
                 total = time.perf_counter() - t0
                 n = len(stamps)

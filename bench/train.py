@@ -23,6 +23,8 @@ from pathlib import Path
 import torch
 from machine import describe
 
+from eva_engine.recipes import METHODS, PRESETS, describe_methods, describe_presets
+
 RESULTS = Path(__file__).resolve().parent / "results"
 TARGET_SECONDS = 600.0
 
@@ -35,7 +37,8 @@ def main() -> None:
     ap.add_argument("--synthetic", default="controlled", help="synthetic preset (controlled has parameters)")
     ap.add_argument("--size", default="bench", help="synthetic size: tiny or bench")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--preset", default="default", help="training preset: tiny, fast, default")
+    ap.add_argument("--preset", default="default", choices=list(PRESETS), help=describe_presets())
+    ap.add_argument("--method", choices=list(METHODS), help=f"default: the preset's; {describe_methods()}")
     ap.add_argument("--iterations", type=int, help="override the preset's iteration count")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="cpu")
@@ -46,7 +49,7 @@ def main() -> None:
     from eva_engine.data import load_dataset
     from eva_engine.eval import evaluate_avatar, metrics_table
     from eva_engine.paths import data_dir
-    from eva_engine.train import preset, train_avatar
+    from eva_engine.train import preset, train_avatar, with_method
 
     torch.set_num_threads(args.threads)
     path = args.dataset
@@ -58,22 +61,23 @@ def main() -> None:
             print(f"generating {path} ...", file=sys.stderr)
             generate(args.synthetic, args.size, args.seed, path)
     ds = load_dataset(path)
-    overrides = {"threads": args.threads, "device": args.device}
+    overrides = {"device": args.device}
     if args.iterations:
         overrides["iterations"] = args.iterations
     config = preset(args.preset, **overrides)
+    if args.method:
+        config = with_method(config, args.method)
+    name = args.preset if not args.method else f"{args.preset}/{args.method}"
 
-    def report(p) -> None:
-        if p.stage != "train" or p.iteration % 100 == 0:
-            print(f"{p.stage} {p.iteration}/{p.total} loss {p.loss:.4f} GS {p.num_gaussians} "
-                  f"{p.elapsed:.0f}s eta {p.eta:.0f}s", file=sys.stderr, flush=True)  # fmt: skip
+    def report(e) -> None:
+        if e.stage != "train" or e.done % 100 == 0:
+            print(f"{e.stage}: {e.message}, {e.elapsed:.0f}s eta {e.eta or 0:.0f}s", file=sys.stderr,
+                  flush=True)  # fmt: skip
 
     result = train_avatar(ds, config, progress=report)
     ev = evaluate_avatar(result.avatar, ds, train_seconds=result.train_seconds)
     if args.out:
-        save_avatar(
-            result.avatar, args.out, {"train_config": config.to_dict(), "train_seconds": result.train_seconds}
-        )
+        save_avatar(result.avatar, args.out, result.record(config, preset=args.preset), result.frames(ds))
     n = config.iterations
     entry = {
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -83,6 +87,7 @@ def main() -> None:
         "image_size": list(ds.image_size),
         "train_frames": len(ds.splits["train"]),
         "preset": args.preset,
+        "method": args.method,
         "iterations": n,
         "train_seconds": result.train_seconds,
         "seconds_per_iteration": result.train_seconds / n,
@@ -95,10 +100,10 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     json_path = RESULTS / "train.json"
     runs = json.loads(json_path.read_text()) if json_path.is_file() else {}
-    runs[f"{Path(path).name}/{args.preset}"] = entry
+    runs[f"{Path(path).name}/{name}"] = entry
     json_path.write_text(json.dumps(runs, indent=2))
     (RESULTS / "train.md").write_text(markdown(runs, metrics_table))
-    print(markdown({f"{Path(path).name}/{args.preset}": entry}, metrics_table))
+    print(markdown({f"{Path(path).name}/{name}": entry}, metrics_table))
 
 
 def region_metrics(v: dict):

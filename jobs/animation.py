@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING
 from pydantic import Field
 
 from eva_engine.animate.animation import AnimationConfig, AnimationError, output_frames, output_size
+from eva_engine.progress import ProgressEvent
 from jobs.options import MAX_FRAMES, MAX_SIZE, MIN_SIZE
 from jobs.progress import preprocess_progress
 
@@ -83,8 +84,7 @@ def check_animation_budget(options: AnimationConfig, frames: int, fps: float,
 
 def animation_stages(run: JobRun, job: JobRecord, report: Reporter) -> None:
     """Run (or resume) animation job ``job`` in ``run`` (its storage, limits and body models)."""
-    from eva_engine.avatar import read_avatar_info
-    from eva_engine.avatar.io import load_avatar
+    from eva_engine.avatar import load_avatar, read_avatar_meta
 
     options = AnimationOptions.model_validate(job.options)
     storage = run.storage
@@ -97,7 +97,7 @@ def animation_stages(run: JobRun, job: JobRecord, report: Reporter) -> None:
         avatar_dir = storage.avatar_dir(options.avatar_id)
         if not avatar_dir.is_dir():
             raise FileNotFoundError(f"avatar {options.avatar_id} no longer exists")
-        body = run.body_model(read_avatar_info(avatar_dir)["body_model"])
+        body = run.body_model(read_avatar_meta(avatar_dir).body_model)
         avatar = load_avatar(avatar_dir, body=body).eval()
         driving = _driving(run, work, dataset_dir, body, options, report)
         report.completed("align")
@@ -106,7 +106,7 @@ def animation_stages(run: JobRun, job: JobRecord, report: Reporter) -> None:
         )
         _render(run, job, avatar, driving, options, rendered_dir, report)
     report.completed("render")
-    report("export", 0.0, message="publishing the animation", force=True)  # ownership checked here
+    report(ProgressEvent("export", message="publishing the animation"), force=True)  # ownership checked here
     try:
         storage.publish_animation(rendered_dir, animation_id)
     except FileExistsError:  # another attempt published the same job's animation first
@@ -127,17 +127,17 @@ def _driving(run: JobRun, work: Path, dataset_dir: Path, body, options: Animatio
     if upload is None:
         raise FileNotFoundError("the uploaded driving video is missing from the job's folder")
     if upload.suffix == ".json":
-        report("preprocess", 1.0, message="reading the poses", force=True)
+        report(ProgressEvent("preprocess", 1, 1, "reading the poses"), force=True)
         try:
             doc = json.loads(upload.read_text())
         except ValueError as err:
             raise DrivingError(f"the poses are not valid JSON: {err}") from err
         return driving_from_poses(doc, body)
-    report("preprocess", 0.0, message="checking the driving video", force=True)
+    report(ProgressEvent("preprocess", message="checking the driving video"), force=True)
     # Again here, not only at upload: the budget may have changed, and this is what decodes.
     info = probe_video(upload, run.config.max_video_side, decode_first=False)
     check_frame_budget(info, options.max_frames, options.max_size, run.config.max_frame_pixels)
-    report("preprocess", 0.0, message="decoding the driving video", force=True)
+    report(ProgressEvent("preprocess", message="decoding the driving video"), force=True)
 
     progress = preprocess_progress(report, fitted=" to the driving video")
 
@@ -145,7 +145,7 @@ def _driving(run: JobRun, work: Path, dataset_dir: Path, body, options: Animatio
                               fitting=scaled_fit_config(options.fit_scale))  # fmt: skip
     partial = dataset_dir.with_name(f"{dataset_dir.name}.partial-{run.attempt}")
     result = preprocess_video(upload, partial, config, model=body, progress=progress, overwrite=True)
-    report("align", 1.0, message="driving video aligned", force=True)  # still ours: put it in place
+    report(ProgressEvent("align", 1, 1, "driving video aligned"), force=True)  # still ours: put it in place
     move_into_place(partial, dataset_dir)
     upload.unlink(missing_ok=True)  # the dataset holds the frames now
     return driving_from_dataset(dataset_dir, body, dropped=result.dropped_frames)
@@ -156,17 +156,15 @@ def _render(run: JobRun, job: JobRecord, avatar, driving, options: AnimationOpti
     from eva_engine.animate import animate, write_animation
     from jobs.storage import move_into_place
 
-    report("render", 0.0, message=f"rendering {len(driving)} driving frames", force=True)
+    report(ProgressEvent("render", message=f"rendering {len(driving)} driving frames"), force=True)
     started = time.monotonic()
 
-    def progress(done: int, total: int) -> None:
-        elapsed = time.monotonic() - started
-        eta = elapsed / done * (total - done) if done else None
-        report("render", 0.95 * done / max(total, 1), eta=eta, message=f"rendering frame {done}/{total}")
+    def progress(event: ProgressEvent) -> None:  # the last 5%: encoding
+        report(event.rescaled("render", 0.0, 0.95))
 
     config = AnimationConfig.model_validate(options.model_dump(include=set(AnimationConfig.model_fields)))
     result = animate(avatar, driving, config, progress=progress)
-    report("render", 0.95, message="encoding the video", force=True)
+    report(ProgressEvent("render", 0.95, 1, "encoding the video"), force=True)
     partial = out.with_name(f"{out.name}.partial-{run.attempt}")
     partial.mkdir(parents=True)
     write_animation(partial / VIDEO_NAME, result)
@@ -179,7 +177,7 @@ def _render(run: JobRun, job: JobRecord, avatar, driving, options: AnimationOpti
         "render_seconds": time.monotonic() - started, "created_at": time.time(),
     }  # fmt: skip
     (partial / INFO_NAME).write_text(json.dumps(info, indent=2))
-    report("render", 1.0, message="animation encoded", force=True)  # still ours: put it in place
+    report(ProgressEvent("render", 1, 1, "animation encoded"), force=True)  # still ours: put it in place
     move_into_place(partial, out)
 
 

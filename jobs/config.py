@@ -2,7 +2,7 @@
 
 Layout under ``data_dir`` (a shared folder when workers run on several machines):
 
-- ``avatars/<avatar_id>/``: finished avatars (``eva_engine.avatar`` files + ``frames.safetensors``);
+- ``avatars/<avatar_id>/``: finished avatars (avatar directories, ``eva_engine.avatar.io``);
 - ``animations/<animation_id>/``: finished animations (``animation.mp4`` + ``animation.json``);
 - ``jobs/jobs.db``: the job records (SQLite); ``jobs/queue.db``: huey's SQLite queue (default mode);
 - ``jobs/work/<job_id>/``: a job's upload and intermediate results, removed when it ends.

@@ -7,7 +7,7 @@ last completed stage.
 
     work/<job_id>/input.<ext>   the upload (written by the API)
     work/<job_id>/dataset/      eva_engine.align.preprocess_video (stages preprocess, align)
-    work/<job_id>/avatar/       eva_engine.avatar.save_avatar + metrics + frames (stage train)
+    work/<job_id>/avatar/       eva_engine.avatar.save_avatar: with its metrics and frames (stage train)
     avatars/<avatar_id>/        the same folder, renamed (stage export)
 
 Every record write is conditional on this attempt still owning the job (``JobStore`` ``owner=``);
@@ -27,6 +27,7 @@ import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from eva_engine.progress import ProgressEvent
 from jobs.config import JobsConfig
 from jobs.options import JobOptions
 from jobs.progress import preprocess_progress
@@ -55,17 +56,19 @@ class Reporter:
         self._last = 0.0
         self._stage: str | None = None
 
-    def __call__(self, stage: str, fraction: float, eta: float | None = None, message: str | None = None,
-                 force: bool = False) -> None:  # fmt: skip
+    def __call__(self, event: ProgressEvent, force: bool = False) -> None:
+        """``event``: a job stage (``spans``) and how far into it (``fraction``), with a message
+        and an ETA; reported at most every ``interval`` seconds per stage, unless ``force``."""
         now = time.monotonic()
+        stage = event.stage
         if not force and stage == self._stage and now - self._last < self.interval:
             return
         self._stage, self._last = stage, now
         lo, hi = self.spans[stage]
-        progress = lo + (hi - lo) * min(max(fraction, 0.0), 1.0)
-        eta = eta if eta is not None and math.isfinite(eta) else None
+        progress = lo + (hi - lo) * event.fraction
+        eta = event.eta if event.eta is not None and math.isfinite(event.eta) else None
         if not self.store.update(self.job.id, owner=self.worker, stage=stage, progress=progress, eta_s=eta,
-                                 message=message, heartbeat_at=time.time()):  # fmt: skip
+                                 message=event.message, heartbeat_at=time.time()):  # fmt: skip
             raise JobLost(self.job.id)
         current = self.store.get(self.job.id)
         if current is None or current.cancel_requested:
@@ -149,7 +152,7 @@ class JobRun:
             report.completed("align")
             self._train(job, dataset_dir, trained_dir, options, report)
         report.completed("train")
-        report("export", 0.0, message="publishing the avatar", force=True)  # ownership checked here
+        report(ProgressEvent("export", message="publishing the avatar"), force=True)  # ownership checked here
         try:
             self.storage.publish(trained_dir, job.avatar_id)
         except FileExistsError:  # another attempt published the same job's avatar first
@@ -163,11 +166,11 @@ class JobRun:
         video = input_file(work)
         if video is None:
             raise FileNotFoundError("the uploaded video is missing from the job's folder")
-        report("preprocess", 0.0, message="checking the video", force=True)
+        report(ProgressEvent("preprocess", message="checking the video"), force=True)
         # Again here, not only at upload: the budget may have changed, and this is what decodes.
         info = probe_video(video, self.config.max_video_side, decode_first=False)
         check_frame_budget(info, options.max_frames, options.max_size, self.config.max_frame_pixels)
-        report("preprocess", 0.0, message="decoding the video", force=True)
+        report(ProgressEvent("preprocess", message="decoding the video"), force=True)
         model = self.body_model(options.body_model)
 
         progress = preprocess_progress(report)
@@ -176,7 +179,7 @@ class JobRun:
                                   fitting=options.fit_config())  # fmt: skip
         partial = out.with_name(f"{out.name}.partial-{self.attempt}")
         preprocess_video(video, partial, config, model=model, progress=progress, overwrite=True)
-        report("align", 1.0, message="dataset ready", force=True)  # still ours: put it in place
+        report(ProgressEvent("align", 1, 1, "dataset ready"), force=True)  # still ours: put it in place
         move_into_place(partial, out)
         video.unlink(missing_ok=True)  # the dataset holds the frames now
 
@@ -185,13 +188,12 @@ class JobRun:
         import dataclasses
 
         from eva_engine.avatar import save_avatar
-        from eva_engine.avatar.frames import save_avatar_frames
         from eva_engine.data import load_dataset
         from eva_engine.train import preset, train_avatar, with_method
 
         ds = load_dataset(dataset_dir)
         body = self.body_model(ds.meta.body_model or options.body_model)
-        overrides: dict = {"threads": self.config.threads}
+        overrides: dict = {}
         if options.iterations is not None:
             overrides["iterations"] = options.iterations
         if options.image_scale is not None:
@@ -202,39 +204,22 @@ class JobRun:
         # The service's cap on Gaussians, whatever the preset or method (memory and render time).
         cap = min(config.strategy.max_gaussians or self.config.max_gaussians, self.config.max_gaussians)
         config = dataclasses.replace(config, strategy=dataclasses.replace(config.strategy, max_gaussians=cap))
-        report("train", 0.0, message="setting up training", force=True)
+        report(ProgressEvent("train", message="setting up training"), force=True)
 
-        def progress(p) -> None:
-            msg = f"iteration {p.iteration}/{p.total}, {p.num_gaussians} Gaussians"
-            if math.isfinite(p.loss):
-                msg += f", loss {p.loss:.4f}"
-            report("train", 0.95 * p.iteration / max(p.total, 1), eta=p.eta, message=msg)
+        def progress(event: ProgressEvent) -> None:  # the last 5%: the fit on training frames
+            report(event.rescaled("train", 0.0, 0.95))
 
         result = train_avatar(ds, config, body=body, progress=progress)
-        report("train", 0.95, message="measuring the fit on training frames", force=True)
-        metrics = _training_metrics(result.avatar, ds)
-        info = {
-            "avatar_id": job.avatar_id,
-            "job_id": job.id,
-            "source_video": job.filename,
-            "preset": options.preset,
-            "options": options.model_dump(),
-            "train_config": config.to_dict(),
-            "train_seconds": result.train_seconds,
-            "iterations": config.iterations,
-            "final_loss": result.losses[-1],
-            "timings": result.timings,
-            "gaussians_per_part": result.gaussians_per_part,
-            "pose_correction": result.pose_correction,
-            "metrics": metrics,
-            "created_at": time.time(),
-        }
+        report(ProgressEvent("train", 0.95, 1, "measuring the fit on training frames"), force=True)
+        record = result.record(
+            config, preset=options.preset, method=options.method, options=options.model_dump(),
+            metrics=_training_metrics(result.avatar, ds), avatar_id=job.avatar_id, job_id=job.id,
+            source_video=job.filename, created_at=time.time(),
+        )  # fmt: skip
         partial = out.with_name(f"{out.name}.partial-{self.attempt}")
-        partial.mkdir(parents=True)
-        # Each training frame's pose and camera, so a client can render it to compare with the input.
-        info["frames"] = save_avatar_frames(partial, ds, result.frame_params(ds.params))  # as trained
-        save_avatar(result.avatar, partial, info)
-        report("train", 1.0, message="avatar trained", force=True)  # still ours: put it in place
+        # Each training frame's pose (as trained) and camera: a client renders one to compare with the input.
+        save_avatar(result.avatar, partial, record, frames=result.frames(ds))
+        report(ProgressEvent("train", 1, 1, "avatar trained"), force=True)  # still ours: put it in place
         move_into_place(partial, out)
 
 

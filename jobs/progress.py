@@ -1,27 +1,36 @@
-"""Job progress from the engine's preprocessing callbacks, shared by avatar and animation jobs."""
+"""Job progress from the engine's progress events: the engine's preprocessing stages mapped onto
+the job's stages, shared by avatar and animation jobs."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
+from eva_engine.progress import Progress, ProgressEvent
 
-def preprocess_progress(report: Callable[..., None], fitted: str = "") -> Callable[[str, int, int], None]:
-    """The ``progress(stage, done, total)`` callback of ``preprocess_video`` as job progress:
-    decoding and detection are the ``preprocess`` stage; the fit (to 70%), the region masks (80%)
-    and writing the frames (to 100%) the ``align`` stage. ``fitted`` ends the fitting message
-    (e.g. " to the driving video"). ``report(stage, fraction, message=..., force=...)``."""
+# Each stage of ``preprocess_video`` as a part of a job stage: (job stage, from, to), fractions.
+PREPROCESS_SPANS = {
+    "decode": ("preprocess", 0.1, 0.1),
+    "detect": ("preprocess", 0.1, 1.0),
+    "align": ("align", 0.0, 0.7),
+    "regions": ("align", 0.8, 0.8),
+    "write": ("align", 0.8, 1.0),
+}
+# Reported however recent the last report: they start long steps.
+FORCED = ("align", "regions")
 
-    def progress(stage: str, done: int, total: int) -> None:
-        frac = done / max(total, 1)
-        if stage == "decode":
-            report("preprocess", 0.1, message=f"decoded {done} frames")
-        elif stage == "detect":
-            report("preprocess", 0.1 + 0.9 * frac, message=f"detecting the person: frame {done}/{total}")
-        elif stage == "align":
-            report("align", 0.7 * frac, message=f"fitting the body model{fitted}", force=True)
-        elif stage == "regions":
-            report("align", 0.8, message="rendering hand and face regions", force=True)
-        else:
-            report("align", 0.8 + 0.2 * frac, message=f"writing frame {done}/{total}")
+
+def preprocess_progress(report: Callable[..., None], fitted: str = "") -> Progress:
+    """The ``progress`` of ``preprocess_video`` as job progress (``PREPROCESS_SPANS``): decoding
+    and detection are the ``preprocess`` stage; the fit, the region masks and writing the frames
+    the ``align`` stage. ``fitted`` ends the fitting message (e.g. " to the driving video").
+    ``report(event, force=...)``: a ``jobs.pipeline.Reporter``."""
+
+    def progress(event: ProgressEvent) -> None:
+        stage, start, end = PREPROCESS_SPANS[event.stage]
+        job_event = event.rescaled(stage, start, end)
+        if event.stage == "align":
+            job_event = dataclasses.replace(job_event, message=f"{event.message}{fitted}")
+        report(job_event, force=event.stage in FORCED)
 
     return progress

@@ -288,6 +288,10 @@ def main(argv: list[str] | None = None) -> int:
     _die_with_parent(spec["parent"])
     config = JobsConfig.model_validate(spec["config"])
     limit_memory(config.job_memory_mb)
+    if config.threads:  # the job's process is its own: its torch threads are set once, here
+        import torch
+
+        torch.set_num_threads(config.threads)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     from jobs.pipeline import JobRun
 

@@ -18,16 +18,15 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from eva_engine.progress import Progress, ProgressEvent
+
 # The signer is filmed waist-up (the synthetic wild preset), so the new pose is framed the same way.
 UPPER_BODY = {"target": (0.0, 0.35, 0.0), "distance": 2.3, "fov_y": 35.0}
-Progress = Callable[[str, float, float | None], None]
-"""progress(stage, fraction 0-1, eta seconds or None)."""
 
 
 class DemoError(RuntimeError):
@@ -52,16 +51,16 @@ class PhaseClock:
     """Wraps a progress callback: a phase lasts from its first report to the next phase's."""
 
     def __init__(self, progress: Progress | None) -> None:
-        self.progress = progress or (lambda *_: None)
+        self.progress = progress or (lambda _: None)
         self.phases: dict[str, float] = {}
         self._current: str | None = None
         self._since = time.perf_counter()
 
-    def __call__(self, stage: str, fraction: float, eta: float | None) -> None:
-        if stage != self._current:
+    def __call__(self, event: ProgressEvent) -> None:
+        if event.stage != self._current:
             self.stop()
-            self._current, self._since = stage, time.perf_counter()
-        self.progress(stage, fraction, eta)
+            self._current, self._since = event.stage, time.perf_counter()
+        self.progress(event)
 
     def stop(self) -> None:
         if self._current is not None:
@@ -108,7 +107,7 @@ def run_service_demo(
     shutil.rmtree(workdir, ignore_errors=True)
     workdir.mkdir(parents=True)
     say = PhaseClock(progress)
-    say("video", 0.0, None)
+    say(ProgressEvent("video"))
     video, frames = signer_video(workdir, load_body_model("anny"))
 
     eva, port = _eva_executable(), _free_port()
@@ -122,7 +121,7 @@ def run_service_demo(
     procs = [subprocess.Popen(c, stdout=log, stderr=subprocess.STDOUT) for c, log in pairs]
     try:
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=120.0) as api:
-            say("service start", 0.0, None)
+            say(ProgressEvent("service start"))
             _wait_healthy(api, procs, workdir)
             with video.open("rb") as f:
                 created = api.post(
@@ -141,12 +140,12 @@ def run_service_demo(
                 {"pose": DEMO_POSE, "camera": {"yaw": 35.0, **UPPER_BODY}, "width": w, "height": h},
             ]
             panels = [(frames[frame].numpy() * 255 + 0.5).astype(np.uint8)]
-            say("render", 0.0, None)
+            say(ProgressEvent("render"))
             for body in requests:
                 png = _check(api.post(f"/avatars/{avatar_id}/render", json=body), "render").content
                 panels.append(np.asarray(Image.open(io.BytesIO(png)).convert("RGB").resize((w, h))))
             if out_mp4 is not None:
-                say("driving video", 0.0, None)
+                say(ProgressEvent("driving video"))
                 driving, _ = signer_video(workdir / "driving", load_body_model("anny"), seed=1)
                 form = {"camera": "front", "side_by_side": "true"}
                 if options and options.get("fit_scale"):
@@ -183,7 +182,8 @@ def _follower(api, procs, workdir: Path, say: Progress, deadline: float):
     def follow(job_id: str, label: str) -> None:
         while True:
             job = _check(api.get(f"/jobs/{job_id}"), "job status").json()
-            say(label + (job["stage"] or job["state"]), job["progress"], job["eta_seconds"])
+            stage = label + (job["stage"] or job["state"])
+            say(ProgressEvent(stage, job["progress"], 1.0, job["message"], eta=job["eta_seconds"]))
             if job["state"] == "succeeded":
                 return
             if job["state"] in ("failed", "cancelled"):

@@ -1,17 +1,17 @@
 """Small in-memory scenes for the avatar, training and evaluation tests (imported by them): a
 "teacher" avatar with a known colour pattern, rendered in a few poses by the project's own
-rasterizer, wrapped in an object with the ``eva-dataset`` API (``splits``, ``meta``, ``params``,
-``ds[i]``); `test_scenes.py` checks that the scene is a fair one."""
+rasterizer, wrapped in a ``DatasetLike`` (``splits``, ``meta``, ``params``, ``ds[i]``);
+`test_scenes.py` checks that the scene is a fair one."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from types import SimpleNamespace
 
 import torch
 
 from eva_engine.avatar import Avatar, AvatarConfig, Camera
 from eva_engine.body.params import BodyParams
+from eva_engine.data import DatasetMeta, Frame
 
 
 def front_camera(size: int = 64, distance: float = 2.6, focal: float | None = None) -> Camera:
@@ -55,24 +55,25 @@ def random_params(body, n: int, seed: int, amplitude: float = 0.4) -> BodyParams
 
 @dataclass
 class SceneDataset:
-    """The ``eva-dataset`` API over tensors. frames: list of SimpleNamespace like ``Frame``."""
+    """A ``DatasetLike`` held in memory: ``frames[i]`` is frame ``i``; its meta names Anny and a
+    white background."""
 
-    frames: list
+    frames: list[Frame]
     params: BodyParams
-    splits: dict
-    meta: SimpleNamespace = field(default_factory=lambda: SimpleNamespace(background=(1.0, 1.0, 1.0),
-                                                                             body_model="anny"))  # fmt: skip
+    splits: dict[str, list[int]]
     gt_params: BodyParams | None = None
+    meta: DatasetMeta = field(init=False)
+
+    def __post_init__(self) -> None:
+        h, w = self.frames[0].image.shape[:2]
+        self.meta = DatasetMeta(source="synthetic", fps=1.0, image_size=(h, w), num_frames=len(self.frames),
+                                body_model="anny", background=(1.0, 1.0, 1.0))  # fmt: skip
 
     def __len__(self) -> int:
         return len(self.frames)
 
-    def __getitem__(self, i: int):
+    def __getitem__(self, i: int) -> Frame:
         return self.frames[i]
-
-    @property
-    def image_size(self) -> tuple[int, int]:
-        return tuple(self.frames[0].image.shape[:2])
 
 
 def region_masks(avatar: Avatar, params: BodyParams, camera: Camera) -> dict[str, torch.Tensor]:
@@ -102,7 +103,7 @@ def teacher_scene(
     frames = []
     for i in range(n_frames):
         out = teacher(params[i], cam, bg)
-        frames.append(SimpleNamespace(
+        frames.append(Frame(
             index=i, image=out.image.clamp(0, 1), mask=out.alpha[..., 0].clamp(0, 1),
             regions=region_masks(teacher, params[i], cam),
             K=cam.K, viewmat=cam.viewmat, time=float(i),

@@ -125,9 +125,8 @@ def publish_seeded_avatar(queue, model, frames: int = 3, size: tuple[int, int] =
     ``frames`` training frames of ``size`` (height, width), published the way a worker publishes
     one: the render and export endpoints work on it in milliseconds, without a training run."""
     import torch
-    from safetensors.torch import save_file
 
-    from eva_engine.avatar import FRAMES_NAME, Avatar, AvatarConfig, save_avatar
+    from eva_engine.avatar import Avatar, AvatarConfig, AvatarFrames, save_avatar
     from eva_engine.render.camera import intrinsics, orbit_camera
     from jobs import JobOptions
 
@@ -137,13 +136,12 @@ def publish_seeded_avatar(queue, model, frames: int = 3, size: tuple[int, int] =
     config = AvatarConfig(init_max_gaussians=800, mlp_width=16, pe_frequencies=2, sh_degree=1)
     avatar = Avatar.create(model, model.shape_defaults, config)
     folder = queue.storage.avatar_dir(job.avatar_id)
-    save_avatar(avatar, folder, {"frames": {"count": frames, "image_size": list(size), "fps": 10.0}})
-    params = model.default_params(frames)
-    tensors = {f"params.{k}": v.detach().float().contiguous() for k, v in params.tensors().items()}
-    tensors["K"] = intrinsics(size[1], size[0], 40.0).expand(frames, 3, 3).contiguous()
-    tensors["viewmat"] = orbit_camera(0.0, 0.0, 2.6).float().expand(frames, 4, 4).contiguous()
-    tensors["timestamps"] = torch.arange(frames, dtype=torch.float64) / 10.0
-    save_file(tensors, str(folder / FRAMES_NAME))
+    kept = AvatarFrames(
+        params=model.default_params(frames), K=intrinsics(size[1], size[0], 40.0).expand(frames, 3, 3),
+        viewmat=orbit_camera(0.0, 0.0, 2.6).float().expand(frames, 4, 4),
+        timestamps=torch.arange(frames, dtype=torch.float64) / 10.0, image_size=size, fps=10.0,
+    )  # fmt: skip
+    save_avatar(avatar, folder, frames=kept)
     assert queue.store.finish(job.id, "succeeded", owner=worker)
     return queue.store.get(job.id)
 

@@ -86,12 +86,12 @@ def test_region_masks_follow_the_fitted_body_and_the_detections(signer, preproce
 
 
 def test_eval_of_a_preprocessed_video_scores_each_hand_and_the_face(preprocessed, tmp_path):
-    from eva_engine.avatar import save_avatar
+    from eva_engine.avatar import TrainingRecord, save_avatar
     from eva_engine.train import preset, train_avatar
 
     _, ds = preprocessed
     result = train_avatar(ds, preset("tiny", iterations=8))
-    save_avatar(result.avatar, tmp_path / "avatar", {"train_seconds": result.train_seconds})
+    save_avatar(result.avatar, tmp_path / "avatar", TrainingRecord(train_seconds=result.train_seconds))
     args = ["eval", str(tmp_path / "avatar"), str(ds.root), "--json", str(tmp_path / "m.json")]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output

@@ -12,11 +12,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import service_helpers as helpers
+import torch
 from PIL import Image
 from scenes import front_camera, random_params, teacher_avatar
 from typer.testing import CliRunner
 
-from eva_engine.avatar import read_avatar_info, save_avatar, save_avatar_frames
+from eva_engine.avatar import AvatarFrames, read_avatar_meta, save_avatar
 from eva_engine.cli import app
 from eva_engine.data import read_video, write_video
 
@@ -31,13 +32,12 @@ def avatar_dir(anny_model, tmp_path_factory):
     folder = tmp_path_factory.mktemp("cli") / "avatar"
     avatar = teacher_avatar(anny_model, n=3000)
     cam = front_camera(64)
-    frames = SimpleNamespace(
+    frames = AvatarFrames(
         params=random_params(anny_model, 3, seed=2), K=cam.K.expand(3, 3, 3),
-        viewmat=cam.viewmat.expand(3, 4, 4), timestamps=[0.0, 0.1, 0.2],
-        meta=SimpleNamespace(image_size=(80, 64), fps=10.0),
+        viewmat=cam.viewmat.expand(3, 4, 4), timestamps=torch.tensor([0.0, 0.1, 0.2], dtype=torch.float64),
+        image_size=(80, 64), fps=10.0,
     )  # fmt: skip
-    folder.mkdir()
-    save_avatar(avatar, folder, {"frames": save_avatar_frames(folder, frames)})
+    save_avatar(avatar, folder, frames=frames)
     return folder
 
 
@@ -196,4 +196,4 @@ def test_animate_with_a_video_of_someone_else(avatar_dir, other_signer_video, tm
     g = _frames(front)
     assert g.shape == (15, 256, 256, 3)  # 3.5 s at 4 fps
     assert np.abs(np.diff(g, axis=0)).mean((1, 2, 3)).min() > 0.05
-    assert read_avatar_info(avatar_dir)["format"] == "eva-avatar"  # the avatar itself is untouched
+    assert read_avatar_meta(avatar_dir).format == "eva-avatar"  # the avatar itself is untouched

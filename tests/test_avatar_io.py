@@ -8,13 +8,20 @@ import numpy as np
 import pytest
 import torch
 from plyfile import PlyData
+from pydantic import ValidationError
 from scenes import front_camera, random_params
 
 from eva_engine.avatar import (
     Avatar,
     AvatarConfig,
     AvatarFileError,
+    AvatarFrames,
+    FramesInfo,
+    TrainingRecord,
     load_avatar,
+    load_avatar_frames,
+    load_saved_avatar,
+    read_avatar_meta,
     read_ply,
     save_avatar,
     write_ply,
@@ -67,7 +74,8 @@ def test_ply_round_trip_of_sh_degree_zero(tmp_path, anny_model):
 
 
 def test_save_reload_renders_identically(tmp_path, anny_model, trained_like):
-    out = save_avatar(trained_like, tmp_path / "av", {"train_seconds": 1.5, "metrics": {"psnr": 30.0}})
+    record = TrainingRecord(train_seconds=1.5, metrics={"psnr": 30.0})
+    out = save_avatar(trained_like, tmp_path / "av", record)
     assert sorted(p.name for p in out.iterdir()) == ["avatar.json", "avatar.ply", "avatar.safetensors"]
     doc = json.loads((out / "avatar.json").read_text())
     assert doc["num_gaussians"] == len(trained_like.gaussians) and doc["body_model"] == "anny"
@@ -95,3 +103,46 @@ def test_load_errors_are_clear(tmp_path, anny_model, trained_like):
     (out / "avatar.json").write_text("{not json")
     with pytest.raises(AvatarFileError, match="JSON"):
         load_avatar(out, body=anny_model)
+
+
+def test_the_whole_directory_round_trips(tmp_path, anny_model, trained_like):
+    """Gaussians, avatar.json (typed) and the training frames: written once, read back as one."""
+    frames = AvatarFrames(
+        params=random_params(anny_model, 3, seed=4), K=front_camera(40).K.expand(3, 3, 3),
+        viewmat=front_camera(40).viewmat.expand(3, 4, 4),
+        timestamps=torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64), image_size=(48, 40), fps=2.0,
+    )  # fmt: skip
+    record = TrainingRecord(preset="tiny", method="eva", iterations=30, metrics={"psnr": 31.5})
+    out = save_avatar(trained_like, tmp_path / "av", record, frames=frames)
+    saved = load_saved_avatar(out, body=anny_model)
+    assert saved.meta.preset == "tiny" and saved.meta.method == "eva" and saved.meta.iterations == 30
+    assert saved.meta.num_gaussians == len(trained_like.gaussians) and saved.meta.metrics == {"psnr": 31.5}
+    assert saved.meta.frames == FramesInfo(count=3, image_size=(48, 40), fps=2.0)
+    assert saved.frames is not None and len(saved.frames) == 3 and saved.frames.image_size == (48, 40)
+    for name, value in frames.params.tensors().items():
+        assert torch.equal(getattr(saved.frames.params, name), value.float()), name
+    assert torch.equal(saved.frames.K, frames.K) and torch.equal(saved.frames.timestamps, frames.timestamps)
+    # Saved again without frames: none are left behind.
+    save_avatar(trained_like, out)
+    assert load_avatar_frames(out) is None and read_avatar_meta(out).frames is None
+    with pytest.raises(ValidationError):
+        TrainingRecord(train_secs=1.0)  # a typo is an error, not a silent extra key
+
+
+def test_reads_avatar_json_as_earlier_versions_wrote_it(tmp_path, anny_model, trained_like):
+    """The writers before the typed artefact: a free-form dict (nulls for unknowns, keys this
+    reader does not know, no active SH degree)."""
+    out = save_avatar(trained_like, tmp_path / "av")
+    old = {
+        "format": "eva-avatar", "version": 1, "body_model": "anny",
+        "num_gaussians": len(trained_like.gaussians),
+        "avatar_config": json.loads((out / "avatar.json").read_text())["avatar_config"],
+        "preset": "fast", "method": None, "train_seconds": 12.5, "iterations": 600, "final_loss": 0.05,
+        "metrics": {"split": "train", "psnr": 28.0},
+        "frames": {"count": 4, "image_size": [96, 64], "fps": 25.0}, "some_later_field": {"kept": False},
+    }  # fmt: skip
+    (out / "avatar.json").write_text(json.dumps(old))
+    meta = read_avatar_meta(out)
+    assert meta.preset == "fast" and meta.method is None and meta.train_seconds == 12.5
+    assert meta.frames == FramesInfo(count=4, image_size=(96, 64), fps=25.0)
+    assert load_avatar(out, body=anny_model).active_sh_degree == trained_like.gaussians.sh_degree

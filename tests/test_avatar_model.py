@@ -57,6 +57,20 @@ def test_mlps_start_as_identity(anny_model, avatars):
     full.zero_grad()
 
 
+def test_skinning_weights_are_reused_only_while_nothing_they_depend_on_changes(anny_model):
+    avatar = Avatar.create(anny_model, anny_model.shape_defaults, AvatarConfig(**SMALL), seed=3)
+    with torch.no_grad():
+        first = avatar.skinning_weights()
+        assert avatar.skinning_weights() is first  # rendering: computed once
+        next(avatar.weight_offsets.parameters()).mul_(1.5)  # an in-place update (an optimizer step)
+        changed = avatar.skinning_weights()
+        assert changed is not first and not torch.equal(changed, first)
+        avatar.gaussians.means.add_(0.01)
+        assert avatar.skinning_weights() is not changed
+    with_grad = avatar.skinning_weights()  # training: never cached, differentiable
+    assert with_grad.requires_grad and avatar.skinning_weights() is not with_grad
+
+
 def test_gaussians_on_vertices_follow_the_body_exactly(anny_model, avatars):
     _, plain = avatars
     params = random_params(anny_model, 1, seed=2)

@@ -3,7 +3,7 @@ table layout, clear errors."""
 
 from __future__ import annotations
 
-from types import SimpleNamespace
+import dataclasses
 
 import pytest
 import torch
@@ -80,8 +80,7 @@ def test_each_hand_is_scored_on_its_own_crop(anny_model, metrics):
         cam = Camera(f.K, f.viewmat, size, size)
         target = teacher(ds.params[2], cam, torch.ones(3)).image.clamp(0, 1)
     target[right > 0.5] = 0.0
-    frame = SimpleNamespace(**{**vars(f), "image": target, "mask": torch.ones(size, size),
-                               "regions": dict(f.regions)})  # fmt: skip
+    frame = dataclasses.replace(f, image=target, mask=torch.ones(size, size), regions=dict(f.regions))
     one = SceneDataset([frame], ds.params[[2]], {"train": [], "test_pose": [0], "test_view": []})
     res = evaluate_avatar(teacher, one, metrics=metrics)
     scores = res.per_frame[0]

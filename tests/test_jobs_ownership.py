@@ -18,6 +18,7 @@ import pytest
 import service_helpers as helpers
 from service_helpers import FAST_OPTIONS, gradient_video, wait_for
 
+from eva_engine.progress import ProgressEvent
 from jobs import JobLost, JobOptions, JobQueue, JobRun, JobsConfig, JobStore, JobStoreError, sweep
 from jobs import store as store_module
 from jobs.pipeline import Reporter
@@ -70,12 +71,12 @@ def test_a_worker_that_lost_its_job_cannot_write_to_it(queue):
     assert store.heartbeat(job.id, a.worker) is None
     report = Reporter(store, a, a.worker)
     with pytest.raises(JobLost):
-        report("train", 0.5, force=True)
+        report(ProgressEvent("train", 1, 2), force=True)
     with pytest.raises(JobLost):
         report.completed("train")
     current = store.get(job.id)
     assert current.state == "running" and current.worker == b.worker and current.progress == 0.0
-    Reporter(store, b, b.worker)("train", 0.5, force=True)  # the owner's do
+    Reporter(store, b, b.worker)(ProgressEvent("train", 1, 2), force=True)  # the owner's do
     assert store.finish(job.id, "succeeded", owner=b.worker)
 
 

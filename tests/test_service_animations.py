@@ -20,7 +20,7 @@ from fastapi.testclient import TestClient
 from scenes import teacher_avatar
 from service_helpers import no_person_video, run_job_here
 
-from eva_engine.avatar import save_avatar
+from eva_engine.avatar import TrainingRecord, save_avatar
 from eva_engine.data import read_video
 from jobs import JobQueue, JobRun, JobsConfig
 from jobs.animation import AnimationOptions
@@ -42,7 +42,7 @@ def ready_avatar(queue: JobQueue, body) -> str:
     """A finished avatar job, as a worker publishes it."""
     job = queue.store.create({"preset": "tiny"}, filename="teacher.mp4")
     partial = queue.config.data_dir / "teacher.partial"
-    save_avatar(teacher_avatar(body, n=2000), partial, {"preset": "tiny"})
+    save_avatar(teacher_avatar(body, n=2000), partial, TrainingRecord(preset="tiny"))
     queue.storage.publish(partial, job.avatar_id)
     queue.store.update(job.id, state="succeeded", progress=1.0, completed_stage="export")
     return job.avatar_id

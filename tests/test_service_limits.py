@@ -119,13 +119,13 @@ def test_concurrent_first_requests_load_the_avatar_once(seeded, monkeypatch):
     app, aid = seeded
     ctx = app.state.context
     calls = []
-    real = rendering_module.load_avatar
+    real = rendering_module.load_saved_avatar
 
     def counting(*args, **kwargs):
         calls.append(threading.get_ident())
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(rendering_module, "load_avatar", counting)
+    monkeypatch.setattr(rendering_module, "load_saved_avatar", counting)
     folder = ctx.queue.storage.avatar_dir(aid)
     results = []
     threads = [threading.Thread(target=lambda: results.append(ctx.avatars.get(aid, folder)))

@@ -20,6 +20,7 @@ from eva_engine.train import (
     composite_target,
     preset,
     train_avatar,
+    with_method,
 )
 
 
@@ -70,7 +71,7 @@ def test_training_fits_and_generalises_to_novel_poses(trained, scene, lpips):
     # Progress: setup, train reports with a falling ETA, done.
     assert reports[0].stage == "setup" and reports[-1].stage == "done"
     train = [r for r in reports if r.stage == "train"]
-    assert train[-1].iteration == preset("tiny").iterations and train[-1].eta == 0.0
+    assert train[-1].done == preset("tiny").iterations and train[-1].eta == 0.0
     assert all(r.num_gaussians > 0 for r in train)
     assert set(result.timings) >= {"skinning", "rasterize", "losses", "backward", "densify"}
     print(metrics_table({"tiny": ev}), f"trivial PSNR {baseline:.2f}")
@@ -86,6 +87,53 @@ def test_deterministic_given_a_seed(scene, anny_model):
     b = train_avatar(ds, cfg, body=anny_model)
     assert a.losses == b.losses
     assert torch.equal(a.avatar.gaussians.means, b.avatar.gaussians.means)
+
+
+def test_training_leaves_the_process_state_alone(scene, anny_model):
+    """Two runs with one seed in one process give the same avatar whatever torch's global random
+    state, and a run changes neither that state nor torch's threads (they belong to the process)."""
+    ds, _ = scene
+    cfg = with_method(preset("tiny", iterations=6, seed=3), "eva")  # a learnable loss term too
+    cfg = dataclasses.replace(
+        cfg, strategy=dataclasses.replace(cfg.strategy, refine_start_iter=2, refine_every=2)
+    )
+    threads, rng = torch.get_num_threads(), torch.get_rng_state()
+    a = train_avatar(ds, cfg, body=anny_model)
+    assert torch.get_num_threads() == threads and torch.equal(torch.get_rng_state(), rng)
+    torch.manual_seed(1234)
+    b = train_avatar(ds, cfg, body=anny_model)
+    assert a.losses == b.losses and a.refinements == b.refinements
+    for name, value in a.avatar.state_dict().items():
+        assert torch.equal(value, b.avatar.state_dict()[name]), name
+    other = train_avatar(ds, dataclasses.replace(cfg, seed=4), body=anny_model)
+    assert not torch.equal(other.avatar.gaussians.means, a.avatar.gaussians.means)
+
+
+def test_checkpoints_see_the_avatar_and_their_time_is_not_training_time(scene, anny_model, lpips):
+    """The hook runs at the asked steps with the training avatar; it may evaluate it (eval mode,
+    no grad) and training goes on as without it; its time is left out of train_seconds."""
+    import time
+
+    ds, _ = scene
+    cfg = preset("tiny", iterations=6)
+    seen = []
+
+    metrics = ImageMetrics(lpips_alex=lpips)
+
+    def hook(step, avatar, seconds):
+        seen.append((step, len(avatar.gaussians), seconds))
+        if step == 3:
+            evaluate_avatar(avatar, ds, metrics=metrics)
+        time.sleep(0.4)
+
+    started = time.perf_counter()
+    hooked = train_avatar(ds, cfg, body=anny_model, checkpoint=hook, checkpoint_steps=(3, 6))
+    wall = time.perf_counter() - started
+    plain = train_avatar(ds, cfg, body=anny_model)
+    assert [s for s, _, _ in seen] == [3, 6] and all(n > 0 for _, n, _ in seen)
+    assert 0 < seen[0][2] < seen[1][2] < seen[0][2] + 0.4  # the first hook's sleep is not counted
+    assert hooked.losses == plain.losses
+    assert hooked.train_seconds < wall - 0.8
 
 
 def test_clear_errors(scene, anny_model):

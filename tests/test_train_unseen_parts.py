@@ -4,7 +4,6 @@ Gaussians, while the parts it shows keep theirs."""
 from __future__ import annotations
 
 import dataclasses
-from types import SimpleNamespace
 
 import torch
 from scenes import SceneDataset, front_camera, teacher_scene
@@ -26,8 +25,8 @@ def pixel_rows(avatar, params, camera, part: int) -> torch.Tensor:
 def head_and_shoulders(ds: SceneDataset, rows: int) -> SceneDataset:
     """The scene cropped to its top ``rows`` image rows (same intrinsics)."""
     frames = [
-        SimpleNamespace(**{**vars(f), "image": f.image[:rows], "mask": f.mask[:rows],
-                           "regions": {k: m[:rows] for k, m in f.regions.items()}})
+        dataclasses.replace(f, image=f.image[:rows], mask=f.mask[:rows],
+                            regions={k: m[:rows] for k, m in f.regions.items()})
         for f in ds.frames
     ]  # fmt: skip
     return dataclasses.replace(ds, frames=frames)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -28,9 +28,7 @@ from eva_engine.align.clip import fit_clip
 from eva_engine.align.detect import DetectorConfig, FrameDetection, HolisticDetector
 from eva_engine.align.fit import FitConfig, FitTargets, reprojection_error
 from eva_engine.body import KEYPOINT_NAMES, BodyModel
-
-Progress = Callable[[str, int, int], None]
-"""progress(stage, done, total): stage is one of "decode", "detect", "align", "regions", "write"."""
+from eva_engine.progress import Progress, ProgressEvent
 
 
 class PreprocessError(ValueError):
@@ -117,7 +115,8 @@ def detect_frames(
         for i, frame in enumerate(frames):
             results.append(detector(frame))
             if progress is not None:
-                progress("detect", i + 1, total)
+                message = f"detecting the person: frame {i + 1}/{total}"
+                progress(ProgressEvent("detect", i + 1, total, message))
     if not results:
         return Detections(np.zeros((0, len(KEYPOINT_NAMES), 3), np.float32), np.zeros((0, 42), np.float32),
                           np.zeros((0, 33, 4), np.float32), [], [])  # fmt: skip
@@ -159,7 +158,8 @@ def preprocess_video(
     progress: Progress | None = None,
     overwrite: bool = False,
 ) -> PreprocessReport:
-    """Turn one video of one person into a dataset at ``out_dir`` (written atomically)."""
+    """Turn one video of one person into a dataset at ``out_dir`` (written atomically).
+    ``progress`` hears stages "decode", "detect", "align", "regions" and "write"."""
     from eva_engine.body import load_body_model
     from eva_engine.data import DatasetMeta, DatasetWriter, ParamNames, VideoReadOptions, read_video
 
@@ -169,7 +169,7 @@ def preprocess_video(
     clip = read_video(video, VideoReadOptions(config.every, config.max_frames, config.max_size))
     seconds["decode"] = time.perf_counter() - started
     if progress is not None:
-        progress("decode", len(clip), len(clip))
+        progress(ProgressEvent("decode", len(clip), len(clip), f"decoded {len(clip)} frames"))
 
     started = time.perf_counter()
     det = detect_frames(iter(clip.frames), config.detector, progress, total=len(clip))
@@ -189,8 +189,9 @@ def preprocess_video(
     if config.fit:
         started = time.perf_counter()
         model = model or load_body_model("anny")
+        stages = len(config.fitting.stages)
         if progress is not None:
-            progress("align", 0, len(config.fitting.stages))
+            progress(ProgressEvent("align", 0, stages, "fitting the body model"))
         times = torch.as_tensor(clip.timestamps[keep], dtype=torch.float64)
         fit = fit_clip(model, targets, times, config.fitting)
         targets, params = fit.targets, fit.params
@@ -201,7 +202,7 @@ def preprocess_video(
         hands = {"rejected": int(fit.hands_rejected.sum()), "filled": int(filled.sum())}
         seconds["align"] = time.perf_counter() - started
         if progress is not None:
-            progress("align", len(config.fitting.stages), len(config.fitting.stages))
+            progress(ProgressEvent("align", stages, stages, "fitting the body model"))
 
     regions = None
     if params is not None:
@@ -215,7 +216,7 @@ def preprocess_video(
         regions = region_masks(model, params, K, viewmat, (h, w), person, present=present)
         seconds["regions"] = time.perf_counter() - started
         if progress is not None:
-            progress("regions", len(regions), len(regions))
+            progress(ProgressEvent("regions", len(regions), len(regions), "rendering hand and face regions"))
 
     started = time.perf_counter()
     fps = clip.fps / config.every if clip.fps > 0 else 25.0
@@ -235,7 +236,7 @@ def preprocess_video(
                 regions=regions[j] if regions is not None else None,
             )  # fmt: skip
             if progress is not None:
-                progress("write", j + 1, n)
+                progress(ProgressEvent("write", j + 1, n, f"writing frame {j + 1}/{n}"))
         root = writer.finish(
             {"train": train, "test_pose": test},
             params=params,

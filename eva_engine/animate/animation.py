@@ -13,7 +13,7 @@ camera framed on the avatar -- optionally beside the driving frame.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -29,12 +29,11 @@ from eva_engine.avatar.framing import framed_camera
 from eva_engine.avatar.model import Avatar
 from eva_engine.avatar.render_spec import render_image
 from eva_engine.body.params import BodyParams
+from eva_engine.progress import Progress, ProgressEvent
 from eva_engine.render.camera import Camera
 from eva_engine.render.view import DEFAULT_SIZE, CameraSpec, camera_from_spec, camera_preset
 
 Unit = Annotated[float, Field(ge=0.0, le=1.0)]
-Progress = Callable[[int, int], None]
-"""progress(frames rendered, total)."""
 MAX_SIDE = 4096
 
 
@@ -150,8 +149,9 @@ def animate(
     config: AnimationConfig | None = None,
     progress: Progress | None = None,
 ) -> Animation:
-    """Render ``avatar`` performing ``driving`` (see the module docstring). Raises
-    ``AnimationError`` when the options need what the sequence lacks (its camera, its frames)."""
+    """Render ``avatar`` performing ``driving`` (see the module docstring; ``progress`` hears
+    stage "render", frame by frame). Raises ``AnimationError`` when the options need what the
+    sequence lacks (its camera, its frames)."""
     config = config or AnimationConfig()
     if len(driving) == 0:
         raise AnimationError("the driving sequence has no frames")
@@ -166,6 +166,7 @@ def animate(
     if config.camera != "driving":
         fixed = camera_from_spec(framed_camera(avatar, config.camera, width, height), width, height)
     frames = []
+    started = time.perf_counter()
     for i in range(len(times)):
         if fixed is None:
             j = int(nearest[i])
@@ -181,7 +182,9 @@ def animate(
             image = np.concatenate([_resize(driving.frames[int(nearest[i])], height), image], axis=1)
         frames.append(image)
         if progress is not None:
-            progress(i + 1, len(times))
+            done, elapsed = i + 1, time.perf_counter() - started
+            progress(ProgressEvent("render", done, len(times), f"rendering frame {done}/{len(times)}",
+                                   elapsed=elapsed, eta=elapsed / done * (len(times) - done)))  # fmt: skip
     return Animation(np.stack(frames), float(config.fps or driving.fps), times, params)
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import shutil
 import tempfile
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from eva_engine.avatar.render_spec import RenderInputError, RenderPose, check_pose_ranges
 from eva_engine.body.model import BodyModel
 from eva_engine.body.params import BodyParams
+from eva_engine.progress import Progress
 
 MAX_POSES = 100_000
 DEFAULT_POSES_FPS = 25.0
@@ -141,13 +141,13 @@ def driving_from_video(
     video: str | Path,
     body: BodyModel,
     config=None,
-    progress: Callable[[str, int, int], None] | None = None,
+    progress: Progress | None = None,
     workdir: str | Path | None = None,
 ) -> DrivingSequence:
     """Preprocess and align ``video`` (any person, any proportions) with ``body`` -- decode,
     detect, fit (``eva_engine.align.preprocess_video`` with ``config``, a ``PreprocessConfig``)
     -- and read the result as a sequence. ``workdir``: where the dataset is written (kept);
-    default a temporary folder, removed after. ``progress(stage, done, total)`` as in
+    default a temporary folder, removed after. ``progress``: as in
     ``preprocess_video``. Raises ``DrivingError`` for an unreadable video or one without a person.
     """
     from eva_engine.align import PreprocessConfig, PreprocessError, preprocess_video
@@ -173,7 +173,7 @@ def load_driving(
     path: str | Path,
     body: BodyModel,
     config=None,
-    progress: Callable[[str, int, int], None] | None = None,
+    progress: Progress | None = None,
 ) -> DrivingSequence:
     """A driving sequence from ``path``: a ``.json`` pose sequence, a dataset folder, or a video
     (preprocessed with ``config``)."""

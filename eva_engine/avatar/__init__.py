@@ -5,15 +5,23 @@ learned weight offsets and a pose-refinement MLP, rendered by ``eva_engine.rende
     avatar = load_avatar("data/avatars/alice")
     image = avatar.render(avatar.body.params_from_pose({...}), Camera(K, viewmat, 512, 512))
     still = render_spec(avatar, RenderSpec(pose={...}, camera="left"))   # the API's render JSON
+    saved = load_saved_avatar("data/avatars/alice")   # .avatar, .meta (avatar.json), .frames
 """
 
 from eva_engine.avatar.config import AvatarConfig
-from eva_engine.avatar.frames import FRAMES_NAME, AvatarFrames, load_avatar_frames, save_avatar_frames
+from eva_engine.avatar.frames import AvatarFrames
 from eva_engine.avatar.gaussians import PER_GAUSSIAN_BUFFERS, SPLAT_NAMES, CanonicalGaussians
 from eva_engine.avatar.io import (
+    FRAMES_NAME,
     AvatarFileError,
+    AvatarMeta,
+    FramesInfo,
+    SavedAvatar,
+    TrainingRecord,
     load_avatar,
-    read_avatar_info,
+    load_avatar_frames,
+    load_saved_avatar,
+    read_avatar_meta,
     read_ply,
     save_avatar,
     write_ply,
@@ -37,25 +45,29 @@ __all__ = [
     "AvatarConfig",
     "AvatarFileError",
     "AvatarFrames",
+    "AvatarMeta",
     "Camera",
     "CanonicalGaussians",
+    "FramesInfo",
     "LBSWeightOffsets",
     "PoseRefiner",
     "PosedGaussians",
     "RenderInputError",
     "RenderPose",
     "RenderSpec",
+    "SavedAvatar",
+    "TrainingRecord",
     "blend_skinning_weights",
     "load_avatar",
     "load_avatar_frames",
+    "load_saved_avatar",
     "orthonormalize",
     "positional_encoding",
     "quat_multiply",
-    "read_avatar_info",
+    "read_avatar_meta",
     "read_ply",
     "render_spec",
     "save_avatar",
-    "save_avatar_frames",
     "skin_gaussians",
     "template_vertices",
     "write_ply",

@@ -1,34 +1,45 @@
-"""Avatar files: an avatar directory holds
+"""The avatar directory, one artefact read and written here: an avatar directory holds
 
 - ``avatar.ply``: the canonical Gaussians in the standard 3DGS PLY layout (x, y, z, nx, ny, nz,
   f_dc_0..2, f_rest_0..3(K-1)-1 channel-major, opacity (logit), scale_0..2 (log), rot_0..3
   (w, x, y, z)), so common splat viewers open it (in the rest pose);
 - ``avatar.safetensors``: what the PLY does not hold: the MLP weights, per-Gaussian part ids and
   template vertex ids, and the body-model identity (name in the metadata, ``shape`` tensor);
-- ``avatar.json``: format, body model, avatar config, training config and time, Gaussian count,
-  metrics (free-form dict written by the trainer / evaluator).
+- ``frames.safetensors`` (optional): the training frames (:class:`AvatarFrames`):
+  ``params.<name>`` (``BodyParams`` fields, batch F), ``K [F, 3, 3]``, ``viewmat [F, 4, 4]`` and
+  ``timestamps [F]``;
+- ``avatar.json``: :class:`AvatarMeta`: the format, the body model, the avatar config, the Gaussian
+  count, the training frames' count, size and rate, and how the avatar was made
+  (:class:`TrainingRecord`: training config and time, metrics, where the data came from).
 
-No pickle anywhere. ``load_avatar(path)`` rebuilds an :class:`Avatar` ready to ``render``.
+No pickle anywhere. ``load_avatar(path)`` rebuilds an :class:`Avatar` ready to ``render``;
+``load_saved_avatar(path)`` reads the whole directory (:class:`SavedAvatar`).
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from safetensors.torch import load_file, save_file
 
 from eva_engine.avatar.config import AvatarConfig
+from eva_engine.avatar.frames import AvatarFrames
 from eva_engine.avatar.gaussians import CanonicalGaussians
 from eva_engine.avatar.model import Avatar, template_vertices
 from eva_engine.body.model import BodyModel
+from eva_engine.body.params import BodyParams
 
 FORMAT = "eva-avatar"
 VERSION = 1
 PLY_NAME, TENSORS_NAME, JSON_NAME = "avatar.ply", "avatar.safetensors", "avatar.json"
+FRAMES_NAME = "frames.safetensors"
 
 
 class AvatarFileError(RuntimeError):
@@ -92,12 +103,100 @@ def read_ply(path: str | Path) -> dict[str, torch.Tensor]:
     }
 
 
-# -- avatar directory ------------------------------------------------------------------------------
-def save_avatar(avatar: Avatar, path: str | Path, info: dict | None = None) -> Path:
-    """Write ``avatar`` to the directory ``path`` (created; files inside are replaced).
+# -- avatar.json -----------------------------------------------------------------------------------
+class FramesInfo(BaseModel):
+    """``avatar.json``'s summary of the training frames (readable without loading them)."""
 
-    info: extra JSON for ``avatar.json`` (training config and time, metrics, ...).
-    """
+    count: int
+    image_size: tuple[int, int]
+    """(height, width) in pixels."""
+    fps: float
+
+    @classmethod
+    def of(cls, frames: AvatarFrames) -> FramesInfo:
+        return cls(count=len(frames), image_size=frames.image_size, fps=frames.fps)
+
+
+class TrainingRecord(BaseModel):
+    """How an avatar was made, as ``avatar.json`` keeps it; every field is optional. The training
+    run (``TrainResult.record``), the fit on training frames (``metrics``: psnr, ssim, lpips_vgg,
+    lpips_alex, ...) and where the data came from (a dataset folder, or a job of the service)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    preset: str | None = None
+    method: str | None = None
+    train_config: dict[str, Any] | None = None
+    iterations: int | None = None
+    train_seconds: float | None = None
+    final_loss: float | None = None
+    timings: dict[str, float] = Field(default_factory=dict)
+    refinements: list[dict[str, Any]] = Field(default_factory=list)
+    gaussians_per_part: dict[str, dict[str, int]] = Field(default_factory=dict)
+    pose_correction: dict[str, float] = Field(default_factory=dict)
+    metrics: dict[str, Any] = Field(default_factory=dict)
+    dataset: str | None = None
+    source_video: str | None = None
+    avatar_id: str | None = None
+    job_id: str | None = None
+    options: dict[str, Any] | None = None
+    created_at: float | None = None
+
+
+class AvatarMeta(TrainingRecord):
+    """``avatar.json``: the format, what the model files hold (body model, Gaussian count, avatar
+    config, active SH degree), the training frames' summary (None: the avatar keeps none), and
+    the :class:`TrainingRecord`. Keys it does not know (a newer writer's) are ignored."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    format: Literal["eva-avatar"] = FORMAT
+    version: int = VERSION
+    body_model: str
+    num_gaussians: int
+    active_sh_degree: int | None = None
+    """None in files that did not record it: the Gaussians' full SH degree."""
+    avatar_config: dict[str, Any]
+    frames: FramesInfo | None = None
+
+
+def _directory(path: str | Path) -> Path:
+    root = Path(path)
+    if not root.is_dir():
+        raise AvatarFileError(f"no avatar directory at {root}")
+    return root
+
+
+def read_avatar_meta(path: str | Path) -> AvatarMeta:
+    """The ``avatar.json`` of the avatar directory ``path``."""
+    root = _directory(path)
+    file = root / JSON_NAME
+    if not file.is_file():
+        raise AvatarFileError(f"{root} is not an avatar directory: no {JSON_NAME}")
+    try:
+        doc = json.loads(file.read_text())
+    except json.JSONDecodeError as err:
+        raise AvatarFileError(f"{file} is not valid JSON: {err}") from err
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        found = doc.get("format") if isinstance(doc, dict) else None
+        raise AvatarFileError(f"{file}: format is {found!r}, expected {FORMAT!r}")
+    if int(doc.get("version", 0)) > VERSION:
+        raise AvatarFileError(f"{file}: version {doc['version']} is newer than this reader ({VERSION})")
+    try:  # null is absent: older writers wrote None for what they did not know
+        return AvatarMeta.model_validate({k: v for k, v in doc.items() if v is not None})
+    except ValidationError as err:
+        raise AvatarFileError(f"{file} is malformed: {err}") from err
+
+
+# -- saving ----------------------------------------------------------------------------------------
+def save_avatar(
+    avatar: Avatar,
+    path: str | Path,
+    record: TrainingRecord | None = None,
+    frames: AvatarFrames | None = None,
+) -> Path:
+    """Write ``avatar`` to the directory ``path`` (created; files inside are replaced), with how it
+    was made (``record``) and its training frames (``frames``, None: keeps none)."""
     root = Path(path)
     root.mkdir(parents=True, exist_ok=True)
     g = avatar.gaussians
@@ -107,43 +206,70 @@ def save_avatar(avatar: Avatar, path: str | Path, info: dict | None = None) -> P
         if module is not None:
             tensors.update({f"{prefix}.{k}": v for k, v in module.state_dict().items()})
     tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
-    meta = {
+    metadata = {
         "format": FORMAT,
         "version": str(VERSION),
         "body_model": avatar.body.name,
         "shape_names": json.dumps(list(avatar.body.shape_names)),
     }
-    save_file(tensors, str(root / TENSORS_NAME), metadata=meta)
-    doc = {
-        "format": FORMAT,
-        "version": VERSION,
-        "body_model": avatar.body.name,
-        "num_gaussians": len(g),
-        "active_sh_degree": avatar.active_sh_degree,
-        "avatar_config": avatar.config.to_dict(),
-        **(info or {}),
-    }
-    (root / JSON_NAME).write_text(json.dumps(doc, indent=2))
+    save_file(tensors, str(root / TENSORS_NAME), metadata=metadata)
+    if frames is not None:
+        _save_frames(root / FRAMES_NAME, frames)
+    else:
+        (root / FRAMES_NAME).unlink(missing_ok=True)
+    meta = AvatarMeta(
+        **(record or TrainingRecord()).model_dump(),
+        body_model=avatar.body.name,
+        num_gaussians=len(g),
+        active_sh_degree=avatar.active_sh_degree,
+        avatar_config=avatar.config.to_dict(),
+        frames=FramesInfo.of(frames) if frames is not None else None,
+    )
+    (root / JSON_NAME).write_text(meta.model_dump_json(indent=2, exclude_none=True))
     return root
 
 
-def read_avatar_info(path: str | Path) -> dict:
-    """The ``avatar.json`` of an avatar directory."""
-    root = Path(path)
-    file = root / JSON_NAME
-    if not root.is_dir():
-        raise AvatarFileError(f"no avatar directory at {root}")
+def _save_frames(file: Path, frames: AvatarFrames) -> None:
+    tensors = {f"params.{k}": v.float() for k, v in frames.params.tensors().items()}
+    tensors |= {"K": frames.K.float(), "viewmat": frames.viewmat.float()}
+    tensors["timestamps"] = frames.timestamps.double()
+    save_file({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, str(file))
+
+
+# -- loading ---------------------------------------------------------------------------------------
+@dataclass
+class SavedAvatar:
+    """A whole avatar directory: the model (ready to render), its ``avatar.json`` and its training
+    frames (None when it keeps none)."""
+
+    avatar: Avatar
+    meta: AvatarMeta
+    frames: AvatarFrames | None
+
+
+def load_avatar_frames(path: str | Path, meta: AvatarMeta | None = None) -> AvatarFrames | None:
+    """The training frames kept in the avatar directory ``path`` (None if it keeps none).
+    ``meta``: its ``avatar.json``, when already read."""
+    root = _directory(path)
+    file = root / FRAMES_NAME
     if not file.is_file():
-        raise AvatarFileError(f"{root} is not an avatar directory: no {JSON_NAME}")
+        return None
+    meta = meta or read_avatar_meta(root)
     try:
-        doc = json.loads(file.read_text())
-    except json.JSONDecodeError as err:
-        raise AvatarFileError(f"{file} is not valid JSON: {err}") from err
-    if doc.get("format") != FORMAT:
-        raise AvatarFileError(f"{file}: format is {doc.get('format')!r}, expected {FORMAT!r}")
-    if int(doc.get("version", 0)) > VERSION:
-        raise AvatarFileError(f"{file}: version {doc['version']} is newer than this reader ({VERSION})")
-    return doc
+        t = load_file(str(file))
+        params = BodyParams(**{k.removeprefix("params."): v for k, v in t.items() if k.startswith("params.")})
+        K, viewmat = t["K"], t["viewmat"]
+    except Exception as err:  # safetensors and BodyParams raise several types for bad files
+        raise AvatarFileError(f"cannot read {file}: {err}") from err
+    info = meta.frames
+    return AvatarFrames(
+        params=params,
+        K=K,
+        viewmat=viewmat,
+        timestamps=t.get("timestamps", torch.zeros(params.batch_size, dtype=torch.float64)),
+        image_size=info.image_size if info else (0, 0),
+        fps=info.fps if info else 0.0,
+    )
 
 
 def load_avatar(
@@ -154,17 +280,28 @@ def load_avatar(
     body: the body model to drive it (default: ``load_body_model(<saved name>)``); it must be the
     saved one (same name and shape parameters).
     """
-    root = Path(path)
-    doc = read_avatar_info(root)
+    return _load_model(Path(path), read_avatar_meta(path), body, device)
+
+
+def load_saved_avatar(
+    path: str | Path, body: BodyModel | None = None, device: torch.device | str = "cpu"
+) -> SavedAvatar:
+    """The whole avatar directory ``path`` (``body`` and ``device`` as in :func:`load_avatar`)."""
+    meta = read_avatar_meta(path)
+    avatar = _load_model(Path(path), meta, body, device)
+    return SavedAvatar(avatar, meta, load_avatar_frames(path, meta))
+
+
+def _load_model(root: Path, meta: AvatarMeta, body: BodyModel | None, device: torch.device | str) -> Avatar:
     for name in (PLY_NAME, TENSORS_NAME):
         if not (root / name).is_file():
             raise AvatarFileError(f"{root} is incomplete: no {name}")
     if body is None:
         from eva_engine.body import load_body_model
 
-        body = load_body_model(doc["body_model"])
-    if body.name != doc["body_model"]:
-        raise AvatarFileError(f"avatar was trained with body model {doc['body_model']!r}, got {body.name!r}")
+        body = load_body_model(meta.body_model)
+    if body.name != meta.body_model:
+        raise AvatarFileError(f"avatar was trained with body model {meta.body_model!r}, got {body.name!r}")
     try:
         tensors = load_file(str(root / TENSORS_NAME))
     except Exception as err:
@@ -172,7 +309,7 @@ def load_avatar(
     shape = tensors["shape"]
     if shape.shape[0] != len(body.shape_names):
         raise AvatarFileError(f"saved shape has {shape.shape[0]} values, body model {len(body.shape_names)}")
-    config = AvatarConfig.from_dict(doc["avatar_config"])
+    config = AvatarConfig.from_dict(meta.avatar_config)
     splats = read_ply(root / PLY_NAME)
     template = template_vertices(body, shape)
     ids = tensors["part_ids"], tensors["vertex_ids"]
@@ -182,5 +319,6 @@ def load_avatar(
         if module is not None:
             state = {k[len(prefix) + 1 :]: v for k, v in tensors.items() if k.startswith(prefix + ".")}
             module.load_state_dict(state)
-    avatar.active_sh_degree = int(doc.get("active_sh_degree", gaussians.sh_degree))
+    sh = meta.active_sh_degree
+    avatar.active_sh_degree = sh if sh is not None else gaussians.sh_degree
     return avatar.to(device)

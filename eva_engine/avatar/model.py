@@ -52,19 +52,26 @@ class Avatar(nn.Module):
     """A drivable Gaussian avatar (see the module docstring).
 
     body: the body model (its name and the avatar's ``shape [S]`` are its identity);
-    gaussians: canonical Gaussians over ``body.canonical(shape)``.
+    gaussians: canonical Gaussians over ``body.canonical(shape)``; generator: the MLPs' initial
+    weights' random draws (None: a generator seeded 0).
     """
 
     shape: Tensor
 
     def __init__(
-        self, body: BodyModel, gaussians: CanonicalGaussians, shape: Tensor, config: AvatarConfig
+        self,
+        body: BodyModel,
+        gaussians: CanonicalGaussians,
+        shape: Tensor,
+        config: AvatarConfig,
+        generator: torch.Generator | None = None,
     ) -> None:
         super().__init__()
         self.config = config
         self.body = body
         self.gaussians = gaussians
         self.register_buffer("shape", shape.detach().to(body.dtype).reshape(-1).clone())
+        generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.weight_offsets = (
             LBSWeightOffsets(
                 body.num_joints,
@@ -72,27 +79,35 @@ class Avatar(nn.Module):
                 config.mlp_width,
                 config.mlp_depth,
                 config.mlp_out_init,
+                generator,
             )  # fmt: skip
             if config.weight_offsets
             else None
         )
         parts = body.joint_part_ids[1:]  # pose joints: all but the root
         self.pose_refiner = (
-            PoseRefiner(parts, config.mlp_width, config.mlp_depth, config.mlp_out_init)
+            PoseRefiner(parts, config.mlp_width, config.mlp_depth, config.mlp_out_init, generator)
             if config.pose_refine
             else None
         )
         self.active_sh_degree = gaussians.sh_degree
+        self._weights_cache: tuple[list[Tensor], list[int], Tensor] | None = None
 
     # -- construction ------------------------------------------------------------------------
     @classmethod
     def create(
-        cls, body: BodyModel, shape: Tensor, config: AvatarConfig | None = None, seed: int = 0
+        cls,
+        body: BodyModel,
+        shape: Tensor,
+        config: AvatarConfig | None = None,
+        seed: int = 0,
+        generator: torch.Generator | None = None,
     ) -> Avatar:
-        """A fresh avatar seeded on the surface vertices of ``body.canonical(shape)``."""
+        """A fresh avatar seeded on the surface vertices of ``body.canonical(shape)``: ``seed``
+        draws the subset of seed vertices, ``generator`` the MLPs' initial weights (None: a
+        generator seeded ``seed``; pass one to draw further initial weights after them)."""
         config = config or AvatarConfig()
         template = template_vertices(body, shape)
-        g = torch.Generator().manual_seed(seed)
         gaussians = CanonicalGaussians.from_template(
             template,
             body.part_ids,
@@ -100,9 +115,10 @@ class Avatar(nn.Module):
             sh_degree=config.sh_degree,
             init_opacity=config.init_opacity,
             max_gaussians=config.init_max_gaussians,
-            generator=g,
+            generator=torch.Generator().manual_seed(seed),
         )
-        return cls(body, gaussians, shape, config)
+        generator = generator if generator is not None else torch.Generator().manual_seed(seed)
+        return cls(body, gaussians, shape, config, generator)
 
     def mlp_parameters(self) -> list[nn.Parameter]:
         mods = [m for m in (self.weight_offsets, self.pose_refiner) if m is not None]
@@ -133,11 +149,28 @@ class Avatar(nn.Module):
         )
 
     def skinning_weights(self) -> Tensor:
-        """[N, J] per-Gaussian LBS weights (body-model weights of the nearest vertex + offsets)."""
+        """[N, J] per-Gaussian LBS weights (body-model weights of the nearest vertex + offsets).
+        Without autograd (rendering a trained avatar) they are computed once and reused until a
+        tensor they depend on changes (a new tensor or an in-place update)."""
         g = self.gaussians
+        inputs = [g.means, g.vertex_ids, self.body.skinning_weights]
+        if self.weight_offsets is not None:
+            inputs += list(self.weight_offsets.parameters())
+        versions = [t._version for t in inputs]
+        cached = self._weights_cache
+        if (
+            cached is not None
+            and not torch.is_grad_enabled()
+            and len(cached[0]) == len(inputs)
+            and all(a is b for a, b in zip(cached[0], inputs, strict=True))
+            and cached[1] == versions
+        ):
+            return cached[2]
         base = self.body.skinning_weights[g.vertex_ids]
         offsets = self.weight_offsets(g.means) if self.weight_offsets is not None else None
-        return blend_skinning_weights(base, offsets, self.config.lbs_eps)
+        weights = blend_skinning_weights(base, offsets, self.config.lbs_eps)
+        self._weights_cache = (inputs, versions, weights) if not torch.is_grad_enabled() else None
+        return weights
 
     def pose(self, params: BodyParams) -> PosedGaussians:
         """Pose the Gaussians for one frame: ``params`` with batch 1."""

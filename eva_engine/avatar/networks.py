@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from eva_engine.body.model import PART_NAMES
+from eva_engine.layers import seeded_layer
 
 
 def positional_encoding(x: Tensor, frequencies: int) -> Tensor:
@@ -33,27 +34,41 @@ def positional_encoding(x: Tensor, frequencies: int) -> Tensor:
     return torch.cat([x, enc], dim=-1)
 
 
-def make_mlp(d_in: int, d_out: int, width: int, depth: int, out_init: float) -> nn.Sequential:
-    """``depth`` hidden ReLU layers of ``width``; last layer uniform(+-out_init), bias 0."""
+def make_mlp(
+    d_in: int, d_out: int, width: int, depth: int, out_init: float, generator: torch.Generator
+) -> nn.Sequential:
+    """``depth`` hidden ReLU layers of ``width`` (torch's default initialisation); last layer
+    uniform(+-out_init), bias 0; every draw from ``generator``."""
     layers: list[nn.Module] = []
     d = d_in
     for _ in range(depth):
-        layers += [nn.Linear(d, width), nn.ReLU()]
+        layers += [seeded_layer(nn.Linear, d, width, generator=generator), nn.ReLU()]
         d = width
-    last = nn.Linear(d, d_out)
-    nn.init.uniform_(last.weight, -out_init, out_init)
-    nn.init.zeros_(last.bias)
+    last = seeded_layer(nn.Linear, d, d_out, generator=generator)
+    with torch.no_grad():
+        nn.init.uniform_(last.weight, -out_init, out_init, generator=generator)
+        nn.init.zeros_(last.bias)
     layers.append(last)
     return nn.Sequential(*layers)
 
 
 class LBSWeightOffsets(nn.Module):
-    """f_w: canonical centres [N, 3] -> LBS weight offsets [N, J] (EVA eq. for w_k)."""
+    """f_w: canonical centres [N, 3] -> LBS weight offsets [N, J] (EVA eq. for w_k).
+    generator: the initial weights' random draws (None: a generator seeded 0)."""
 
-    def __init__(self, num_joints: int, frequencies: int, width: int, depth: int, out_init: float) -> None:
+    def __init__(
+        self,
+        num_joints: int,
+        frequencies: int,
+        width: int,
+        depth: int,
+        out_init: float,
+        generator: torch.Generator | None = None,
+    ) -> None:
         super().__init__()
         self.frequencies = frequencies
-        self.mlp = make_mlp(3 * (1 + 2 * frequencies), num_joints, width, depth, out_init)
+        generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.mlp = make_mlp(3 * (1 + 2 * frequencies), num_joints, width, depth, out_init, generator)
 
     def forward(self, means: Tensor) -> Tensor:
         return self.mlp(positional_encoding(means, self.frequencies))
@@ -73,18 +88,27 @@ class PoseRefiner(nn.Module):
 
     joint_part_ids: [P] part index of each pose joint (``model.pose_joint_names`` order).
     forward: joints [B, P, 3] axis-angle -> refined joints [B, P, 3].
+    generator: the initial weights' random draws (None: a generator seeded 0).
     """
 
     joint_part_ids: Tensor
 
-    def __init__(self, joint_part_ids: Tensor, width: int, depth: int, out_init: float) -> None:
+    def __init__(
+        self,
+        joint_part_ids: Tensor,
+        width: int,
+        depth: int,
+        out_init: float,
+        generator: torch.Generator | None = None,
+    ) -> None:
         super().__init__()
         self.register_buffer("joint_part_ids", joint_part_ids.to(torch.int64).clone())
         self.mlps = nn.ModuleDict()
+        generator = generator if generator is not None else torch.Generator().manual_seed(0)
         for i, part in enumerate(PART_NAMES):
             n = int((self.joint_part_ids == i).sum())
             if n:
-                self.mlps[part] = make_mlp(3 * n, 3 * n, width, depth, out_init)
+                self.mlps[part] = make_mlp(3 * n, 3 * n, width, depth, out_init, generator)
 
     def deltas(self, joints: Tensor) -> Tensor:
         """[B, P, 3] predicted rotation deltas (axis-angle)."""

@@ -139,8 +139,8 @@ class RenderSpec(BaseModel):
 def resolve_size(spec: RenderSpec, frames: AvatarFrames | tuple[int, int] | None) -> tuple[int, int]:
     """(width, height): as asked, else the training frame's (for ``frame``; one side given keeps
     the frame's aspect), else ``DEFAULT_SIZE``. ``frames``: the avatar's training frames, or just
-    their (height, width) (e.g. from ``avatar.json``, without loading them)."""
-    size = frames.size if isinstance(frames, AvatarFrames) else frames
+    their (height, width) (e.g. from ``AvatarMeta.frames``, without loading them)."""
+    size = frames.image_size if isinstance(frames, AvatarFrames) else frames
     if spec.frame is not None and size is not None and size[0] > 0 and size[1] > 0:
         h, w = size
         if spec.width is not None and spec.height is None:
@@ -175,7 +175,7 @@ def spec_camera(spec: RenderSpec, width: int, height: int, frames: AvatarFrames 
     """The camera ``spec`` asks for; a training frame without ``camera`` uses that frame's own
     camera, with K scaled to the requested size."""
     if spec.camera is None and spec.frame is not None and frames is not None and spec.frame < len(frames):
-        h0, w0 = frames.size
+        h0, w0 = frames.image_size
         K = frames.K[spec.frame].clone().float()
         if h0 > 0 and w0 > 0:
             K[0] *= width / w0

@@ -12,6 +12,7 @@ from rich.console import Console
 from eva_engine.cli.app import app
 from eva_engine.cli.parsing import background_value, camera_value, validation_message
 from eva_engine.cli.progress import stage_bars
+from eva_engine.progress import ProgressEvent
 
 
 @app.command()
@@ -82,13 +83,13 @@ def animate(
     with stage_bars(console) as report:
         try:
             motion = load_driving(driving, model.body, preprocess, progress=report)
-            result = run_animation(model, motion, config, progress=lambda d, t: report("render", d, t))
+            result = run_animation(model, motion, config, progress=report)
         except (DrivingError, AnimationError) as err:
             console.print(f"[red]error:[/] {err}")
             raise typer.Exit(2) from err
-        report("encode", 0, 1)
+        report(ProgressEvent("encode", 0, 1))
         write_animation(out, result)
-        report("encode", 1, 1)
+        report(ProgressEvent("encode", 1, 1))
     h, w = result.frames.shape[1:3]
     dropped = f", {motion.dropped} driving frames without a person skipped" if motion.dropped else ""
     console.print(

@@ -25,14 +25,13 @@ def evaluate(
     ),
 ) -> None:
     """PSNR / SSIM / LPIPS on full image, hands and face; Gaussian count, training time, FPS."""
-    from eva_engine.avatar import AvatarFileError, load_avatar, read_avatar_info
+    from eva_engine.avatar import AvatarFileError, load_saved_avatar
     from eva_engine.data import DatasetError, load_dataset
     from eva_engine.eval import PoseRefinement, evaluate_avatar, metrics_table
 
     console = Console(stderr=True)
     try:
-        info = read_avatar_info(avatar_dir)
-        avatar = load_avatar(avatar_dir)
+        saved = load_saved_avatar(avatar_dir)
     except AvatarFileError as err:
         console.print(f"[red]error:[/] {err}")
         raise typer.Exit(2) from err
@@ -43,7 +42,7 @@ def evaluate(
         ds = load_dataset(dataset)
         refinement = PoseRefinement(steps=refine_poses) if refine_poses else None
         result = evaluate_avatar(
-            avatar, ds, split=split, train_seconds=info.get("train_seconds"), refinement=refinement
+            saved.avatar, ds, split=split, train_seconds=saved.meta.train_seconds, refinement=refinement
         )
     except (DatasetError, ValueError) as err:
         console.print(f"[red]error:[/] {err}")

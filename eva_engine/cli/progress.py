@@ -1,27 +1,31 @@
-"""One rich progress bar per stage, for the commands that report ``progress(stage, done, total)``
-(``preprocess_video``, ``load_driving``)."""
+"""One rich progress bar per stage, for the commands whose engine calls report progress events
+(``preprocess_video``, ``load_driving``, ``animate``)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 
 from rich.console import Console
 
+from eva_engine.progress import Progress, ProgressEvent
+
 
 @contextmanager
-def stage_bars(console: Console) -> Iterator[Callable[[str, int, int], None]]:
-    """Yields ``report(stage, done, total)``: a bar per stage, added when the stage first reports
+def stage_bars(console: Console) -> Iterator[Progress]:
+    """Yields a ``Progress`` callback: a bar per stage, added when the stage first reports
     (``total`` 0: unknown)."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
+    from rich.progress import Progress as Bars
 
     columns = (TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    with Progress(*columns, console=console) as bar:
+    with Bars(*columns, console=console) as bars:
         tasks: dict[str, int] = {}
 
-        def report(stage: str, done: int, total: int) -> None:
-            if stage not in tasks:
-                tasks[stage] = bar.add_task(stage, total=total or None)
-            bar.update(tasks[stage], completed=done, total=total or None)
+        def report(event: ProgressEvent) -> None:
+            total = event.total or None
+            if event.stage not in tasks:
+                tasks[event.stage] = bars.add_task(event.stage, total=total)
+            bars.update(tasks[event.stage], completed=event.done, total=total)
 
         yield report

@@ -43,7 +43,7 @@ def render(
     from PIL import Image
     from pydantic import ValidationError
 
-    from eva_engine.avatar import AvatarFileError, RenderInputError, load_avatar, load_avatar_frames
+    from eva_engine.avatar import AvatarFileError, RenderInputError, load_saved_avatar
     from eva_engine.avatar.framing import framed_camera
     from eva_engine.avatar.render_spec import RenderSpec, render_spec, resolve_size
     from eva_engine.body import InvalidPoseError
@@ -66,11 +66,11 @@ def render(
         raise typer.Exit(2) from err
     started = time.perf_counter()
     try:
-        model = load_avatar(avatar).eval()
-        frames = load_avatar_frames(avatar)
+        saved = load_saved_avatar(avatar)
     except AvatarFileError as err:
         console.print(f"[red]error:[/] {err}")
         raise typer.Exit(2) from err
+    model, frames = saved.avatar.eval(), saved.frames
     if framed and not (spec.frame is not None and spec.camera is None):  # a training frame's own camera
         w, h = resolve_size(spec, frames)
         spec = spec.model_copy(update={"camera": framed_camera(model, spec.camera, w, h)})

@@ -71,7 +71,7 @@ def synth(
                 target,
                 model=model,
                 overwrite=overwrite,
-                progress=lambda done, total: bar.update(task, completed=done, total=total),
+                progress=lambda event: bar.update(task, completed=event.done, total=event.total),
             )
     except FileExistsError as err:
         raise typer.BadParameter(str(err), param_hint="--out") from err

@@ -27,10 +27,12 @@ def train(
     seed: int = typer.Option(0, help="Random seed (runs are deterministic given it)."),
 ) -> None:
     """Train an avatar on the dataset's training frames (EVA: 2,000 iterations)."""
+    import torch
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from eva_engine.avatar import save_avatar, save_avatar_frames
+    from eva_engine.avatar import save_avatar
     from eva_engine.data import DatasetError, load_dataset
+    from eva_engine.progress import ProgressEvent
     from eva_engine.train import TrainingError, train_avatar, with_method
     from eva_engine.train import preset as make_preset
 
@@ -51,7 +53,9 @@ def train(
     except DatasetError as err:
         console.print(f"[red]error:[/] {err}")
         raise typer.Exit(2) from err
-    overrides: dict = {"device": device, "seed": seed, "threads": threads}
+    if threads is not None:  # this process's, set once here (a training run leaves them alone)
+        torch.set_num_threads(threads)
+    overrides: dict = {"device": device, "seed": seed}
     if iterations is not None:
         overrides["iterations"] = iterations
     if image_scale is not None:
@@ -67,33 +71,19 @@ def train(
     with Progress(*columns, console=console, transient=False) as bar:
         task = bar.add_task("setup", total=config.iterations, loss=float("nan"), gaussians=0)
 
-        def report(p) -> None:
-            bar.update(
-                task, description=p.stage, completed=p.iteration, loss=p.loss, gaussians=p.num_gaussians
-            )
+        def report(event: ProgressEvent) -> None:
+            loss = event.loss if event.loss is not None else float("nan")
+            bar.update(task, description=event.stage, completed=event.done, loss=loss,
+                       gaussians=event.num_gaussians or 0)  # fmt: skip
 
         try:
             result = train_avatar(ds, config, progress=report)
         except TrainingError as err:
             console.print(f"[red]error:[/] {err}")
             raise typer.Exit(2) from err
-    info = {
-        "dataset": str(dataset.resolve()),
-        "preset": preset,
-        "method": method,
-        "train_config": config.to_dict(),
-        "train_seconds": result.train_seconds,
-        "iterations": config.iterations,
-        "final_loss": result.losses[-1],
-        "timings": result.timings,
-        "refinements": result.refinements,
-        "gaussians_per_part": result.gaussians_per_part,
-        "pose_correction": result.pose_correction,
-    }
-    out.mkdir(parents=True, exist_ok=True)
+    record = result.record(config, preset=preset, method=method, dataset=str(dataset.resolve()))
     # Training poses (as trained) and cameras: `eva render --pose frame:N`.
-    info["frames"] = save_avatar_frames(out, ds, result.frame_params(ds.params))
-    save_avatar(result.avatar, out, info)
+    save_avatar(result.avatar, out, record, frames=result.frames(ds))
     console.print(
         f"[green]wrote[/] {out}: {len(result.avatar.gaussians):,} Gaussians, "
         f"{config.iterations} iterations in {result.train_seconds:.1f} s "

@@ -8,6 +8,7 @@ from eva_engine.data.dataset import (
     REGION_MASKS,
     Dataset,
     DatasetError,
+    DatasetLike,
     DatasetMeta,
     DatasetWriter,
     Frame,
@@ -15,22 +16,26 @@ from eva_engine.data.dataset import (
     load_dataset,
 )
 from eva_engine.data.perturb import PerturbConfig, perturb
+from eva_engine.data.resampled import ResampledDataset, resample_frame
 from eva_engine.data.video import VideoClip, VideoError, VideoReadOptions, read_video, write_video
 
 __all__ = [
     "REGION_MASKS",
     "Dataset",
     "DatasetError",
+    "DatasetLike",
     "DatasetMeta",
     "DatasetWriter",
     "Frame",
     "ParamNames",
     "PerturbConfig",
+    "ResampledDataset",
     "VideoClip",
     "VideoError",
     "VideoReadOptions",
     "load_dataset",
     "perturb",
     "read_video",
+    "resample_frame",
     "write_video",
 ]

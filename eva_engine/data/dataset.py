@@ -19,7 +19,7 @@ import shutil
 import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -114,6 +114,33 @@ class Frame:
     viewmat: torch.Tensor
     time: float
     regions: dict[str, torch.Tensor] = dataclasses.field(default_factory=dict)
+
+
+class DatasetLike(Protocol):
+    """What training and evaluation read of a dataset: :class:`Dataset` (a folder), a
+    :class:`~eva_engine.data.resampled.ResampledDataset` view of one, or frames held in memory.
+
+    meta: ``body_model`` (the parameters' body model) and ``background`` (the render background,
+    None: white) are read; splits: split name -> frame indices; params: the frames' body
+    parameters (batch ``len(ds)``) or None; gt_params: ground truth or None; ``ds[i]``: a
+    :class:`Frame`.
+    """
+
+    @property
+    def meta(self) -> DatasetMeta: ...
+
+    @property
+    def splits(self) -> dict[str, list[int]]: ...
+
+    @property
+    def params(self) -> BodyParams | None: ...
+
+    @property
+    def gt_params(self) -> BodyParams | None: ...
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, i: int) -> Frame: ...
 
 
 # -- image files ---------------------------------------------------------------------------------

@@ -36,7 +36,8 @@ from torch import Tensor
 
 from eva_engine.avatar import Avatar, Camera
 from eva_engine.body import BodyParams
-from eva_engine.data.dataset import REGION_MASKS
+from eva_engine.data.dataset import REGION_MASKS, DatasetLike
+from eva_engine.data.resampled import ResampledDataset
 from eva_engine.metrics import LPIPS, crop_box, mask_bbox, psnr, ssim
 
 REGIONS = ("full", "hand", "face")
@@ -147,8 +148,8 @@ def _box_side(mask: Tensor) -> int:
     return max(x1 - x0, y1 - y0)
 
 
-def _eval_params(dataset):
-    params = dataset.params if dataset.params is not None else getattr(dataset, "gt_params", None)
+def _eval_params(dataset: DatasetLike) -> BodyParams:
+    params = dataset.params if dataset.params is not None else dataset.gt_params
     if params is None:
         raise ValueError("the dataset has no body parameters to drive the avatar (params or ground truth)")
     return params
@@ -157,7 +158,7 @@ def _eval_params(dataset):
 @torch.no_grad()
 def evaluate_avatar(
     avatar: Avatar,
-    dataset,
+    dataset: DatasetLike,
     split: str = "test_pose",
     metrics: ImageMetrics | None = None,
     background: Tensor | None = None,
@@ -173,7 +174,7 @@ def evaluate_avatar(
     params = _eval_params(dataset)
     metrics = metrics or ImageMetrics()
     if background is None:
-        bg = getattr(dataset.meta, "background", None)
+        bg = dataset.meta.background
         background = torch.tensor(bg if bg is not None else (1.0, 1.0, 1.0), dtype=torch.float32)
     avatar.eval()
     device = avatar.shape.device
@@ -235,8 +236,8 @@ def evaluate_avatar(
     )
 
 
-def refined_params(avatar: Avatar, dataset, indices: list[int], params, background: Tensor,
-                   refinement: PoseRefinement):  # fmt: skip
+def refined_params(avatar: Avatar, dataset: DatasetLike, indices: list[int], params: BodyParams,
+                   background: Tensor, refinement: PoseRefinement) -> BodyParams:  # fmt: skip
     """``params`` (all frames) with the rows ``indices`` refined against their images, the avatar
     frozen (``PoseRefinement``); the other rows unchanged."""
     from eva_engine.train.losses import composite_target
@@ -244,7 +245,7 @@ def refined_params(avatar: Avatar, dataset, indices: list[int], params, backgrou
     from eva_engine.train.trainer import load_training_frames
 
     device = avatar.shape.device
-    frames = load_training_frames(dataset, indices, refinement.image_scale)
+    frames = load_training_frames(ResampledDataset(dataset, refinement.image_scale), indices)
     targets = torch.stack(
         [composite_target(img, m, background) for img, m in zip(frames.images, frames.masks, strict=True)]
     )

@@ -213,7 +213,8 @@ class LPIPS(nn.Module):
         self.convs = nn.ModuleList()
         c_in = 3
         for i, (c_out, k, stride, pad) in enumerate(self.spec.convs):
-            conv = nn.Conv2d(c_in, c_out, k, stride=stride, padding=pad)
+            # Weights are copied in: built without drawing from the global random state.
+            conv = nn.utils.skip_init(nn.Conv2d, c_in, c_out, k, stride=stride, padding=pad)
             with torch.no_grad():
                 conv.weight.copy_(weights.conv_weights[i])
                 conv.bias.copy_(weights.conv_biases[i])
@@ -221,7 +222,7 @@ class LPIPS(nn.Module):
             c_in = c_out
         self.lins = nn.ModuleList()
         for t, conv in enumerate(self.spec.taps):
-            lin = nn.Conv2d(self.spec.convs[conv][0], 1, 1, bias=False)
+            lin = nn.utils.skip_init(nn.Conv2d, self.spec.convs[conv][0], 1, 1, bias=False)
             with torch.no_grad():
                 lin.weight.copy_(weights.lin_weights[t])
             self.lins.append(lin)

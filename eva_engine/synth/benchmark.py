@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +37,7 @@ from eva_engine.body.params import BodyParams
 from eva_engine.data.dataset import DatasetMeta, DatasetWriter, ParamNames
 from eva_engine.data.region_masks import coverage_by_region, face_regions
 from eva_engine.geometry import project_points, to_camera
+from eva_engine.progress import Progress, ProgressEvent
 from eva_engine.render.camera import intrinsics, look_at
 from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
 from eva_engine.synth.motion import FACE_ACTIONS, HELD_OUT_FACE_ACTIONS, MotionConfig, sign_motion
@@ -178,11 +178,11 @@ def generate(
     *,
     model=None,
     overwrite: bool = False,
-    progress: Callable[[int, int], None] | None = None,
+    progress: Progress | None = None,
 ) -> Path:
     """Render a synthetic dataset into ``out`` (the layout of ``docs/dataset-format.md``) and
-    return its path. ``model``: an Anny body model (loaded if None); ``progress(done, total)``
-    is called after every frame."""
+    return its path. ``model``: an Anny body model (loaded if None); ``progress`` hears stage
+    "render" after every frame."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose one of {list(PRESETS)}")
     if size not in SIZES:
@@ -245,7 +245,7 @@ def generate(
                 writer.add_frame(r.rgb.numpy(), r.alpha.numpy(), K=K, viewmat=views[i], time=float(t),
                                  regions=coverage_by_region(r, regions))  # fmt: skip
                 if progress is not None:
-                    progress(i + 1, total)
+                    progress(ProgressEvent("render", i + 1, total, f"rendering frame {i + 1}/{total}"))
         give = p.give_ground_truth
         pose_of_frame = list(range(n_seq)) + plan.views
         return writer.finish(

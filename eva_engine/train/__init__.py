@@ -23,7 +23,6 @@ from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy, Str
 from eva_engine.train.trainer import (
     STAGES,
     TrainingError,
-    TrainProgress,
     TrainResult,
     dataset_background,
     load_training_frames,
@@ -49,7 +48,6 @@ __all__ = [
     "PoseCorrectionConfig",
     "Strategy",
     "TrainConfig",
-    "TrainProgress",
     "TrainResult",
     "TrainingError",
     "composite_target",

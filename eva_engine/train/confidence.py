@@ -32,6 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from eva_engine.layers import seeded_layer
 from eva_engine.metrics import crop_box
 from eva_engine.train.losses import PHOTOMETRIC_LOSSES, PhotometricLoss
 
@@ -58,19 +59,23 @@ class ConfidenceNet(nn.Module):
     mean expected depth of covered pixels, so the input does not depend on the camera distance.
     """
 
-    def __init__(self, hidden: int = 16, max_log: float = math.log(9.0)) -> None:
+    def __init__(
+        self, hidden: int = 16, max_log: float = math.log(9.0), generator: torch.Generator | None = None
+    ) -> None:
         super().__init__()
         self.max_log = max_log
+        g = generator if generator is not None else torch.Generator().manual_seed(0)
         self.body = nn.Sequential(
-            nn.Conv2d(4, hidden, 3, padding=1),
+            seeded_layer(nn.Conv2d, 4, hidden, 3, padding=1, generator=g),
             nn.ReLU(),
-            nn.Conv2d(hidden, hidden, 3, padding=1),
+            seeded_layer(nn.Conv2d, hidden, hidden, 3, padding=1, generator=g),
             nn.ReLU(),
         )
-        self.head = nn.Conv2d(hidden, 1, 1)
+        self.head = seeded_layer(nn.Conv2d, hidden, 1, 1, generator=g)
         self.reach = 2  # pixels an output sees on each side (two 3x3 convolutions)
-        nn.init.zeros_(self.head.weight)
-        nn.init.zeros_(self.head.bias)
+        with torch.no_grad():
+            nn.init.zeros_(self.head.weight)
+            nn.init.zeros_(self.head.bias)
         self.to(memory_format=torch.channels_last)
 
     def forward(self, image: Tensor, depth: Tensor, alpha: Tensor) -> Tensor:
@@ -89,13 +94,15 @@ class ConfidenceLoss(PhotometricLoss):
     """Confidence-aware L1 (module docstring). Inputs as ``PhotometricLoss``: image, target
     [H, W, 3]; alpha, depth [H, W, 1]; mask [H, W] -> scalar (image term + E's fitting term)."""
 
-    def __init__(self, config: ConfidenceConfig | None = None) -> None:
+    def __init__(
+        self, config: ConfidenceConfig | None = None, generator: torch.Generator | None = None
+    ) -> None:
         super().__init__()
         self.config = config or ConfidenceConfig()
         c = self.config
         if not 0.0 < c.mu < c.max_confidence:
             raise ValueError(f"need 0 < mu < max_confidence, got {c.mu}, {c.max_confidence}")
-        self.net = ConfidenceNet(c.hidden, max_log=math.log(c.max_confidence - c.mu))
+        self.net = ConfidenceNet(c.hidden, math.log(c.max_confidence - c.mu), generator)
         self.last_confidence: Tensor | None = None  # [H, W] of the latest call, for inspection
 
     def confidence(self, image: Tensor, depth: Tensor, alpha: Tensor) -> Tensor:

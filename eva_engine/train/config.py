@@ -69,8 +69,10 @@ class TrainConfig:
     sh_degree_interval: raise the active SH degree every this many steps (3DGS: 1,000).
     background: render/target background [3]; None: the dataset's (meta.background) or white.
     image_scale: resample frames (and intrinsics) by this factor before training.
-    device: "cpu" or "cuda" (an error if CUDA is asked for and absent); threads: torch CPU
-    threads (None: leave torch's setting).
+    seed: the initial weights, the seed vertices and the frame order (runs are deterministic given
+    it; the density-control strategy has its own ``seed``).
+    device: "cpu" or "cuda" (an error if CUDA is asked for and absent). Torch's CPU threads are the
+    process's: its entry point sets them (``torch.set_num_threads``), not a training run.
     """
 
     iterations: int = 2000
@@ -84,7 +86,6 @@ class TrainConfig:
     image_scale: float = 1.0
     seed: int = 0
     device: str = "cpu"
-    threads: int | None = None
     progress_every: int = 10
 
     def __post_init__(self) -> None:

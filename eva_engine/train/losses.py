@@ -23,6 +23,7 @@ from __future__ import annotations
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor, nn
 
 from eva_engine.metrics import LPIPS, crop_box, ssim
@@ -54,7 +55,12 @@ class LossConfig:
 
 
 class PhotometricLoss(nn.Module):
-    """Per-pixel term: image, target [H, W, 3]; alpha, depth [H, W, 1]; mask [H, W] -> scalar."""
+    """Per-pixel term: image, target [H, W, 3]; alpha, depth [H, W, 1]; mask [H, W] -> scalar.
+    Built as ``cls(generator=...)``: what draws the initial values of its learnable parts (if it
+    has any; None: a generator seeded 0)."""
+
+    def __init__(self, generator: torch.Generator | None = None) -> None:
+        super().__init__()
 
     def forward(self, image: Tensor, target: Tensor, alpha: Tensor, depth: Tensor, mask: Tensor) -> Tensor:
         raise NotImplementedError
@@ -67,19 +73,22 @@ class L1Loss(PhotometricLoss):
         return (image - target).abs().mean()
 
 
-PHOTOMETRIC_LOSSES: dict[str, Callable[[], PhotometricLoss]] = {"l1": L1Loss}
+PHOTOMETRIC_LOSSES: dict[str, Callable[..., PhotometricLoss]] = {"l1": L1Loss}
 
 
 class AvatarLoss(nn.Module):
-    """The full objective (module docstring). ``lpips`` is built lazily when its weight is > 0."""
+    """The full objective (module docstring). ``lpips`` is built lazily when its weight is > 0;
+    ``generator`` draws the initial values of the photometric term's learnable parts."""
 
-    def __init__(self, config: LossConfig, lpips: LPIPS | None = None) -> None:
+    def __init__(
+        self, config: LossConfig, lpips: LPIPS | None = None, generator: torch.Generator | None = None
+    ) -> None:
         super().__init__()
         if config.photometric not in PHOTOMETRIC_LOSSES:
             raise ValueError(f"unknown photometric loss {config.photometric!r}; "
                              f"choose one of {sorted(PHOTOMETRIC_LOSSES)}")  # fmt: skip
         self.config = config
-        self.photometric = PHOTOMETRIC_LOSSES[config.photometric]()
+        self.photometric = PHOTOMETRIC_LOSSES[config.photometric](generator=generator)
         self.lpips = lpips if lpips is not None or config.lambda_lpips == 0 else LPIPS()
         self._target_features: dict[Hashable, tuple[tuple[int, int, int, int], list[Tensor]]] = {}
         self._cached_bytes = 0

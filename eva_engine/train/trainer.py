@@ -2,8 +2,9 @@
 
 One frame per step (a seeded random order, epoch by epoch), as 3DGS does:
 pose (skinning) -> rasterize -> losses -> backward -> Adam steps -> density control. Progress
-goes to an optional callback (:class:`TrainProgress`); per-stage wall time is accumulated in
-``TrainResult.timings`` (what ``bench/train.py`` reports).
+goes to an optional callback (``eva_engine.progress.ProgressEvent``: stages "setup", "train",
+"done"); per-stage wall time is accumulated in ``TrainResult.timings`` (what ``bench/train.py``
+reports).
 """
 
 from __future__ import annotations
@@ -13,14 +14,17 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
-from eva_engine.avatar import Avatar, Camera
+from eva_engine.avatar import Avatar, AvatarFrames, Camera, TrainingRecord
 from eva_engine.body.model import PART_NAMES, BodyModel
 from eva_engine.body.params import BodyParams
+from eva_engine.data.dataset import Dataset, DatasetLike
+from eva_engine.data.resampled import ResampledDataset
+from eva_engine.progress import Progress, ProgressEvent
 from eva_engine.train.config import TrainConfig
 from eva_engine.train.losses import AvatarLoss, composite_target
 from eva_engine.train.pose_correction import PoseCorrection
@@ -34,18 +38,14 @@ class TrainingError(RuntimeError):
     """The data cannot be trained on (no body parameters, no training frames, ...)."""
 
 
-@dataclass
-class TrainProgress:
-    """One progress report: stage ("setup", "train", "done"), iteration (1-based) of total,
-    current loss, Gaussian count, elapsed and estimated remaining seconds."""
-
-    stage: str
-    iteration: int
-    total: int
-    loss: float
-    num_gaussians: int
-    elapsed: float
-    eta: float
+def _train_event(stage: str, done: int, total: int, loss: float | None, num_gaussians: int,
+                elapsed: float, eta: float | None) -> ProgressEvent:  # fmt: skip
+    """A training progress report: stage "setup", "train" or "done", iteration ``done`` (1-based)
+    of ``total``, the current loss, the Gaussian count, elapsed and remaining seconds."""
+    message = f"iteration {done}/{total}, {num_gaussians} Gaussians"
+    if loss is not None:
+        message += f", loss {loss:.4f}"
+    return ProgressEvent(stage, done, total, message, loss, num_gaussians, elapsed, eta)
 
 
 @dataclass
@@ -80,6 +80,27 @@ class TrainResult:
             getattr(out, k)[rows] = v.detach().cpu().float()
         return out
 
+    def frames(self, dataset: Dataset) -> AvatarFrames:
+        """``dataset``'s frames to keep with the avatar, posed as trained (``frame_params``)."""
+        if dataset.params is None:
+            raise TrainingError("the dataset has no body parameters to keep with the avatar")
+        return AvatarFrames.of_dataset(dataset, self.frame_params(dataset.params))
+
+    def record(self, config: TrainConfig, **provenance: Any) -> TrainingRecord:
+        """What ``avatar.json`` keeps of this run of ``config``; ``provenance``: the other
+        :class:`TrainingRecord` fields (preset, method, metrics, where the data came from)."""
+        return TrainingRecord(
+            train_config=config.to_dict(),
+            iterations=config.iterations,
+            train_seconds=self.train_seconds,
+            final_loss=self.losses[-1],
+            timings=self.timings,
+            refinements=self.refinements,
+            gaussians_per_part=self.gaussians_per_part,
+            pose_correction=self.pose_correction,
+            **provenance,
+        )
+
 
 def part_counts(part_ids: Tensor) -> dict[str, int]:
     """{part name: number of Gaussians} for ``part_ids [N]``."""
@@ -96,8 +117,8 @@ class TrainingFrames:
     params: BodyParams
 
 
-def load_training_frames(dataset, indices: list[int], image_scale: float = 1.0) -> TrainingFrames:
-    """Read (and resample by ``image_scale``) the frames ``indices`` of an ``eva-dataset``."""
+def load_training_frames(dataset: DatasetLike, indices: list[int]) -> TrainingFrames:
+    """Read the frames ``indices`` of ``dataset`` into memory."""
     if dataset.params is None:
         raise TrainingError(
             "the dataset has no body parameters (params.safetensors); fit them first (alignment), "
@@ -108,26 +129,19 @@ def load_training_frames(dataset, indices: list[int], image_scale: float = 1.0) 
     images, masks, cameras = [], [], []
     for i in indices:
         frame = dataset[i]
-        img, mask, k = frame.image.float(), frame.mask.float(), frame.K.float().clone()
-        if image_scale != 1.0:
-            h, w = img.shape[:2]
-            size = (max(1, round(h * image_scale)), max(1, round(w * image_scale)))
-            img = F.interpolate(img.permute(2, 0, 1)[None], size=size, mode="area")[0].permute(1, 2, 0)
-            mask = F.interpolate(mask[None, None], size=size, mode="area")[0, 0]
-            k[0] *= size[1] / w
-            k[1] *= size[0] / h
+        img, mask = frame.image.float(), frame.mask.float()
         images.append(img)
         masks.append(mask)
-        cameras.append(Camera(k, frame.viewmat.float(), img.shape[1], img.shape[0]))
+        cameras.append(Camera(frame.K.float(), frame.viewmat.float(), img.shape[1], img.shape[0]))
     params = BodyParams.cat([dataset.params[i] for i in indices])
     return TrainingFrames(torch.stack(images), torch.stack(masks), cameras, params)
 
 
-def dataset_background(dataset, config: TrainConfig) -> Tensor:
+def dataset_background(dataset: DatasetLike, config: TrainConfig) -> Tensor:
     """[3] the background renders and targets use: the config's, the dataset's, or white."""
     if config.background is not None:
         return torch.tensor(config.background, dtype=torch.float32)
-    bg = getattr(dataset.meta, "background", None)
+    bg = dataset.meta.background
     return torch.tensor(bg if bg is not None else (1.0, 1.0, 1.0), dtype=torch.float32)
 
 
@@ -168,33 +182,36 @@ def means_lr(config: TrainConfig, step: int) -> float:
 
 
 def train_avatar(
-    dataset,
+    dataset: DatasetLike,
     config: TrainConfig | None = None,
     body: BodyModel | None = None,
-    progress: Callable[[TrainProgress], None] | None = None,
+    progress: Progress | None = None,
+    checkpoint: Callable[[int, Avatar, float], None] | None = None,
+    checkpoint_steps: tuple[int, ...] = (),
 ) -> TrainResult:
-    """Train an avatar on ``dataset.splits["train"]`` (an ``eva-dataset``, see docs).
+    """Train an avatar on ``dataset.splits["train"]``, its frames resampled by
+    ``config.image_scale`` (:class:`~eva_engine.data.resampled.ResampledDataset`).
 
     body: the body model the dataset's parameters are for (default: ``meta.body_model``).
+    checkpoint: called as ``checkpoint(step, avatar, seconds)`` after each of
+    ``checkpoint_steps`` (1-based iteration counts) with the avatar as it trains (e.g. to
+    evaluate it) and the training seconds so far; its own time is not counted as training.
     """
     config = config or TrainConfig()
     device = resolve_device(config.device)
-    if config.threads:
-        torch.set_num_threads(config.threads)
-    torch.manual_seed(config.seed)
     t_setup = time.perf_counter()
     if progress:
-        progress(TrainProgress("setup", 0, config.iterations, float("nan"), 0, 0.0, float("nan")))
+        progress(ProgressEvent("setup", 0, config.iterations, "setting up training", elapsed=0.0))
 
     if body is None:
         from eva_engine.body import load_body_model
 
-        name = getattr(dataset.meta, "body_model", None)
+        name = dataset.meta.body_model
         if name is None:
             raise TrainingError("the dataset names no body model (meta.body_model)")
         body = load_body_model(name)
     train_ids = list(dataset.splits.get("train", []))
-    frames = load_training_frames(dataset, train_ids, config.image_scale)
+    frames = load_training_frames(ResampledDataset(dataset, config.image_scale), train_ids)
     background = dataset_background(dataset, config).to(device)
     targets = torch.stack(
         [
@@ -206,9 +223,14 @@ def train_avatar(
     params = frames.params.to(device)
 
     shape = params.shape.mean(dim=0)
-    avatar = Avatar.create(body.to(device), shape, config.avatar, seed=config.seed).to(device)
+    # Every random draw of the run comes from generators seeded here (the strategy has its own),
+    # never from torch's global state: the initial weights (the avatar's MLPs, then the loss's)
+    # and the frame order.
+    weights = torch.Generator().manual_seed(config.seed)
+    avatar = Avatar.create(body.to(device), shape, config.avatar, seed=config.seed, generator=weights)
+    avatar = avatar.to(device)
     avatar.active_sh_degree = 0
-    loss_fn = AvatarLoss(config.loss).to(device)
+    loss_fn = AvatarLoss(config.loss, generator=weights).to(device)
     optimizers = make_optimizers(avatar, config)
     extra = make_extra_optimizers(avatar, config, loss_fn)
     correction, correction_opt = None, None
@@ -224,12 +246,13 @@ def train_avatar(
     logger.info("setup %.1fs: %d frames, %d Gaussians", time.perf_counter() - t_setup, len(train_ids),
                 len(avatar.gaussians))  # fmt: skip
 
-    gen = torch.Generator().manual_seed(config.seed)
+    frame_order = torch.Generator().manual_seed(config.seed)
     order: list[int] = []
     timings = dict.fromkeys(STAGES, 0.0)
     losses: list[float] = []
     refinements: list[dict] = []
     start = time.perf_counter()
+    paused = 0.0  # seconds spent in ``checkpoint``
 
     def tick(stage: str, t0: float) -> float:
         if device.type == "cuda":
@@ -241,7 +264,7 @@ def train_avatar(
     for step in range(config.iterations):
         t = time.perf_counter()
         if not order:
-            order = torch.randperm(len(train_ids), generator=gen).tolist()
+            order = torch.randperm(len(train_ids), generator=frame_order).tolist()
         i = order.pop()
         if step > 0 and step % config.sh_degree_interval == 0:
             avatar.active_sh_degree = min(avatar.active_sh_degree + 1, avatar.gaussians.sh_degree)
@@ -275,12 +298,16 @@ def train_avatar(
             raise TrainingError(f"the loss became {loss} at iteration {step}")
         losses.append(loss)
         done = step + 1
+        if checkpoint is not None and done in checkpoint_steps:
+            t = time.perf_counter()
+            checkpoint(done, avatar, t - start - paused)
+            avatar.train()
+            paused += time.perf_counter() - t
         if progress and (done % config.progress_every == 0 or done == config.iterations):
-            elapsed = time.perf_counter() - start
+            elapsed = time.perf_counter() - start - paused
             eta = elapsed / done * (config.iterations - done)
-            progress(
-                TrainProgress("train", done, config.iterations, loss, len(avatar.gaussians), elapsed, eta)
-            )
+            event = _train_event("train", done, config.iterations, loss, len(avatar.gaussians), elapsed, eta)
+            progress(event)
 
     t = time.perf_counter()
     stats = strategy.finalize(avatar.gaussians, optimizers, state)
@@ -288,11 +315,11 @@ def train_avatar(
         refinements.append({"step": config.iterations, **stats})
         logger.info("after training: %s", stats)
     tick("densify", t)
-    train_seconds = time.perf_counter() - start
+    train_seconds = time.perf_counter() - start - paused
     avatar.eval()
     if progress:
-        progress(TrainProgress("done", config.iterations, config.iterations, losses[-1],
-                               len(avatar.gaussians), train_seconds, 0.0))  # fmt: skip
+        n = config.iterations
+        progress(_train_event("done", n, n, losses[-1], len(avatar.gaussians), train_seconds, 0.0))
     per_part = {"before": parts_before, "after": part_counts(avatar.gaussians.part_ids)}
     trained = (correction.corrected(params) if correction is not None else params).to("cpu")
     return TrainResult(

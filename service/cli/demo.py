@@ -56,6 +56,7 @@ def demo(
         console.print(f"[green]wrote[/] {out} ({time.perf_counter() - started:.1f} s)")
         return
 
+    from eva_engine.progress import ProgressEvent
     from service.demo import DemoError, run_service_demo
 
     if animation is not None and animation.suffix.lower() != ".mp4":
@@ -68,8 +69,9 @@ def demo(
     with Progress(*columns, console=console) as bar:
         task = bar.add_task("starting", total=1.0, eta="")
 
-        def report(stage: str, fraction: float, eta: float | None) -> None:
-            bar.update(task, description=stage, completed=fraction, eta=f"eta {eta:.0f} s" if eta else "")
+        def report(event: ProgressEvent) -> None:
+            eta = f"eta {event.eta:.0f} s" if event.eta else ""
+            bar.update(task, description=event.stage, completed=event.fraction, eta=eta)
 
         try:
             result = run_service_demo(workdir, out, options, progress=report, out_mp4=animation)

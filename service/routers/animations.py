@@ -149,13 +149,13 @@ def _check_poses(path: Path, avatar: JobRecord, ctx: ServiceContext) -> tuple[in
     """422 unless the file is a pose sequence the avatar's body model understands (bounded
     values, known names, within the model's ranges); returns (frames, fps, None: no image)."""
     from eva_engine.animate import DrivingError, driving_from_poses
-    from eva_engine.avatar import read_avatar_info
+    from eva_engine.avatar import read_avatar_meta
 
     try:
         doc = json.loads(path.read_bytes())
     except (ValueError, UnicodeDecodeError) as err:
         raise HTTPException(422, f"the poses are not valid JSON: {err}") from err
-    body = ctx.avatars.body(read_avatar_info(ctx.queue.storage.avatar_dir(avatar.avatar_id))["body_model"])
+    body = ctx.avatars.body(read_avatar_meta(ctx.queue.storage.avatar_dir(avatar.avatar_id)).body_model)
     try:
         driving = driving_from_poses(doc, body)
     except DrivingError as err:

@@ -7,7 +7,7 @@ from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Respon
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
-from eva_engine.avatar import read_avatar_info
+from eva_engine.avatar import read_avatar_meta
 from eva_engine.avatar.render_spec import frame_params, spec_camera, spec_params
 from jobs.options import JobOptions
 from jobs.store import JobRecord, new_id
@@ -71,14 +71,12 @@ def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
                       created_at=job.created_at, source_video=job.filename, error=job.error,
                       preset=job.options.get("preset"), body_model=job.options.get("body_model"))  # fmt: skip
     if status == "ready" and ctx.queue.storage.avatar_exists(job.avatar_id):
-        doc = read_avatar_info(ctx.queue.storage.avatar_dir(job.avatar_id))
-        frames = doc.get("frames", {})
+        meta = read_avatar_meta(ctx.queue.storage.avatar_dir(job.avatar_id))
         info = info.model_copy(update={
-            "body_model": doc.get("body_model"), "num_gaussians": doc.get("num_gaussians"),
-            "iterations": doc.get("iterations"), "train_seconds": doc.get("train_seconds"),
-            "final_loss": doc.get("final_loss"), "metrics": doc.get("metrics") or {},
-            "num_frames": frames.get("count"),
-            "frame_size": tuple(frames["image_size"]) if frames.get("image_size") else None,
+            "body_model": meta.body_model, "num_gaussians": meta.num_gaussians, "iterations": meta.iterations,
+            "train_seconds": meta.train_seconds, "final_loss": meta.final_loss, "metrics": meta.metrics,
+            "num_frames": meta.frames.count if meta.frames else None,
+            "frame_size": meta.frames.image_size if meta.frames else None,
         })  # fmt: skip
     return info
 
