@@ -55,7 +55,7 @@ VIDEOS = ROOT.parent / "shared" / "reference" / "videos"
 
 
 def synthetic(model, frames: int, dataset: Path | None) -> dict:
-    from eva_engine.data.synthetic import generate
+    from eva_engine.synth import generate
 
     if dataset is None:
         dataset = data_dir() / "synthetic" / "wild-bench-seed0"
@@ -170,9 +170,9 @@ def table3(model, dataset: Path, preset_name: str, iterations: int | None, image
 def face_mesh_px(model, params, targets: FitTargets) -> dict[str, float] | None:
     """Per frame, the median px distance between the detected face-mesh landmarks and the fitted
     face's correspondence points; summarised as the median and 90th percentile over frames."""
-    from eva_engine.align.camera import project, to_camera
     from eva_engine.align.face_mesh import load_correspondence
     from eva_engine.body.keypoints import KeypointRegressor
+    from eva_engine.geometry import project_points, to_camera
 
     corr = load_correspondence(model)
     if corr is None or targets.face_mesh is None:
@@ -181,7 +181,8 @@ def face_mesh_px(model, params, targets: FitTargets) -> dict[str, float] | None:
     names = [f"fm{k}" for k in terms]
     reg = KeypointRegressor(names, dict(zip(names, terms.values(), strict=True)), {}, model.num_joints)
     with torch.no_grad():
-        uv = project(to_camera(model.posed_points(params, reg), targets.frame_viewmat()), targets.frame_K())
+        cam = to_camera(model.posed_points(params, reg), targets.frame_viewmat())
+        uv = project_points(cam, targets.frame_K())
     det = targets.face_mesh[:, list(terms)]
     per_frame = []
     for f in range(uv.shape[0]):
@@ -233,7 +234,7 @@ def _overlay(model, ds, path: Path, picks: int = 4) -> None:
     """The fitted mesh (shaded, 60% opacity) over a few frames, side by side, as a JPEG."""
     from PIL import Image
 
-    from eva_engine.data.mesh_render import MeshRenderConfig, MeshRenderer
+    from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
 
     h, w = ds.image_size
     idx = np.linspace(0, len(ds) - 1, picks).round().astype(int).tolist()

@@ -263,8 +263,8 @@ def with_pixel_norm(config, pixel_norm: str):
 
 
 def dataset_for(size: str, seed: int) -> Path:
-    from eva_engine.data.synthetic import generate
     from eva_engine.paths import data_dir
+    from eva_engine.synth import generate
 
     path = data_dir() / "synthetic" / f"controlled-{size}-seed{seed}"
     meta = path / "meta.json"

@@ -372,7 +372,7 @@ def _markdown(report: dict) -> str:
             f"{head} {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['cpu_median_ms']:.1f} | {r['fps']:.1f} | "
             f"{r['mpairs_per_s']:.1f} | {r['peak_rss_delta_mb']:.0f} | |"
         )
-    lines += ["", "## Targets (20k Gaussians @ 512², `cpp`; the issue's are for 2 cores)", ""]
+    lines += ["", "## Targets (20k Gaussians @ 512², `cpp`; set for a 2-core machine)", ""]
     for t in report["targets"]:
         lines.append(f"- {t}")
     if report.get("notes"):

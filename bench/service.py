@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import datetime as dt
 import json
 import multiprocessing
@@ -42,6 +43,8 @@ import time
 from pathlib import Path
 
 from machine import describe
+
+from jobs.runner import JobProcess, job_processes
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -494,36 +497,15 @@ def _signer_video(work: Path) -> Path:
 
 
 # -- soak -----------------------------------------------------------------------------------------
-def job_processes() -> dict[int, tuple[str, int, str]]:
-    """pid -> (job id, parent pid, command name) of the live processes whose command line is a
-    job's (``python -m jobs run JOB_ID``): the job processes, and for a moment any helper one of
-    them forks (e.g. ``ctypes.util.find_library`` running ``ldconfig``) before it execs."""
-    found = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            args = (entry / "cmdline").read_bytes().split(b"\0")
-            stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-            comm = (entry / "comm").read_text().strip()
-        except OSError:
-            continue
-        for i in range(len(args) - 3):
-            if args[i : i + 3] == [b"-m", b"jobs", b"run"] and stat[0] != "Z":
-                found[int(entry.name)] = (args[i + 3].decode(), int(stat[1]), comm)
-    return found
-
-
-def runs_by_job(processes: dict[int, tuple[str, int, str]]) -> tuple[dict[str, list[int]], list[int]]:
-    """Job id -> pids of its independent runs (processes whose parent is not a process of the same
-    job), and the pids of helpers forked by a job's process."""
+def runs_by_job(processes: dict[int, JobProcess]) -> tuple[dict[str, list[int]], list[int]]:
+    """Job id -> pids of its independent runs, and the pids of helpers forked by a job's process."""
     runs: dict[str, list[int]] = {}
     helpers = []
-    for pid, (job_id, ppid, _) in processes.items():
-        if ppid in processes and processes[ppid][0] == job_id:
+    for pid, p in processes.items():
+        if p.forked:
             helpers.append(pid)
         else:
-            runs.setdefault(job_id, []).append(pid)
+            runs.setdefault(p.job_id, []).append(pid)
     return runs, helpers
 
 
@@ -578,7 +560,7 @@ def run_soak(args) -> None:
             for job_id, pids in runs.items():
                 seen.setdefault(job_id, set()).update(pids)
                 if len(pids) > 1:
-                    details = {pid: processes[pid][1:] for pid in pids}
+                    details = {pid: (processes[pid].parent, processes[pid].command) for pid in pids}
                     violations.append({"t": time.monotonic() - t_start, "job": job_id, "pids": details})
 
     watcher = threading.Thread(target=monitor, daemon=True)
@@ -644,7 +626,7 @@ def run_soak(args) -> None:
             for p in data.rglob("*")
             if ".partial" in p.name or p.name.startswith(".deleted-")
         ),
-        "job_processes_alive": job_processes(),
+        "job_processes_alive": {pid: dataclasses.asdict(p) for pid, p in job_processes().items()},
     }
     succeeded = {j for j, s in finals.items() if s["state"] == "succeeded"}
     avatars = sorted(p.name for p in (data / "avatars").iterdir())

@@ -1,4 +1,4 @@
-"""Synthetic benchmark generator speed (``eva_engine.data.synthetic.generate``), and the contact
+"""Synthetic benchmark generator speed (``eva_engine.synth.generate``), and the contact
 sheet in docs/.
 
     .venv/bin/python bench/synth.py [--sizes tiny bench] [--presets wild] [--seed 0]
@@ -25,7 +25,7 @@ from machine import cpu_name
 
 from eva_engine.body import load_body_model
 from eva_engine.data import load_dataset
-from eva_engine.data.synthetic import PRESETS, SIZES, generate
+from eva_engine.synth import PRESETS, SIZES, generate
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -68,7 +68,7 @@ def main() -> None:
                 if args.contact_sheet and size == "bench" and not sheet_done:
                     import cv2
 
-                    from eva_engine.data.preview import contact_sheet
+                    from eva_engine.synth.contact_sheet import contact_sheet
 
                     ds = load_dataset(out)
                     picks = [0, 27, 55, 83, 111, 139]

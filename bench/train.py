@@ -54,7 +54,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     path = args.dataset
     if path is None:
-        from eva_engine.data.synthetic import generate
+        from eva_engine.synth import generate
 
         path = data_dir() / "synthetic" / f"{args.synthetic}-{args.size}-seed{args.seed}"
         if not (path / "meta.json").is_file():

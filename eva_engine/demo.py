@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from eva_engine.body import BodyModel
-from eva_engine.data.mesh_render import vertex_normals
+from eva_engine.geometry import vertex_normals
 from eva_engine.render import intrinsics, orbit_camera, rasterize
 
 # Part colours (body, hand, face): distinct, so a wrong part id is visible at a glance.
@@ -109,7 +109,7 @@ def signer_video(folder: Path, model: BodyModel, seed: int = 0) -> tuple[Path, T
     """A video of the synthetic wild signer (256 px, 12 frames; MediaPipe finds body, face and
     hands) written to ``folder/signer.mp4``; returns it and its frames [N, H, W, 3] in [0, 1]."""
     from eva_engine.data import load_dataset, write_video
-    from eva_engine.data.synthetic import generate
+    from eva_engine.synth import generate
 
     ds = load_dataset(generate("wild", "small", seed, folder / "synthetic", model=model, overwrite=True))
     frames = ds.images(sorted(ds.splits["train"] + ds.splits["test_pose"]))

@@ -218,6 +218,42 @@ def exit_reason(returncode: int, config: JobsConfig) -> str:
     return f"the job's process exited with status {returncode} without finishing the job"
 
 
+# -- the job processes of this machine ----------------------------------------------------------
+@dataclass(frozen=True)
+class JobProcess:
+    """A live process whose command line is a job's (``python -m jobs run JOB_ID``)."""
+
+    job_id: str
+    parent: int
+    """The parent's pid."""
+    command: str
+    """The process's name (``/proc/<pid>/comm``)."""
+    forked: bool
+    """A helper that a process of the same job forked (e.g. ``ctypes.util.find_library`` running
+    ``ldconfig``): it shows its parent's command line until it execs."""
+
+
+def job_processes() -> dict[int, JobProcess]:
+    """pid -> the live processes of this machine (from /proc) whose command line is a job's."""
+    found: dict[int, tuple[str, int, str]] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            args = (entry / "cmdline").read_bytes().split(b"\0")
+            stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            comm = (entry / "comm").read_text().strip()
+        except OSError:  # it ended meanwhile
+            continue
+        for i in range(len(args) - 3):
+            if args[i : i + 3] == [b"-m", b"jobs", b"run"] and stat[0] != "Z":
+                found[int(entry.name)] = (args[i + 3].decode(), int(stat[1]), comm)
+    return {
+        pid: JobProcess(job_id, parent, comm, forked=found.get(parent, ("",))[0] == job_id)
+        for pid, (job_id, parent, comm) in found.items()
+    }
+
+
 # -- the child's side ---------------------------------------------------------------------------
 def _die_with_parent(parent: int) -> None:
     """Linux: SIGKILL this process when the worker that started it dies."""

@@ -43,20 +43,11 @@ class Storage:
 
     def publish(self, src: Path, avatar_id: str) -> Path:
         """Move the complete folder ``src`` (same file system) to the avatar's place atomically."""
-        dst = self.avatar_dir(avatar_id)
-        if dst.exists():
-            raise FileExistsError(f"avatar {avatar_id} already exists")
-        os.replace(src, dst)
-        return dst
+        return _publish(src, self.avatar_dir(avatar_id), f"avatar {avatar_id}")
 
     def delete_avatar(self, avatar_id: str) -> None:
-        """Remove an avatar: renamed away first, so readers never see a partial folder."""
-        path = self.avatar_dir(avatar_id)
-        if not path.exists():
-            return
-        trash = self.config.avatars_dir / f".deleted-{avatar_id}-{uuid.uuid4().hex[:8]}"
-        os.replace(path, trash)
-        shutil.rmtree(trash, ignore_errors=True)
+        """Remove an avatar; readers never see a partial folder."""
+        _remove(self.avatar_dir(avatar_id))
 
     # -- animations (the same rules: checked ids, atomic publish, renamed away before removal) ---
     def animation_dir(self, animation_id: str) -> Path:
@@ -66,22 +57,29 @@ class Storage:
         return self.animation_dir(animation_id).is_dir()
 
     def publish_animation(self, src: Path, animation_id: str) -> Path:
-        dst = self.animation_dir(animation_id)
-        if dst.exists():
-            raise FileExistsError(f"animation {animation_id} already exists")
-        os.replace(src, dst)
-        return dst
+        return _publish(src, self.animation_dir(animation_id), f"animation {animation_id}")
 
     def delete_animation(self, animation_id: str) -> None:
-        path = self.animation_dir(animation_id)
-        if not path.exists():
-            return
-        trash = self.config.animations_dir / f".deleted-{animation_id}-{uuid.uuid4().hex[:8]}"
-        os.replace(path, trash)
-        shutil.rmtree(trash, ignore_errors=True)
+        _remove(self.animation_dir(animation_id))
 
     def remove_work(self, job_id: str) -> None:
         shutil.rmtree(self.work_dir(job_id), ignore_errors=True)
+
+
+def _publish(src: Path, dst: Path, what: str) -> Path:
+    if dst.exists():
+        raise FileExistsError(f"{what} already exists")
+    os.replace(src, dst)
+    return dst
+
+
+def _remove(path: Path) -> None:
+    """Rename the folder away first, so readers never see it partial, then delete it."""
+    if not path.exists():
+        return
+    trash = path.with_name(f".deleted-{path.name}-{uuid.uuid4().hex[:8]}")
+    os.replace(path, trash)
+    shutil.rmtree(trash, ignore_errors=True)
 
 
 def input_file(work: Path) -> Path | None:

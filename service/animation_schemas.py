@@ -4,21 +4,16 @@ an animation's state, and the pose controls (sliders) of an avatar."""
 from __future__ import annotations
 
 import json
-from datetime import UTC, datetime
+from datetime import datetime
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, computed_field, field_validator
 
 from eva_engine.animate.controls import PoseControl
 from eva_engine.render.view import CameraSpec
 from jobs.animation import AnimationOptions, AnimationRequest
 from jobs.store import JobRecord
-
-AnimationState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-
-
-def _time(ts: float | None) -> datetime | None:
-    return datetime.fromtimestamp(ts, UTC) if ts is not None else None
+from service.schemas import JobCreated, JobState, utc_time
 
 
 class AnimationForm(AnimationRequest):
@@ -47,11 +42,15 @@ class AnimationForm(AnimationRequest):
             raise ValueError(f"camera is not a preset name, 'driving' or valid JSON: {err}") from err
 
 
-class AnimationCreated(BaseModel):
+class AnimationCreated(JobCreated):
+    """The job that makes the animation; ``animation_url`` has its state, then its video."""
+
     animation_id: str = Field(examples=["5e4d3c2b1a0f9e8d7c6b5a4f3e2d1c0b"])
-    job_id: str = Field(examples=["0a1b2c3d4e5f60718293a4b5c6d7e8f9"])
-    job_url: str = Field(examples=["/jobs/0a1b2c3d4e5f60718293a4b5c6d7e8f9"])
-    animation_url: str = Field(examples=["/animations/5e4d3c2b1a0f9e8d7c6b5a4f3e2d1c0b"])
+
+    @computed_field(examples=["/animations/5e4d3c2b1a0f9e8d7c6b5a4f3e2d1c0b"])
+    @property
+    def animation_url(self) -> str:
+        return f"/animations/{self.animation_id}"
 
 
 class AnimationInfo(BaseModel):
@@ -61,7 +60,7 @@ class AnimationInfo(BaseModel):
     animation_id: str
     avatar_id: str = Field(description="The avatar animated.")
     job_id: str
-    state: AnimationState
+    state: JobState
     stage: Literal["preprocess", "align", "render", "export"] | None
     progress: float
     eta_seconds: float | None
@@ -90,8 +89,8 @@ class AnimationInfo(BaseModel):
             animation_id=job.avatar_id, avatar_id=job.options["avatar_id"], job_id=job.id,
             state=job.state, stage=job.stage, progress=round(job.progress, 4),  # type: ignore[arg-type]
             eta_seconds=job.eta_s, message=job.message, error=job.error, source=job.filename,
-            options=AnimationOptions.model_validate(job.options), created_at=_time(job.created_at),
-            finished_at=_time(job.finished_at),
+            options=AnimationOptions.model_validate(job.options), created_at=utc_time(job.created_at),
+            finished_at=utc_time(job.finished_at),
             video_url=f"/animations/{job.avatar_id}/video" if done else None,
             **{k: info.get(k) for k in ("frames", "fps", "width", "height", "duration_s",
                                         "driving_frames_without_person")},

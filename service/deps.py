@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 from fastapi import Depends, HTTPException, Request
 from fastapi.concurrency import run_in_threadpool
@@ -60,26 +62,28 @@ async def render_admission(ctx: ServiceContext = Depends(context)) -> None:
     ctx.renders.admit()
 
 
-def _check_id(value: str, what: str) -> None:
+def _record(what: str, value: str, find: Callable[[str], JobRecord | None]) -> JobRecord:
+    """What ``find`` answers for a well-formed id; 404 for a malformed or unknown one."""
     if not is_valid_id(value):
         raise HTTPException(404, f"no {what} with id {value!r} (ids are 32 lowercase hex characters)")
+    job = find(value)
+    if job is None:
+        raise HTTPException(404, f"no {what} with id {value!r}")
+    return job
 
 
 def job_record(job_id: str, ctx: ServiceContext = Depends(context)) -> JobRecord:
-    _check_id(job_id, "job")
-    job = ctx.queue.store.get(job_id)
-    if job is None:
-        raise HTTPException(404, f"no job with id {job_id!r}")
-    return job
+    return _record("job", job_id, ctx.queue.store.get)
 
 
 def avatar_record(avatar_id: str, ctx: ServiceContext = Depends(context)) -> JobRecord:
     """The job record behind an avatar (one job makes one avatar)."""
-    _check_id(avatar_id, "avatar")
-    job = ctx.queue.store.by_avatar(avatar_id)
-    if job is None:
-        raise HTTPException(404, f"no avatar with id {avatar_id!r}")
-    return job
+    return _record("avatar", avatar_id, ctx.queue.store.by_avatar)
+
+
+def animation_record(animation_id: str, ctx: ServiceContext = Depends(context)) -> JobRecord:
+    """The job record behind an animation (its ``avatar_id`` column is the animation's id)."""
+    return _record("animation", animation_id, partial(ctx.queue.store.by_avatar, kind="animation"))
 
 
 def ready_avatar(

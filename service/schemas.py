@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, computed_field
 
 from eva_engine.avatar.render_spec import (  # noqa: F401  (the bounds, re-exported for clients)
     MAX_FRAME_INDEX,
@@ -24,7 +24,8 @@ JobStage = Literal["preprocess", "align", "train", "render", "export"]
 AvatarStatus = Literal["pending", "ready", "failed", "cancelled"]
 
 
-def _time(ts: float | None) -> datetime | None:
+def utc_time(ts: float | None) -> datetime | None:
+    """A store's Unix seconds as an aware UTC datetime (None stays None)."""
     return datetime.fromtimestamp(ts, UTC) if ts is not None else None
 
 
@@ -47,11 +48,26 @@ class AvatarForm(JobOptions):
     model_config = ConfigDict(extra="ignore")
 
 
-class AvatarCreated(BaseModel):
-    avatar_id: str = Field(examples=["9f1c2b7e4a5d4c3b8e7f6a5b4c3d2e1f"])
+class JobCreated(BaseModel):
+    """A queued job; ``job_url`` follows its state and progress."""
+
     job_id: str = Field(examples=["0a1b2c3d4e5f60718293a4b5c6d7e8f9"])
-    job_url: str = Field(examples=["/jobs/0a1b2c3d4e5f60718293a4b5c6d7e8f9"])
-    avatar_url: str = Field(examples=["/avatars/9f1c2b7e4a5d4c3b8e7f6a5b4c3d2e1f"])
+
+    @computed_field(examples=["/jobs/0a1b2c3d4e5f60718293a4b5c6d7e8f9"])
+    @property
+    def job_url(self) -> str:
+        return f"/jobs/{self.job_id}"
+
+
+class AvatarCreated(JobCreated):
+    """The job that learns the avatar; ``avatar_url`` has its metadata (``pending`` until done)."""
+
+    avatar_id: str = Field(examples=["9f1c2b7e4a5d4c3b8e7f6a5b4c3d2e1f"])
+
+    @computed_field(examples=["/avatars/9f1c2b7e4a5d4c3b8e7f6a5b4c3d2e1f"])
+    @property
+    def avatar_url(self) -> str:
+        return f"/avatars/{self.avatar_id}"
 
 
 class JobInfo(BaseModel):
@@ -99,9 +115,9 @@ class JobInfo(BaseModel):
             job_id=job.id, **ids, state=job.state, stage=job.stage,  # type: ignore[arg-type]
             progress=round(job.progress, 4), eta_seconds=job.eta_s, message=job.message, error=job.error,
             attempts=job.attempts, cancel_requested=job.cancel_requested, filename=job.filename,
-            options=options, created_at=_time(job.created_at),
-            started_at=_time(job.started_at), finished_at=_time(job.finished_at),
-            updated_at=_time(job.updated_at),
+            options=options, created_at=utc_time(job.created_at),
+            started_at=utc_time(job.started_at), finished_at=utc_time(job.finished_at),
+            updated_at=utc_time(job.updated_at),
         )  # fmt: skip
 
 

@@ -1,20 +1,24 @@
-"""Video uploads: the copy into the job's folder and the checks that answer 4xx before a job is
-queued (headers probed in a child process, frame budget). Blocking: routers run them in a thread.
-The body's size limit is the request guard's (``service.guard``)."""
+"""Uploads: the job's folder they go into (``queued_job``), the copy, and the checks that answer 4xx
+before a job is queued (headers probed in a child process, frame budget). Blocking: routers run
+them in a thread. The body's size limit is the request guard's (``service.guard``)."""
 
 from __future__ import annotations
 
 import re
 import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
 from jobs.config import JobsConfig
 from jobs.media import VideoInfo, VideoRejected, check_frame_budget, probe_in_subprocess
 from jobs.options import JobOptions
+from jobs.store import new_id
 
 if TYPE_CHECKING:
     from jobs.animation import AnimationOptions
+    from jobs.queue import JobQueue
 
 CHUNK = 1024 * 1024
 _SUFFIX = re.compile(r"^\.[a-z0-9]{1,5}$")
@@ -62,3 +66,24 @@ def check_video(path: Path, options: JobOptions | AnimationOptions, jobs: JobsCo
 
 def remove_tree(path: Path) -> None:
     shutil.rmtree(path, ignore_errors=True)
+
+
+@contextmanager
+def queued_job(queue: JobQueue) -> Iterator[tuple[str, Path]]:
+    """A new job id and its empty work folder for the ``with`` body, which saves the upload, checks
+    it and creates the job's record; then the job is queued. When the body or the queue fails,
+    nothing stays behind: the folder goes (and the record, when the queue backend is down)."""
+    job_id = new_id()
+    work = queue.storage.work_dir(job_id)
+    work.mkdir(parents=True)
+    try:
+        yield job_id, work
+    except BaseException:
+        remove_tree(work)
+        raise
+    try:
+        queue.enqueue(job_id)
+    except BaseException:
+        queue.store.delete(job_id)
+        remove_tree(work)
+        raise

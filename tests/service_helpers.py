@@ -32,7 +32,7 @@ FAST_OPTIONS = {
 def signer_video(anny_model, tmp_path_factory) -> Path:
     """A short mp4 of the synthetic wild signer (256 px, MediaPipe finds the person); made once."""
     from eva_engine.data import load_dataset, write_video
-    from eva_engine.data.synthetic import generate
+    from eva_engine.synth import generate
 
     folder = tmp_path_factory.getbasetemp() / "service-signer"
     video = folder / "signer.mp4"
@@ -51,7 +51,7 @@ def other_signer_video(anny_model, tmp_path_factory) -> Path:
     """Someone else: 8 frames (2 fps) of the synthetic wild signer with seed 1 -- another body shape,
     face, clothes and motion than seed 0's (the demo's) -- at 256 px; made once."""
     from eva_engine.data import load_dataset, write_video
-    from eva_engine.data.synthetic import generate
+    from eva_engine.synth import generate
 
     folder = tmp_path_factory.getbasetemp() / "other-signer"
     video = folder / "someone_else.mp4"
@@ -245,19 +245,7 @@ def gradient_video(path: Path, frames: int, side: int, fps: int = 10, live: bool
 
 
 def job_processes(job_id: str | None = None) -> dict[int, str]:
-    """pid -> job id of the running job processes (``python -m jobs run JOB_ID``), from /proc;
-    not a helper one of them forked (same command line until it execs)."""
-    found: dict[int, tuple[str, int]] = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            args = (entry / "cmdline").read_bytes().split(b"\0")
-            stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        for i in range(len(args) - 3):
-            if args[i : i + 3] == [b"-m", b"jobs", b"run"] and stat[0] != "Z":
-                if job_id is None or args[i + 3].decode() == job_id:
-                    found[int(entry.name)] = (args[i + 3].decode(), int(stat[1]))
-    return {pid: job for pid, (job, ppid) in found.items() if found.get(ppid, ("",))[0] != job}
+    """pid -> job id of the running job processes (of ``job_id``, or all), not the helpers they fork."""
+    from jobs.runner import job_processes as processes
+
+    return {pid: p.job_id for pid, p in processes().items() if not p.forked and job_id in (None, p.job_id)}

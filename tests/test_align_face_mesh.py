@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from eva_engine.align.camera import project, to_camera
 from eva_engine.align.face_mesh import NUM_LANDMARKS, detect_face_mesh, load_correspondence, render_face
 from eva_engine.body import SIDED_PART_NAMES
+from eva_engine.geometry import project_points, to_camera
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +43,7 @@ def test_reprojection_on_a_rendered_face(anny_model, correspondence):
     c = correspondence
     corners = r["vertices"].double()[anny_model.faces[c.faces]]  # [478, 3, 3]
     points = (c.barycentric.double()[..., None] * corners).sum(1)
-    uv = project(to_camera(points[None], r["viewmat"].double()), r["K"].double())[0].numpy()
+    uv = project_points(to_camera(points[None], r["viewmat"].double()), r["K"].double())[0].numpy()
     err = np.linalg.norm(uv - pts, axis=1)[c.valid.numpy()]
     assert np.median(err) < 1.5, np.median(err)
     assert np.percentile(err, 90) < 4.0, np.percentile(err, 90)

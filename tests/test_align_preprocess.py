@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from eva_engine.align import PreprocessConfig, PreprocessError, preprocess_video
 from eva_engine.cli import app
 from eva_engine.data import load_dataset, write_video
-from eva_engine.data.synthetic import generate
+from eva_engine.synth import generate
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +45,8 @@ def test_writes_a_dataset_with_detections_and_fitted_params(signer, preprocessed
     assert ds.splits["test_pose"] == [3, 7, 11] and len(ds.splits["train"]) == 9
     assert report.detection_rates["pose"] == 1.0 and report.detection_rates["face"] == 1.0
     assert min(report.detection_rates["left_hand"], report.detection_rates["right_hand"]) >= 0.5
-    # The fit halves the hand reprojection error at least (the issue's goal) and lowers the rest.
+    # The fit at least halves the hands' reprojection error (what its hand stages are for) and
+    # lowers the rest.
     assert report.reprojection_fitted["hands"] < 0.5 * report.reprojection_initial["hands"]
     assert report.reprojection_fitted["body"] < report.reprojection_initial["body"]
     # The person mask (holistic segmentation) agrees with the rendered person.

@@ -5,11 +5,12 @@ import math
 import pytest
 import torch
 
+from eva_engine.geometry import camera_center, to_camera
 from eva_engine.render import intrinsics, look_at, orbit_camera
 
 
 def _to_camera(viewmat, p):
-    return viewmat[:3, :3] @ torch.as_tensor(p, dtype=torch.float32) + viewmat[:3, 3]
+    return to_camera(torch.tensor([p], dtype=torch.float32), viewmat)[0]
 
 
 def test_intrinsics_centre_and_fov():
@@ -39,14 +40,14 @@ def test_look_at_axes_follow_opencv():
 @pytest.mark.parametrize("yaw, expected", [(0.0, (0, 0, 2)), (90.0, (2, 0, 0)), (180.0, (0, 0, -2))])
 def test_orbit_camera_positions(yaw, expected):
     view = orbit_camera(yaw, 0.0, 2.0, target=(0.0, 0.0, 0.0))
-    centre = -view[:3, :3].T @ view[:3, 3]
+    centre = camera_center(view)
     assert torch.allclose(centre, torch.tensor(expected, dtype=torch.float32), atol=1e-5)
     assert torch.allclose(_to_camera(view, (0, 0, 0)), torch.tensor([0.0, 0.0, 2.0]), atol=1e-5)
 
 
 def test_orbit_camera_pitch_and_bad_values():
     view = orbit_camera(0.0, 30.0, 2.0)
-    centre = -view[:3, :3].T @ view[:3, 3]
+    centre = camera_center(view)
     assert centre[1] == pytest.approx(2.0 * math.sin(math.radians(30)), abs=1e-5)
     for kwargs in ({"pitch_deg": 90.0}, {"distance": 0.0}, {"distance": float("nan")}):
         with pytest.raises(ValueError):

@@ -161,6 +161,21 @@ def single(
     )
 
 
+def stacked(n: int = 300, size: int = 15) -> dict:
+    """``n`` point-like Gaussians (scale 1e-8: the 2D footprint is the eps2d blur) straight ahead of
+    the centre pixel of a ``size`` x ``size`` image, opacity 0.5 (so alpha 0.5 there), one behind
+    the other 1 cm apart."""
+    viewmat, K = look_camera(size, size, 15.0)
+    return dict(
+        means=torch.stack([torch.zeros(n), torch.zeros(n), 1.0 + 0.01 * torch.arange(n)], -1).double(),
+        quats=torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64).expand(n, 4),
+        scales=torch.full((n, 3), 1e-8, dtype=torch.float64),
+        opacities=torch.full((n,), 0.5, dtype=torch.float64),
+        colors=torch.rand(n, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64),
+        viewmat=viewmat, K=K, width=size, height=size, background=torch.ones(3, dtype=torch.float64),
+    )  # fmt: skip
+
+
 def cast(scene: dict, dtype) -> dict:
     return {k: (v.to(dtype) if torch.is_tensor(v) else v) for k, v in scene.items()}
 
@@ -428,14 +443,15 @@ def _check_against_reference(scene, atol=1e-10):
     return out, grads
 
 
-def test_no_gaussians():
+@KERNELS
+def test_no_gaussians(kernel):
     viewmat, K = look_camera(20, 12, 20.0)
     bg = torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64, requires_grad=True)
     empty = torch.zeros(0, 3, dtype=torch.float64, requires_grad=True)
     out = rasterize(
         empty, torch.zeros(0, 4, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64),
         torch.zeros(0, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64), viewmat, K, 20, 12,
-        background=bg,
+        background=bg, config=RasterConfig(kernel=kernel),
     )  # fmt: skip
     assert torch.equal(out.image, bg.detach().expand(12, 20, 3))
     assert torch.all(out.alpha == 0) and torch.all(out.depth == 0)
@@ -537,19 +553,9 @@ def test_gaussian_covering_whole_image():
 
 
 def test_hundreds_stacked_in_one_pixel_stop_early():
-    # 300 point-like Gaussians (scale 1e-8: the 2D footprint is the eps2d blur) straight ahead of
-    # the centre of pixel (7, 7), opacity 0.5, at increasing depth. There alpha = 0.5 for each, so
-    # T = 0.5^k: the 14th would take T to 6.1e-5 <= 1e-4, so exactly 13 contribute.
-    n, size = 300, 15
-    viewmat, K = look_camera(size, size, 15.0)
-    scene = dict(
-        means=torch.stack([torch.zeros(n), torch.zeros(n), 1.0 + 0.01 * torch.arange(n)], -1).double(),
-        quats=torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64).expand(n, 4),
-        scales=torch.full((n, 3), 1e-8, dtype=torch.float64),
-        opacities=torch.full((n,), 0.5, dtype=torch.float64),
-        colors=torch.rand(n, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64),
-        viewmat=viewmat, K=K, width=size, height=size, background=torch.ones(3, dtype=torch.float64),
-    )  # fmt: skip
+    # At pixel (7, 7) T = 0.5^k after k Gaussians: the 14th would take T to 6.1e-5 <= 1e-4, so
+    # exactly 13 contribute.
+    scene = stacked()
     _check_against_reference(scene, atol=1e-12)
     inputs = {k: (v.clone().requires_grad_(True) if k in PARAMS else v) for k, v in scene.items()}
     out = rasterize(**inputs)

@@ -14,7 +14,7 @@ import sys
 
 import pytest
 import torch
-from test_render import PARAMS, cast, look_camera, random_scene, render_with_grads, single
+from test_render import PARAMS, cast, random_scene, render_with_grads, single, stacked
 
 from eva_engine.render import RasterConfig, bin_gaussians, native, project_gaussians, rasterize
 
@@ -97,21 +97,6 @@ def test_sh_colors(compiled):
 # ----------------------------------------------------------------------------- degenerate inputs
 
 
-def test_no_gaussians(compiled):
-    viewmat, K = look_camera(20, 12, 20.0)
-    bg = torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64, requires_grad=True)
-    empty = torch.zeros(0, 3, dtype=torch.float64, requires_grad=True)
-    out = rasterize(
-        empty, torch.zeros(0, 4, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64),
-        torch.zeros(0, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64), viewmat, K, 20, 12,
-        background=bg, config=RasterConfig(kernel="cpp"),
-    )  # fmt: skip
-    assert torch.equal(out.image, bg.detach().expand(12, 20, 3))
-    assert torch.all(out.alpha == 0) and torch.all(out.depth == 0)
-    out.image.sum().backward()
-    torch.testing.assert_close(bg.grad, torch.full((3,), 240.0, dtype=torch.float64))
-
-
 @pytest.mark.parametrize("opacity", [0.0, 1.0, 1e-13, 0.004])
 def test_extreme_opacities(compiled, opacity):
     # 0 and 1e-13: nothing drawn; 1: alpha clamped at 0.999 (no gradient there); 0.004: just
@@ -120,16 +105,7 @@ def test_extreme_opacities(compiled, opacity):
 
 
 def test_stacked_gaussians_stop_early(compiled):
-    n, size = 300, 15
-    viewmat, K = look_camera(size, size, 15.0)
-    scene = dict(
-        means=torch.stack([torch.zeros(n), torch.zeros(n), 1.0 + 0.01 * torch.arange(n)], -1).double(),
-        quats=torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64).expand(n, 4),
-        scales=torch.full((n, 3), 1e-8, dtype=torch.float64),
-        opacities=torch.full((n,), 0.5, dtype=torch.float64),
-        colors=torch.rand(n, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64),
-        viewmat=viewmat, K=K, width=size, height=size, background=torch.ones(3, dtype=torch.float64),
-    )  # fmt: skip
+    scene = stacked()
     out, _ = assert_same(scene, tol64=(1e-12, 1e-9))
     torch.testing.assert_close(out.alpha[7, 7, 0].item(), 1 - 0.5**13, rtol=0, atol=1e-12)
 

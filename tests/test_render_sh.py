@@ -5,7 +5,8 @@ import math
 import pytest
 import torch
 
-from eva_engine.render import camera_center, eval_sh, num_sh_bases, rgb_to_sh, sh_basis, view_dirs
+from eva_engine.geometry import camera_center
+from eva_engine.render import eval_sh, num_sh_bases, rgb_to_sh, sh_basis, view_dirs
 from eva_engine.render.sh import SH_C0, SH_C1
 
 

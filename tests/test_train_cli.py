@@ -9,7 +9,7 @@ import pytest
 from typer.testing import CliRunner
 
 from eva_engine.cli import app
-from eva_engine.data.synthetic import generate
+from eva_engine.synth import generate
 
 
 @pytest.fixture(scope="module")

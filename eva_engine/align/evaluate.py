@@ -10,9 +10,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from eva_engine.align.camera import project, to_camera
 from eva_engine.align.fit import LEFT_HIP, POSE_BODY, RIGHT_HIP, FitTargets
 from eva_engine.body import KEYPOINT_GROUPS, BodyModel, BodyParams
+from eva_engine.geometry import project_points, to_camera
 
 
 def targets_from_params(
@@ -30,7 +30,7 @@ def targets_from_params(
         view = viewmat.expand(f, 4, 4) if viewmat.ndim == 2 else viewmat
         Ks = K.expand(f, 3, 3) if K.ndim == 2 else K
         cam = to_camera(kp, view)
-        uv = project(cam, Ks)
+        uv = project_points(cam, Ks)
         conf = torch.ones_like(uv[..., 0])
         if image_size is not None:
             h, w = image_size

@@ -111,8 +111,8 @@ def head_camera(model: BodyModel, yaw_deg: float, pitch_deg: float, size: int) -
 def render_face(model: BodyModel, views: tuple[tuple[float, float], ...], size: int = 512) -> list[dict]:
     """The painted neutral face from each (yaw, pitch) view: dicts with rgb [H, W, 3] uint8,
     face_id [H, W], K, viewmat and the rest vertices [V, 3]."""
-    from eva_engine.data.look import Look, bake_texture, face_segments
-    from eva_engine.data.mesh_render import MeshRenderConfig, MeshRenderer
+    from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
+    from eva_engine.synth.texture import Look, apply_look
 
     params = model.default_params(1)
     with torch.no_grad():
@@ -121,12 +121,7 @@ def render_face(model: BodyModel, views: tuple[tuple[float, float], ...], size: 
     config = MeshRenderConfig(width=size, height=size, supersample=2)
     out = []
     with MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer:
-        texture = bake_texture(model, params, look, renderer, 2048, face_label=face_segments(model))
-        renderer.set_surface(
-            texture=texture,
-            uv=model.anny.texture_coordinates.cpu().numpy(),
-            face_uv=model.anny.face_texture_coordinate_indices.cpu().numpy(),
-        )
+        apply_look(renderer, model, params, look, 2048)
         for yaw, pitch in views:
             K, view = head_camera(model, yaw, pitch, size)
             r = renderer.render(vertices, view, K)
@@ -164,7 +159,7 @@ def build_correspondence(
 ) -> FaceMeshCorrespondence:
     """The correspondence of ``model`` (module docstring). Needs the mesh renderer (EGL) and
     MediaPipe; takes a few seconds."""
-    from eva_engine.align.camera import project, to_camera
+    from eva_engine.geometry import project_points, to_camera
 
     faces = model.faces.cpu().numpy()
     face_part = model.sided_part_ids.cpu().numpy()
@@ -174,9 +169,8 @@ def build_correspondence(
         pts = detect_face_mesh(r["rgb"])
         if pts is None:
             continue
-        uv = project(to_camera(r["vertices"][None].double(), r["viewmat"].double()), r["K"].double())[
-            0
-        ].numpy()
+        cam = to_camera(r["vertices"][None].double(), r["viewmat"].double())
+        uv = project_points(cam, r["K"].double())[0].numpy()
         face_id = r["face_id"].numpy()
         h, w = face_id.shape
         rest = r["vertices"].double().numpy()

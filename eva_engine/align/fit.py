@@ -44,11 +44,11 @@ import roma
 import torch
 from torch import Tensor
 
-from eva_engine.align.camera import MIN_DEPTH, project, to_camera
 from eva_engine.align.hands import HandTrackConfig, articulation_prior
 from eva_engine.align.robust import weighted_gm, z_only_gm
 from eva_engine.body import KEYPOINT_GROUPS, PART_NAMES, BodyModel, BodyParams
 from eva_engine.body.kinematics import axis_angle_to_matrix
+from eva_engine.geometry import MIN_DEPTH, project_points, to_camera
 from eva_engine.progress import Progress, ProgressEvent
 
 # Pose landmarks that are body joints (shoulders .. foot index); the others are face points
@@ -315,7 +315,7 @@ class _Problem:
         params = self.params()
         kp, _ = self.model.posed_keypoints(params)
         cam = to_camera(kp, self.viewmat)
-        uv = project(cam, self.K)
+        uv = project_points(cam, self.K)
         residual = (uv - t.keypoints[..., :2]) / self.scale[:, None, None]
         # Each group is a robust mean over its own points, so the 16 face points weigh as much as
         # the body's joints when gamma says so. Until hands / face get their own weight, the
@@ -334,7 +334,7 @@ class _Problem:
 
         if stage.w_face_mesh > 0 and self.face_mesh is not None:
             reg, landmarks = self.face_mesh
-            pts = project(to_camera(self.model.posed_points(params, reg), self.viewmat), self.K)
+            pts = project_points(to_camera(self.model.posed_points(params, reg), self.viewmat), self.K)
             det = t.face_mesh[:, landmarks]
             res = (pts - det[..., :2]) / self.scale[:, None, None]
             total = total + stage.w_face_mesh * weighted_gm(res, det[..., 2], cfg.sigma_2d)
@@ -586,7 +586,7 @@ def reprojection_error(model: BodyModel, params: BodyParams, targets: FitTargets
     (body = the pose body joints, left/right hand, face); NaN where nothing was detected."""
     with torch.no_grad():
         kp, _ = model.posed_keypoints(params)
-        uv = project(to_camera(kp, targets.frame_viewmat()), targets.frame_K())
+        uv = project_points(to_camera(kp, targets.frame_viewmat()), targets.frame_K())
         dist = (uv - targets.keypoints[..., :2]).norm(dim=-1)
         ok = targets.keypoints[..., 2] > 0.5
         groups = {

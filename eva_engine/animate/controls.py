@@ -14,14 +14,13 @@ controls (``pose_controls`` returns those it can).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 from pydantic import BaseModel, Field
 
 from eva_engine.body.model import BodyModel
 from eva_engine.body.params import BodyParams, BodyPose
+from eva_engine.body.rest_axes import RestAxes, rest_axes
 
 Vec3 = tuple[float, float, float]
 _SKELETON = {f"{j}.{s}" for j in ("upperarm01", "lowerarm01", "wrist", "finger2-1", "finger3-1", "finger5-1")
@@ -52,30 +51,13 @@ class PoseControl(BaseModel):
     expressions: list[ExpressionTerm] = Field(default_factory=list)
 
 
-@dataclass(frozen=True)
-class _Axes:
-    """Rest-skeleton axes of one subject (world, unit), per side ``L``/``R``."""
-
-    elbow: dict[str, np.ndarray]
-    forearm: dict[str, np.ndarray]
-    wrist_flex: dict[str, np.ndarray]
-    finger: dict[str, list[np.ndarray]]  # curl axis per finger, thumb .. pinky
-
-
-def _subject_axes(body: BodyModel, shape: torch.Tensor) -> _Axes:
-    from eva_engine.data.motion import rest_axes
-
-    axes = rest_axes(body, shape.reshape(1, -1))
-    return _Axes(axes.elbow, axes.forearm, axes.wrist_flex, axes.finger)
-
-
 def _v(axis) -> Vec3:
     a = np.asarray(axis, dtype=np.float64)
     a = a / np.linalg.norm(a)
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
-def _joint_controls(axes: _Axes) -> list[PoseControl]:
+def _joint_controls(axes: RestAxes) -> list[PoseControl]:
     x, y, z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
     minus_x = (-1.0, 0.0, 0.0)
 
@@ -148,7 +130,8 @@ def pose_controls(body: BodyModel, shape: torch.Tensor | None = None) -> list[Po
     joints, expressions = set(body.pose_joint_names), set(body.expression_names)
     controls = []
     if _SKELETON <= joints:  # the rest-skeleton axes need Anny's arm and hand joints
-        controls = _joint_controls(_subject_axes(body, body.shape_defaults if shape is None else shape))
+        shape = body.shape_defaults if shape is None else shape
+        controls = _joint_controls(rest_axes(body, shape.reshape(1, -1)))
     controls += _face_controls()
 
     def known(c: PoseControl) -> bool:

@@ -1,4 +1,4 @@
-"""``eva synth``: render a synthetic benchmark dataset (``eva_engine.data.synthetic``)."""
+"""``eva synth``: render a synthetic benchmark dataset (``eva_engine.synth``)."""
 
 from __future__ import annotations
 
@@ -54,8 +54,8 @@ def synth(
                                  param_hint="--out")  # fmt: skip
 
     from eva_engine.body import AnnyCacheError, load_body_model
-    from eva_engine.data.mesh_render import MeshRenderError
-    from eva_engine.data.synthetic import generate
+    from eva_engine.render.mesh import MeshRenderError
+    from eva_engine.synth import generate
 
     start = time.perf_counter()
     try:

@@ -1,6 +1,6 @@
-"""Data in and out of the engine: video frames, the dataset layout and its loader, the synthetic
-benchmark (rendered Anny, ``eva synth``), parameter noise for ablations, and readers for
-public datasets. The on-disk layout is documented in ``docs/dataset-format.md``."""
+"""Data in and out of the engine: video frames, the dataset layout and its loader, region masks,
+parameter noise for ablations, and readers for public datasets. The on-disk layout is documented
+in ``docs/dataset-format.md``. The synthetic benchmark is ``eva_engine.synth``."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Per-frame region masks (the subject's left hand, right hand and face) from a posed body model.
 
 The body model's part segmentation (``BodyModel.sided_part_ids``) is rendered with the frame's
-camera by the triangle-mesh renderer (``data.mesh_render``), so a region's mask holds its
+camera by the triangle-mesh renderer (``render.mesh``), so a region's mask holds its
 *visible* pixels after occlusion. With a person mask (a real video), each region is also
 intersected with it: the fitted body tells which person pixels belong to a hand or the face, the
 segmentation tells which pixels are the person. A region the caller marks as absent in a frame
@@ -21,7 +21,7 @@ import torch
 from eva_engine.body.model import SIDED_PART_NAMES, BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.data.dataset import REGION_MASKS
-from eva_engine.data.mesh_render import MeshRenderConfig, MeshRenderer, MeshRenderOutput
+from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer, MeshRenderOutput
 
 
 def face_regions(model: BodyModel) -> np.ndarray:

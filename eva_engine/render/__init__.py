@@ -7,6 +7,9 @@ public too: ``project_gaussians`` (EWA projection, autograd), ``bin_gaussians`` 
 or torch ones, see ``eva_engine.render.native``), ``composite`` (its torch kernels, tile layout)
 and ``composite_autograd`` (the plain-autograd reference). Spherical-harmonics colours:
 ``eval_sh``. Cameras: ``Camera``, ``intrinsics``, ``look_at``, ``orbit_camera``.
+
+``eva_engine.render.mesh`` is the other renderer: triangle meshes through OpenGL (``MeshRenderer``),
+for ground-truth images and region masks, a deliberately different image formation model.
 """
 
 from eva_engine.render.camera import Camera, intrinsics, look_at, orbit_camera
@@ -19,7 +22,7 @@ from eva_engine.render.composite import (
 )
 from eva_engine.render.projection import Projection, project_gaussians, quat_to_rotmat
 from eva_engine.render.rasterize import RasterConfig, RenderOutput, rasterize
-from eva_engine.render.sh import camera_center, eval_sh, num_sh_bases, rgb_to_sh, sh_basis, view_dirs
+from eva_engine.render.sh import eval_sh, num_sh_bases, rgb_to_sh, sh_basis, view_dirs
 from eva_engine.render.tiles import TileBins, bin_gaussians
 
 __all__ = [
@@ -30,7 +33,6 @@ __all__ = [
     "RenderOutput",
     "TileBins",
     "bin_gaussians",
-    "camera_center",
     "composite",
     "composite_autograd",
     "composite_image",

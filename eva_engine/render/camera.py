@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from eva_engine.geometry import camera_center
+
 
 @dataclass
 class Camera:
@@ -39,8 +41,7 @@ class Camera:
     @property
     def center(self) -> Tensor:
         """[3] camera centre in world coordinates."""
-        r, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
-        return -(r.T @ t)
+        return camera_center(self.viewmat)
 
 
 def intrinsics(width: int, height: int, fov_y_deg: float) -> Tensor:

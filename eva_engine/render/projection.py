@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from eva_engine.geometry import to_camera
 from eva_engine.render.native import Kernel, load_kernels, resolve_kernel
 
 # A Gaussian's 2D extent along each screen axis is ceil(RADIUS_SIGMAS * sigma_axis) pixels. 3.33
@@ -106,8 +107,8 @@ def project_gaussians(
         return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii)
     dtype = means.dtype
     viewmat = viewmat.to(device=means.device, dtype=dtype)
-    rot_w, t_w = viewmat[:3, :3], viewmat[:3, 3]
-    p_cam = means @ rot_w.T + t_w
+    rot_w = viewmat[:3, :3]
+    p_cam = to_camera(means, viewmat)
     x, y, z = p_cam.unbind(-1)
     in_range = (z >= near_plane) & (z <= far_plane)
     # Culled points still run through the maths; a safe z keeps their (unused) values and

@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from eva_engine.geometry import camera_center
+
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2 = (
@@ -83,11 +85,6 @@ def eval_sh(degree: int, sh_coeffs: Tensor, dirs: Tensor) -> Tensor:
 def rgb_to_sh(rgb: Tensor) -> Tensor:
     """[..., 3] colours -> DC coefficients [..., 3] such that degree-0 ``eval_sh`` returns them."""
     return (rgb - 0.5) / SH_C0
-
-
-def camera_center(viewmat: Tensor) -> Tensor:
-    """[4, 4] world->camera -> [3] camera centre in world coordinates (-R^T t)."""
-    return -viewmat[:3, :3].T @ viewmat[:3, 3]
 
 
 def view_dirs(means: Tensor, viewmat: Tensor) -> Tensor:

@@ -25,7 +25,7 @@ from jobs.animation import (
     check_animation_budget,
     read_animation_info,
 )
-from jobs.store import JobRecord, is_valid_id, new_id
+from jobs.store import JobRecord, new_id
 from service.animation_schemas import (
     AnimationCreated,
     AnimationForm,
@@ -36,26 +36,18 @@ from service.animation_schemas import (
 )
 from service.deps import (
     ServiceContext,
+    animation_record,
     avatar_record,
     check_job_quota,
     context,
     ready_avatar,
     render_admission,
 )
-from service.schemas import ErrorMessage
-from service.uploads import check_video, remove_tree, safe_suffix, save_upload
+from service.routers.responses import AVATAR_NOT_READY, BUSY, STILL_RUNNING, UPLOAD, error
+from service.uploads import check_video, queued_job, safe_suffix, save_upload
 
 router = APIRouter(tags=["animations"])
-NOT_FOUND = {404: {"model": ErrorMessage, "description": "Unknown or malformed id"}}
-BUSY = {503: {"model": ErrorMessage, "description": "Busy or over quota: retry after `Retry-After` seconds"}}
-
-
-def animation_record(animation_id: str, ctx: ServiceContext = Depends(context)) -> JobRecord:
-    """The job behind an animation (404 for unknown or malformed ids)."""
-    job = ctx.queue.store.by_avatar(animation_id, kind="animation") if is_valid_id(animation_id) else None
-    if job is None:
-        raise HTTPException(404, f"no animation with id {animation_id!r}")
-    return job
+NOT_FOUND = error(404, "Unknown or malformed id")
 
 
 def _info(job: JobRecord, ctx: ServiceContext) -> AnimationInfo:
@@ -73,13 +65,10 @@ def _info(job: JobRecord, ctx: ServiceContext) -> AnimationInfo:
     "applied as they are). Follow `GET /animations/{id}` (or the job) until `succeeded`, then download "
     "`video_url`. A video in which nobody is found fails its job with that reason.",
     responses={
-        **NOT_FOUND,
-        409: {"model": ErrorMessage, "description": "The avatar is not ready"},
-        413: {"model": ErrorMessage, "description": "Upload over the size limit"},
+        **NOT_FOUND, **AVATAR_NOT_READY,
         422: {"description": "No upload, not an mp4/mov/mkv/webm/avi video, too long or too large, bad "
                              "poses or bad options"},
-        507: {"model": ErrorMessage, "description": "The server's disk is full"},
-        **BUSY,
+        **UPLOAD,
     },
 )  # fmt: skip
 async def create_animation(
@@ -102,10 +91,8 @@ def _create(ctx: ServiceContext, avatar: JobRecord, options: AnimationOptions, s
             filename: str | None, is_poses: bool) -> AnimationCreated:  # fmt: skip
     queue, settings = ctx.queue, ctx.settings
     check_job_quota(ctx)
-    job_id, animation_id = new_id(), new_id()
-    work = queue.storage.work_dir(job_id)
-    work.mkdir(parents=True)
-    try:
+    animation_id = new_id()
+    with queued_job(queue) as (job_id, work):
         # The worker tells poses from a video by the suffix: a video is never saved as .json.
         suffix = ".json" if is_poses else safe_suffix(filename).replace(".json", ".video")
         path = work / f"input{suffix}"
@@ -127,17 +114,7 @@ def _create(ctx: ServiceContext, avatar: JobRecord, options: AnimationOptions, s
         name = Path(filename or "upload").name[:200]
         queue.store.create(options.model_dump(mode="json"), filename=name, job_id=job_id,
                            avatar_id=animation_id, kind="animation")  # fmt: skip
-    except BaseException:
-        remove_tree(work)
-        raise
-    try:
-        queue.enqueue(job_id)
-    except BaseException:  # the queue backend is down (503 without its details): nothing stays behind
-        queue.store.delete(job_id)
-        remove_tree(work)
-        raise
-    return AnimationCreated(animation_id=animation_id, job_id=job_id, job_url=f"/jobs/{job_id}",
-                            animation_url=f"/animations/{animation_id}")  # fmt: skip
+    return AnimationCreated(animation_id=animation_id, job_id=job_id)
 
 
 def _check_render_size(options: AnimationOptions, frames: int, fps: float, size: tuple[int, int] | None,
@@ -197,7 +174,7 @@ def get_animation(job: JobRecord = Depends(animation_record), ctx: ServiceContex
     response_class=FileResponse,
     summary="The animation as an mp4 (H.264)",
     responses={200: {"content": {"video/mp4": {}}}, **NOT_FOUND,
-               409: {"model": ErrorMessage, "description": "The animation's job has not succeeded"}},
+               **error(409, "The animation's job has not succeeded")},
 )  # fmt: skip
 def animation_video(job: JobRecord = Depends(animation_record), ctx: ServiceContext = Depends(context)):
     file = ctx.queue.storage.animation_dir(job.avatar_id) / VIDEO_NAME
@@ -211,7 +188,7 @@ def animation_video(job: JobRecord = Depends(animation_record), ctx: ServiceCont
     "/animations/{animation_id}",
     status_code=204,
     summary="Delete an animation and its video",
-    responses={**NOT_FOUND, 409: {"model": ErrorMessage, "description": "Its job is still running"}},
+    responses={**NOT_FOUND, **STILL_RUNNING},
 )
 def delete_animation(job: JobRecord = Depends(animation_record), ctx: ServiceContext = Depends(context)):
     if not job.finished:
@@ -232,7 +209,7 @@ def list_animations(avatar: JobRecord = Depends(avatar_record), ctx: ServiceCont
 @router.get(
     "/avatars/{avatar_id}/controls",
     response_model=PoseControls,
-    responses={**NOT_FOUND, 409: {"model": ErrorMessage, "description": "The avatar is not ready"}, **BUSY},
+    responses={**NOT_FOUND, **AVATAR_NOT_READY, **BUSY},
     summary="Sliders for posing the avatar (joints, fingers, face) and a camera that frames it",
     description="Loading the avatar and posing its body cost like a render: this shares the render "
     "slots, and past them answers 503 with `Retry-After`.",

@@ -20,13 +20,12 @@ from service.deps import (
     ready_avatar,
     render_admission,
 )
-from service.schemas import AvatarCreated, AvatarForm, AvatarInfo, AvatarList, ErrorMessage, RenderRequest
-from service.uploads import check_video, remove_tree, safe_suffix, save_upload
+from service.routers.responses import AVATAR_NOT_READY, BUSY, STILL_RUNNING, UPLOAD, error
+from service.schemas import AvatarCreated, AvatarForm, AvatarInfo, AvatarList, RenderRequest
+from service.uploads import check_video, queued_job, safe_suffix, save_upload
 
 router = APIRouter(prefix="/avatars", tags=["avatars"])
-NOT_FOUND = {404: {"model": ErrorMessage, "description": "Unknown or malformed avatar id"}}
-NOT_READY = {409: {"model": ErrorMessage, "description": "The avatar's job has not succeeded"}}
-BUSY = {503: {"model": ErrorMessage, "description": "Busy or over quota: retry after `Retry-After` seconds"}}
+NOT_FOUND = error(404, "Unknown or malformed avatar id")
 
 
 @router.post(
@@ -35,11 +34,9 @@ BUSY = {503: {"model": ErrorMessage, "description": "Busy or over quota: retry a
     response_model=AvatarCreated,
     summary="Upload a video of one person; queue the job that learns their avatar",
     responses={
-        413: {"model": ErrorMessage, "description": "Upload over the size limit"},
         422: {"description": "Not an mp4/mov/mkv/webm/avi video, no decodable frame, too long or too large, "
                              "or bad options"},
-        507: {"model": ErrorMessage, "description": "The server's disk is full"},
-        **BUSY,
+        **UPLOAD,
     },
 )  # fmt: skip
 async def create_avatar(
@@ -56,10 +53,8 @@ def _create(
 ) -> AvatarCreated:
     queue, settings = ctx.queue, ctx.settings
     check_job_quota(ctx)
-    job_id, avatar_id = new_id(), new_id()
-    work = queue.storage.work_dir(job_id)
-    work.mkdir(parents=True)
-    try:
+    avatar_id = new_id()
+    with queued_job(queue) as (job_id, work):
         path = work / f"input{safe_suffix(filename)}"
         if save_upload(source, path, settings.max_upload_bytes) == 0:
             raise HTTPException(422, "the uploaded video is empty (0 bytes)")
@@ -67,17 +62,7 @@ def _create(
                     settings.probe_memory_mb)  # fmt: skip
         name = Path(filename or "video").name[:200]
         queue.store.create(options.model_dump(), filename=name, job_id=job_id, avatar_id=avatar_id)
-    except BaseException:
-        remove_tree(work)
-        raise
-    try:
-        queue.enqueue(job_id)
-    except BaseException:  # the queue backend is down: nothing stays behind
-        queue.store.delete(job_id)
-        remove_tree(work)
-        raise
-    return AvatarCreated(avatar_id=avatar_id, job_id=job_id, job_url=f"/jobs/{job_id}",
-                         avatar_url=f"/avatars/{avatar_id}")  # fmt: skip
+    return AvatarCreated(avatar_id=avatar_id, job_id=job_id)
 
 
 def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
@@ -109,7 +94,7 @@ def get_avatar(job: JobRecord = Depends(avatar_record), ctx: ServiceContext = De
 @router.delete(
     "/{avatar_id}",
     status_code=204,
-    responses={**NOT_FOUND, 409: {"model": ErrorMessage, "description": "Its job is still running"}},
+    responses={**NOT_FOUND, **STILL_RUNNING},
     summary="Delete an avatar and its files",
 )
 def delete_avatar(
@@ -132,7 +117,7 @@ def delete_avatar(
     "with `Retry-After`.",
     responses={
         200: {"content": {"image/png": {}, "image/jpeg": {}}, "description": "The rendered image"},
-        **NOT_FOUND, **NOT_READY, **BUSY,
+        **NOT_FOUND, **AVATAR_NOT_READY, **BUSY,
         422: {"description": "Unknown names, values out of range, wrong lengths, size over the limit"},
     },
     dependencies=[Depends(render_admission)],  # first: a refusal costs no validation or lookup
@@ -167,7 +152,7 @@ def _render(
     summary="Download the avatar: the 3D Gaussians (PLY) or the posed body mesh (GLB)",
     responses={
         200: {"content": {"application/octet-stream": {}, "model/gltf-binary": {}}},
-        **NOT_FOUND, **NOT_READY, **BUSY,
+        **NOT_FOUND, **AVATAR_NOT_READY, **BUSY,
     },
 )  # fmt: skip
 async def export_avatar(

@@ -5,10 +5,11 @@ from fastapi.responses import JSONResponse
 
 from jobs.store import JobRecord
 from service.deps import ServiceContext, context, job_record
-from service.schemas import ErrorMessage, JobInfo
+from service.routers.responses import error
+from service.schemas import JobInfo
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
-NOT_FOUND = {404: {"model": ErrorMessage, "description": "Unknown or malformed job id"}}
+NOT_FOUND = error(404, "Unknown or malformed job id")
 
 
 @router.get("/{job_id}", response_model=JobInfo, responses=NOT_FOUND, summary="A job's state and progress")
@@ -22,7 +23,7 @@ def get_job(job: JobRecord = Depends(job_record)) -> JobInfo:
     summary="Cancel a job",
     description="A queued job is cancelled at once (200); a running one stops at its next progress "
     "report (202, `cancel_requested` true). A finished job cannot be cancelled (409).",
-    responses={**NOT_FOUND, 202: {"model": JobInfo}, 409: {"model": ErrorMessage}},
+    responses={**NOT_FOUND, 202: {"model": JobInfo}, **error(409, "The job has already finished")},
 )
 def cancel_job(job: JobRecord = Depends(job_record), ctx: ServiceContext = Depends(context)):
     if job.finished:

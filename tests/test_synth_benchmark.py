@@ -10,8 +10,9 @@ import torch
 
 from eva_engine.body import KEYPOINT_GROUPS, PART_NAMES
 from eva_engine.data import load_dataset, perturb
-from eva_engine.data.motion import FACE_ACTIONS, MotionConfig, sign_motion
-from eva_engine.data.synthetic import PRESETS, generate, project
+from eva_engine.geometry import project_points, to_camera
+from eva_engine.synth.benchmark import PRESETS, generate
+from eva_engine.synth.motion import FACE_ACTIONS, MotionConfig, sign_motion
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +56,7 @@ def test_mask_is_exactly_the_rendered_person(datasets, preset, anny_model):
         assert torch.all(person[(f.image - bg).abs().amax(-1) > 1.5 / 255])
         # The mask is where the posed body projects: every projected vertex inside the image
         # lands on the mask, and the mask covers no more than the projected body's extent.
-        uv, _ = project(verts[i : i + 1], f.viewmat, f.K)
+        uv = project_points(to_camera(verts[i : i + 1], f.viewmat), f.K)
         px = uv[0].floor().long().numpy()
         h, w = ds.image_size
         inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
@@ -171,7 +172,7 @@ def test_training_take_keeps_held_out_expressions_out(datasets, anny_model):
 def test_shading_follows_a_world_light_and_has_highlights(anny_model, tmp_path):
     """The benchmark's light is fixed in the world (shading changes when the body turns) and
     glossy surfaces get a highlight that a matte render lacks."""
-    from eva_engine.data.mesh_render import MeshRenderConfig, MeshRenderer
+    from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
 
     params = anny_model.default_params(2)
     params.root_orient[1, 1] = 0.8  # the second frame turns the body
@@ -225,7 +226,7 @@ def test_perturb_imitates_an_estimator(datasets, anny_model):
 
 
 def test_held_out_view_and_contact_sheet(datasets):
-    from eva_engine.data.preview import contact_sheet
+    from eva_engine.synth.contact_sheet import contact_sheet
 
     ds = datasets["wild"]
     # The held-out camera sits 35 deg about the vertical axis from the training camera.

@@ -23,7 +23,7 @@ import dataclasses
 import numpy as np
 import torch
 
-from eva_engine.render.camera import intrinsics, look_at  # noqa: F401  (re-exported for renderer users)
+from eva_engine.geometry import vertex_normals
 
 SYSTEM_PACKAGES = "libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri"
 
@@ -174,22 +174,6 @@ class MeshRenderOutput:
         return torch.from_numpy(
             hit.reshape(h, s, w, s).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
         )
-
-
-def vertex_normals(vertices: np.ndarray | torch.Tensor, faces: np.ndarray | torch.Tensor) -> np.ndarray:
-    """Unit vertex normals [V, 3] (area-weighted face normals) of vertices [V, 3], faces [F, 3].
-    Vertices of only degenerate triangles get +Z, so the result is always finite and unit."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = 2 * area
-    n = np.zeros_like(v)
-    for c in range(3):
-        np.add.at(n, f[:, c], fn)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    ok = length[:, 0] > 1e-20
-    out = np.tile(np.array([0.0, 0.0, 1.0]), (len(v), 1))
-    out[ok] = n[ok] / length[ok]
-    return out.astype(np.float32)
 
 
 def _create_context():

@@ -4,8 +4,9 @@ per-finger variation), facial actions (jawOpen, smiles, brows, blinks), small he
 movement, and a slow turn of the whole body.
 
 Keyframes every ``keyframe_interval`` seconds, eased in and out (signs hold, then move), sampled
-at any frame times. Joint axes come from the subject's rest skeleton (elbow hinge, finger curl
-towards the palm), so the motion is anatomically plausible for any Anny phenotype.
+at any frame times. Joint axes come from the subject's rest skeleton (``body.rest_axes``: elbow
+hinge, finger curl towards the palm), so the motion is anatomically plausible for any Anny
+phenotype.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from eva_engine.body.params import BodyParams
+from eva_engine.body.rest_axes import rest_axes
 
 HANDSHAPES = {  # per-finger curl (thumb .. pinky), 0 = straight, 1 = fully bent
     "open": (0.0, 0.0, 0.0, 0.0, 0.0),
@@ -50,49 +52,6 @@ class MotionConfig:
     """Mean seconds between blinks."""
     face_actions: tuple[str, ...] = FACE_ACTIONS
     """The facial actions keyframes draw from (blinks come on top)."""
-
-
-@dataclasses.dataclass
-class _Axes:
-    """Rotation axes from the rest skeleton (world frame), per side ``L``/``R``."""
-
-    elbow: dict[str, np.ndarray]
-    forearm: dict[str, np.ndarray]
-    palm: dict[str, np.ndarray]
-    finger: dict[str, list[np.ndarray]]  # curl axis per finger (thumb .. pinky)
-    wrist_flex: dict[str, np.ndarray]
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v)
-
-
-def rest_axes(model, shape: torch.Tensor) -> _Axes:
-    """Joint axes of the subject with ``shape [1, S]`` in its rest pose."""
-    with torch.no_grad():
-        p = model.default_params(1)
-        p.shape = shape[:1].to(p.shape)
-        out = model(p)
-        kp = model.keypoints(out)[0].double().numpy()
-    j = {n: out.joints[0, i].double().numpy() for i, n in enumerate(model.joint_names)}
-    names = list(model.keypoint_names)
-    axes = _Axes({}, {}, {}, {}, {})
-    for s, side in (("L", "left"), ("R", "right")):
-        upper = _unit(j[f"lowerarm01.{s}"] - j[f"upperarm01.{s}"])
-        fore = _unit(j[f"wrist.{s}"] - j[f"lowerarm01.{s}"])
-        axes.elbow[s] = _unit(np.cross(upper, fore))  # + angle = more flexion
-        axes.forearm[s] = fore
-        w, a, b, m = (j[f"{x}.{s}"] for x in ("wrist", "finger2-1", "finger5-1", "finger3-1"))
-        n = _unit(np.cross(a - w, b - w))
-        tip = kp[names.index(f"{side}_hand_middle_finger_tip")]
-        palm = n * np.sign(np.dot(tip - m, n))  # rest fingers curl slightly towards the palm
-        axes.palm[s] = palm
-        axes.wrist_flex[s] = _unit(np.cross(_unit(m - w), palm))
-        axes.finger[s] = []
-        for i in range(1, 6):
-            d = _unit(j[f"finger{i}-3.{s}"] - j[f"finger{i}-1.{s}"])
-            axes.finger[s].append(_unit(np.cross(d, palm)))  # + angle curls towards the palm
-    return axes
 
 
 def _ease(x: np.ndarray) -> np.ndarray:

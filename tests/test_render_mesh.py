@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from eva_engine.data.mesh_render import MeshRenderConfig, MeshRenderer, intrinsics, look_at, vertex_normals
+from eva_engine.geometry import vertex_normals
+from eva_engine.render.camera import intrinsics, look_at
+from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
 
 QUAD = np.array([[0, 1, 2], [0, 2, 3]])
 
@@ -74,7 +76,7 @@ def test_bad_inputs_and_degenerate_normals(renderer):
 def test_missing_egl_gives_a_clear_error(monkeypatch):
     import moderngl
 
-    from eva_engine.data.mesh_render import MeshRenderError
+    from eva_engine.render.mesh import MeshRenderError
 
     def no_egl(**kwargs):
         raise Exception("libEGL.so: cannot open shared object file")

@@ -126,7 +126,14 @@ def face_segments(model) -> np.ndarray:
     return labels
 
 
-def _anatomy(model, rest: np.ndarray, joints: np.ndarray, keypoints: np.ndarray, face_label: np.ndarray):
+def _anatomy(
+    model,
+    rest: np.ndarray,
+    joints: np.ndarray,
+    keypoints: np.ndarray,
+    face_label: np.ndarray,
+    palm_dir: dict[str, np.ndarray],
+) -> _Anatomy:
     from eva_engine.body.anny_backend import SEGMENT_LABELS
 
     lab = {n: i for i, n in enumerate(SEGMENT_LABELS)}
@@ -140,18 +147,13 @@ def _anatomy(model, rest: np.ndarray, joints: np.ndarray, keypoints: np.ndarray,
         return rest[np.intersect1d(verts(a), verts(b))]
 
     kp = {n: keypoints[i] for i, n in enumerate(model.keypoint_names)}
-    eye_margin, eye_centre, eye_forward, palm_dir, tip = {}, {}, {}, {}, {}
+    eye_margin, eye_centre, eye_forward, tip = {}, {}, {}, {}
     for s, side in (("L", "left"), ("R", "right")):
         eye_margin[s] = boundary("head", f"eye_cavity.{s}")
         ball = rest[verts(f"eye_front.{s}", f"eye_back.{s}")]
         eye_centre[s] = ball.mean(axis=0)
         fwd = kp[f"face_{side}_iris"] - eye_centre[s]
         eye_forward[s] = fwd / np.linalg.norm(fwd)
-        w, a, b, m = (heads[f"{j}.{s}"] for j in ("wrist", "finger2-1", "finger5-1", "finger3-1"))
-        n = np.cross(a - w, b - w)
-        n /= np.linalg.norm(n)
-        # Anny's rest fingers curl slightly: the fingertips are on the palm side.
-        palm_dir[s] = n * np.sign(np.dot(kp[f"{side}_hand_middle_finger_tip"] - m, n))
         for i, finger in enumerate(("thumb", "index_finger", "middle_finger", "ring_finger", "pinky"), 1):
             tip[f"{i}.{s}"] = kp[f"{side}_hand_{finger}_tip"]
     return _Anatomy(
@@ -393,7 +395,8 @@ def bake_texture(
     [size, size, 4]: albedo and gloss."""
     from scipy import ndimage
 
-    from eva_engine.data.mesh_render import vertex_normals
+    from eva_engine.body.rest_axes import rest_axes
+    from eva_engine.geometry import vertex_normals
 
     with torch.no_grad():
         rest_params = model.default_params(1)
@@ -404,7 +407,7 @@ def bake_texture(
     joints = out.joints[0].double().numpy()
     faces = model.faces.cpu().numpy()
     face_label = face_segments(model) if face_label is None else face_label
-    anatomy = _anatomy(model, rest, joints, kp, face_label)
+    anatomy = _anatomy(model, rest, joints, kp, face_label, rest_axes(model, params.shape).palm)
     uv = model.anny.texture_coordinates.cpu().numpy()
     fuv = model.anny.face_texture_coordinate_indices.cpu().numpy()
     pos, fid = renderer.bake(uv, fuv, rest, size)
@@ -424,3 +427,16 @@ def bake_texture(
     _, (iy, ix) = ndimage.distance_transform_edt(~valid, return_indices=True)
     tex = tex[iy, ix]
     return np.clip(np.round(tex * 255.0), 0, 255).astype(np.uint8)
+
+
+def apply_look(
+    renderer, model, params, look: Look, size: int, seed: int = 0, face_label: np.ndarray | None = None
+) -> None:
+    """Paint the subject (:func:`bake_texture`, same arguments) and put the texture on ``renderer``
+    (a ``MeshRenderer`` of ``model.faces``) through Anny's UV atlas."""
+    texture = bake_texture(model, params, look, renderer, size, seed=seed, face_label=face_label)
+    renderer.set_surface(
+        texture=texture,
+        uv=model.anny.texture_coordinates.cpu().numpy(),
+        face_uv=model.anny.face_texture_coordinate_indices.cpu().numpy(),
+    )

@@ -1,6 +1,6 @@
 """The synthetic benchmark: a textured Anny subject signing in front of a static camera, rendered
-by a triangle-mesh rasterizer (``data.mesh_render``, not Gaussians), written in the dataset
-layout with ground truth, per-hand and face region masks included.
+by a triangle-mesh rasterizer (``eva_engine.render.mesh``, not Gaussians), written in the
+dataset layout with ground truth, per-hand and face region masks included.
 
 Presets (modelled on the paper's data):
 
@@ -14,8 +14,8 @@ Presets (modelled on the paper's data):
   align); the ground truth is kept under ``ground_truth/`` for evaluation. Split as UPB:
   alternate frames of one take train and test.
 
-Appearance: a procedural albedo and gloss texture (``data.look``) with millimetre-scale detail on
-the hands, face and clothing, lit by a light fixed in the world with Lambert diffuse and a
+Appearance: a procedural albedo and gloss texture (``synth.texture``) with millimetre-scale
+detail on the hands, face and clothing, lit by a light fixed in the world with Lambert diffuse and a
 Blinn-Phong highlight, so shading changes with the pose and with the view. ``test_view`` frames
 show training poses from a camera turned 35 deg about the subject. Everything is deterministic
 given the seed (which picks the subject and its motions).
@@ -35,11 +35,13 @@ import torch
 
 from eva_engine.body.params import BodyParams
 from eva_engine.data.dataset import DatasetMeta, DatasetWriter, ParamNames
-from eva_engine.data.look import Look, bake_texture, face_segments
-from eva_engine.data.mesh_render import MeshRenderConfig, MeshRenderer, intrinsics, look_at
-from eva_engine.data.motion import FACE_ACTIONS, HELD_OUT_FACE_ACTIONS, MotionConfig, sign_motion
 from eva_engine.data.region_masks import coverage_by_region, face_regions
+from eva_engine.geometry import project_points, to_camera
 from eva_engine.progress import Progress, ProgressEvent
+from eva_engine.render.camera import intrinsics, look_at
+from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
+from eva_engine.synth.motion import FACE_ACTIONS, HELD_OUT_FACE_ACTIONS, MotionConfig, sign_motion
+from eva_engine.synth.texture import Look, apply_look
 
 SPLIT_STYLES = ("takes", "interleaved")
 
@@ -103,23 +105,6 @@ SIZES: dict[str, Size] = {
 }  # fmt: skip
 MOTION_SECONDS = 6.0
 TRAIN_FACE_ACTIONS = tuple(a for a in FACE_ACTIONS if a not in HELD_OUT_FACE_ACTIONS)
-
-
-def project(
-    vertices: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pinhole projection. vertices: [B, V, 3] world; viewmat: [4, 4] or [B, 4, 4]; K: [3, 3] or
-    [B, 3, 3]. Returns pixel coordinates [B, V, 2] (pixel (x, y) spans [x, x+1) x [y, y+1), so
-    ``floor`` gives the pixel) and camera depth [B, V]."""
-    view = viewmat.to(vertices.dtype)
-    K_ = K.to(vertices.dtype)
-    cam = vertices @ view[..., :3, :3].transpose(-1, -2) + view[..., None, :3, 3]
-    z = cam[..., 2]
-    safe = torch.where(z.abs() > 1e-9, z, torch.full_like(z, 1e-9))
-    x, y = cam[..., 0] / safe, cam[..., 1] / safe
-    u = K_[..., None, 0, 0] * x + K_[..., None, 0, 1] * y + K_[..., None, 0, 2]
-    v = K_[..., None, 1, 1] * y + K_[..., None, 1, 2]
-    return torch.stack([u, v], dim=-1), z
 
 
 @dataclasses.dataclass(frozen=True)
@@ -244,23 +229,16 @@ def generate(
         n_seq = len(plan.frames) - len(plan.views)
         views = [view_main if i < n_seq else view_side for i in range(len(plan.frames))]
         viewmats = torch.stack(views)
-        uv, depth = project(keypoints3d, viewmats, K)
+        cam = to_camera(keypoints3d, viewmats.to(keypoints3d.dtype))
+        uv, depth = project_points(cam, K.to(keypoints3d.dtype)), cam[..., 2]
         h = w = s.image_size
         inside = (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h) & (depth > 0)
         keypoints = torch.cat([uv, inside[..., None].to(uv.dtype)], dim=-1).float()
-        seg = face_segments(model)
         regions = face_regions(model)
         config = MeshRenderConfig(width=w, height=h, supersample=s.supersample, background=(1.0, 1.0, 1.0),
                                   light=p.light, light_frame="world")  # fmt: skip
         with MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer:
-            texture = bake_texture(
-                model, params[0], look, renderer, s.texture_size, seed=seed, face_label=seg
-            )
-            renderer.set_surface(
-                texture=texture,
-                uv=model.anny.texture_coordinates.cpu().numpy(),
-                face_uv=model.anny.face_texture_coordinate_indices.cpu().numpy(),
-            )
+            apply_look(renderer, model, params[0], look, s.texture_size, seed=seed)
             total = len(plan.frames)
             for i, (_, t) in enumerate(plan.frames):
                 r = renderer.render(posed.vertices[i], views[i], K)
@@ -276,7 +254,7 @@ def generate(
             keypoints=keypoints if give else None, keypoint_names=list(model.keypoint_names),
             keypoints_source="ground_truth", gt_params=params, gt_keypoints=keypoints,
             extra={
-                "generator": "eva_engine.data.synthetic", "preset": preset, "size": size, "seed": seed,
+                "generator": "eva_engine.synth.benchmark", "preset": preset, "size": size, "seed": seed,
                 "split_style": p.split, "take_of_frame": [k for k, _ in plan.frames],
                 "pose_of_frame": pose_of_frame, "look": dataclasses.asdict(look),
                 "view_angle_deg": p.view_angle_deg, "motion": [motions[k] for k in sorted(motions)],

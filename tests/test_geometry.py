@@ -1,0 +1,33 @@
+"""The shared geometry: world -> camera -> pixels agrees with the pinhole model K [R | t] p."""
+
+import torch
+
+from eva_engine.geometry import MIN_DEPTH, camera_center, project_points, to_camera
+from eva_engine.render import orbit_camera
+
+
+def test_projection_is_the_pinhole_model_with_skew():
+    gen = torch.Generator().manual_seed(0)
+    points = torch.randn(2, 7, 3, generator=gen, dtype=torch.float64) * 0.3
+    views = torch.stack([orbit_camera(yaw, 10.0, 2.5) for yaw in (0.0, 40.0)]).double()
+    K = torch.tensor([[300.0, 2.5, 64.0], [0.0, 310.0, 48.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    homogeneous = torch.cat([points, torch.ones(2, 7, 1, dtype=torch.float64)], dim=-1)
+    expected = (K @ (views[:, :3, :] @ homogeneous.transpose(1, 2))).transpose(1, 2)
+    expected = expected[..., :2] / expected[..., 2:]
+    torch.testing.assert_close(project_points(to_camera(points, views), K), expected)
+    # One camera for a batch, or a K per frame: the same pixels.
+    torch.testing.assert_close(project_points(to_camera(points[0], views[0]), K), expected[0])
+    torch.testing.assert_close(project_points(to_camera(points, views), K.expand(2, 3, 3)), expected)
+
+
+def test_points_at_or_behind_the_camera_stay_finite():
+    cam = torch.tensor([[0.1, 0.2, 0.0], [0.1, 0.2, -1.0], [0.1, 0.2, MIN_DEPTH]], dtype=torch.float64)
+    uv = project_points(cam, torch.eye(3, dtype=torch.float64))
+    assert torch.isfinite(uv).all()
+    torch.testing.assert_close(uv[0], uv[2])
+
+
+def test_camera_center_maps_to_the_origin():
+    view = orbit_camera(30.0, 20.0, 2.0, target=(0.1, 0.9, 0.0)).double()
+    centre = camera_center(view)[None]
+    torch.testing.assert_close(to_camera(centre, view)[0], torch.zeros(3, dtype=torch.float64))
