@@ -163,7 +163,7 @@ def table3(model, dataset: Path, preset_name: str, iterations: int | None, image
                    for r, m in v.regions.items()},
             }
             for k, v in rows.items()
-        },  # fmt: skip
+        },
     }
 
 
@@ -275,7 +275,7 @@ def markdown(report: dict) -> str:
         "| estimate | MPJPE body in view (mm) | MPJPE body all (mm) | MPJPE hands (mm) | expression (mm) "
         "| 2D body (px) | 2D hands (px) | 2D face (px) | face mesh px per frame (median / p90) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---|",
-    ]  # fmt: skip
+    ]
     for name in ("initial", "fitted", "fitted_to_exact_targets", "ground_truth_params"):
         if name not in s:
             continue

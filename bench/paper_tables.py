@@ -89,7 +89,7 @@ def run_one(ds, config, metrics, label: str) -> dict:
         entry[region] = {k: getattr(m, k) for k in (*METRICS, "frames", "crops", "box_px")}
     print(f"  [{label}] {entry['n_gaussians']} GS, {entry['train_seconds']:.0f}s, LPIPS-VGG "
           + ", ".join(f"{r} {1000 * entry[r]['lpips_vgg']:.1f}" for r in REGIONS if r in entry),
-          file=sys.stderr, flush=True)  # fmt: skip
+          file=sys.stderr, flush=True)
     return entry
 
 
@@ -144,7 +144,7 @@ def merge(docs: list[dict]) -> dict:
             **docs[0]["config"],
             "seeds": seeds,
             "train_config": {m: c for d in docs for m, c in d["config"]["train_config"].items()},
-        },  # fmt: skip
+        },
         "methods": {m: aggregate([by_seed[s] for s in sorted(by_seed)]) for m, by_seed in runs.items()},
     }
 
@@ -228,7 +228,7 @@ def markdown(doc: dict) -> str:
                     [fmt(m["psnr"]), fmt(m["ssim"], digits=4)]
                     + [fmt(m["lpips_vgg"], 1000, 1), fmt(m["lpips_alex"], 1000, 1)]
                     if m else ["–"] * 4
-                )  # fmt: skip
+                )
             cells.append(fmt(e["train_seconds"], digits=0))
             lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
@@ -243,7 +243,7 @@ def markdown(doc: dict) -> str:
     box = next(iter(doc["methods"].values()))
     if "hand" in box:
         lines += ["", f"Region sizes (median box side): hand {fmt(box['hand']['box_px'], digits=0)} px, "
-                      f"face {fmt(box['face']['box_px'], digits=0)} px."]  # fmt: skip
+                      f"face {fmt(box['face']['box_px'], digits=0)} px."]
     lines += [
         "",
         "## Findings",
@@ -284,7 +284,7 @@ def main() -> None:
     ap.add_argument("--name", default="paper_tables", help="result file stem (.json, .md)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--pixel-norm", default="person_box", choices=["person_box", "frame"],
-                    help="normalisation of the pixel loss terms (a densification check)")  # fmt: skip
+                    help="normalisation of the pixel loss terms (a densification check)")
     ap.add_argument("--replot", action="store_true", help="only rewrite the .md from the .json")
     ap.add_argument(
         "--merge", nargs="+", metavar="NAME", help="only combine the runs of result files of one setting"
@@ -318,7 +318,7 @@ def main() -> None:
         "refine": [s.refine_start_iter, s.refine_stop_iter, s.refine_every], "threads": args.threads,
         "pixel_norm": args.pixel_norm,
         "train_config": {m: with_method(base, m).to_dict() for m in args.methods},
-    }  # fmt: skip
+    }
     doc = json.loads(path.read_text()) if path.is_file() else {}
     # Resume only a run of the same settings (compared as JSON: tuples are lists there).
     same = bool(doc) and same_settings(doc["config"], json.loads(json.dumps(config, default=str)))
@@ -333,7 +333,7 @@ def main() -> None:
             image_size=list(ds.image_size), train_frames=len(ds.splits["train"]),
             test_frames=len(ds.splits["test_pose"]),
             test_takes=len(set(ds.meta.extra["take_of_frame"][i] for i in ds.splits["test_pose"])),
-        )  # fmt: skip
+        )
         for method in args.methods:
             if any(r["seed"] == seed for r in runs.get(method, [])):
                 continue

@@ -124,7 +124,7 @@ def body_scene(n: int, size: int, seed: int = 0) -> dict:
     return dict(
         means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
         viewmat=viewmat, K=K, width=size, height=size, background=torch.ones(3),
-    )  # fmt: skip
+    )
 
 
 # ----------------------------------------------------------------------------- one measurement
@@ -177,7 +177,7 @@ def measure(n: int, size: int, variant: str, mode: str, repeats: int, threads: i
         peak_rss_mb=_rss_bytes() / 2**20,
         intersections=out.num_intersections, pairs=pairs,
         coverage=float(out.alpha.detach().mean()),
-    )  # fmt: skip
+    )
 
 
 def _run_child(
@@ -200,7 +200,7 @@ def _extract(ref: str, into: Path) -> str:
     commit = subprocess.run(
         ["git", "-C", str(ROOT), "rev-parse", "--verify", f"{ref}^{{commit}}"],
         capture_output=True, text=True, check=True,
-    ).stdout.strip()  # fmt: skip
+    ).stdout.strip()
     archive = subprocess.run(
         ["git", "-C", str(ROOT), "archive", commit, "eva_engine"], capture_output=True, check=True
     ).stdout
@@ -234,7 +234,7 @@ def _machine(threads: int) -> dict:
     return dict(
         cpu=cpu_name(), logical_cores=os.cpu_count(), torch_threads=threads, torch=torch.__version__,
         python=platform.python_version(), platform=platform.platform(),
-    )  # fmt: skip
+    )
 
 
 def _summary(results: list[dict]) -> list[dict]:
@@ -257,7 +257,7 @@ def _summary(results: list[dict]) -> list[dict]:
             runs=len(times), median_ms=median, min_ms=min(times), cpu_median_ms=statistics.median(cpu),
             fps=1e3 / median, pairs=ok[0]["pairs"], mpairs_per_s=ok[0]["pairs"] / median / 1e3,
             peak_rss_delta_mb=max(r["peak_rss_delta_mb"] for r in ok),
-        )  # fmt: skip
+        )
         rows.append(row)
     order = {v: i for i, v in enumerate((*VARIANTS, "autograd"))}
     return sorted(
@@ -433,7 +433,7 @@ def main() -> None:
                                 results.append(
                                     dict(n=n, size=size, variant=variant, mode=mode, threads=nt,
                                          skipped="skipped: the reference's memory grows with the pairs")
-                                )  # fmt: skip
+                                )
                                 continue
                             r = _run_child(
                                 roots[variant], n, size, variant, mode, repeats, nt, args.omp_wait_policy

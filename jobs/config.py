@@ -68,7 +68,7 @@ class JobsConfig(BaseModel):
 
         names = {"queue_url": "EVA_QUEUE_URL", "threads": "EVA_JOB_THREADS",
                  "job_memory_mb": "EVA_JOB_MEMORY_MB", "job_timeout_s": "EVA_JOB_TIMEOUT_S",
-                 "max_frame_pixels": "EVA_MAX_FRAME_PIXELS"}  # fmt: skip
+                 "max_frame_pixels": "EVA_MAX_FRAME_PIXELS"}
         env: dict = {k: os.environ[v] for k, v in names.items() if os.environ.get(v)}
         env["data_dir"] = os.environ.get("EVA_SERVICE_DIR") or data_dir()
         if env.get("job_memory_mb", "").strip() == "0":

@@ -39,7 +39,7 @@ class JobOptions(BaseModel):
     method: Method | None = Field(
         None, description=f"Training method: {describe_methods()}; none: the preset's own (3DGS density "
         "control with the full objective)."
-    )  # fmt: skip
+    )
 
     def fit_config(self):
         """The alignment's ``FitConfig`` with ``fit_scale`` applied."""

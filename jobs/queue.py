@@ -39,7 +39,7 @@ def make_huey(config: JobsConfig, immediate: bool = False):
     path = config.sqlite_queue_path
     path.parent.mkdir(parents=True, exist_ok=True)
     return SqliteHuey(config.queue_name, filename=str(path), immediate=immediate, immediate_use_memory=False,
-                      results=False)  # fmt: skip
+                      results=False)
 
 
 def _transient_queue_errors() -> tuple[type[BaseException], ...]:
@@ -155,7 +155,7 @@ class JobQueue:
                 outcome or "", []
             ).append(job.id)
         stale = [j for j in self.store.list(states=("queued",), with_deleted=True)
-                 if now - (j.enqueued_at or j.created_at) > self.config.requeue_after_s]  # fmt: skip
+                 if now - (j.enqueued_at or j.created_at) > self.config.requeue_after_s]
         if stale:
             waiting = self._pending_job_ids()
             for job in stale:
@@ -164,7 +164,7 @@ class JobQueue:
                     result.resent.append(job.id)
         if result.requeued or result.failed or result.resent or result.cancelled:
             logger.warning("recovered jobs: requeued %s, failed %s, resent %s, cancelled %s",
-                           result.requeued, result.failed, result.resent, result.cancelled)  # fmt: skip
+                           result.requeued, result.failed, result.resent, result.cancelled)
         return result
 
     def _pending_job_ids(self) -> set[str]:
@@ -181,13 +181,13 @@ class JobQueue:
         elif job.attempts >= self.config.max_attempts:
             state = "failed"
             fields = {"error": f"{why} during stage {stage!r}, {job.attempts} time(s); giving up after "
-                               f"{self.config.max_attempts} attempts"}  # fmt: skip
+                               f"{self.config.max_attempts} attempts"}
         else:
             resume = _next_stage(job.completed_stage, job.kind)
             changed = self.store.update(
                 job.id, **condition, state="queued", worker=None, stage=resume, eta_s=None,
                 message=f"{why} during stage {stage!r}; retrying from stage {resume!r}",
-            )  # fmt: skip
+            )
             if not changed:
                 return None
             self.enqueue(job.id)

@@ -160,7 +160,7 @@ class JobRunner:
                     child.wait()  # it has just ended the job itself and is exiting
                     return None
                 logger.warning("job %s: taken from %s (it looked dead); stopping its process",
-                               job.id, self.worker)  # fmt: skip
+                               job.id, self.worker)
                 _stop(child)
                 return None
             now = time.monotonic()

@@ -26,7 +26,7 @@ class AnimationForm(AnimationRequest):
     camera: Literal["driving"] | CameraSpec = Field(
         "front", validate_default=True, description="A preset (front, left, ...), 'driving' (the video's "
         "own camera) or a CameraSpec as JSON; an orbit without target/distance is framed on the avatar."
-    )  # fmt: skip
+    )
 
     @field_validator("camera", mode="before")
     @classmethod
@@ -94,7 +94,7 @@ class AnimationInfo(BaseModel):
             video_url=f"/animations/{job.avatar_id}/video" if done else None,
             **{k: info.get(k) for k in ("frames", "fps", "width", "height", "duration_s",
                                         "driving_frames_without_person")},
-        )  # type: ignore[arg-type]  # fmt: skip
+        )  # type: ignore[arg-type]
 
 
 class AnimationList(BaseModel):

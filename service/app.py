@@ -69,7 +69,7 @@ def body_rules(settings: ServiceSettings) -> tuple[BodyRule, ...]:
 def _validation_errors(exc: RequestValidationError) -> list[dict]:
     # FastAPI's default echoes the input, which may hold NaN (not JSON) or be huge: keep loc, msg, type.
     return [{"loc": [str(x)[:80] for x in e.get("loc", ())][:8], "msg": str(e.get("msg", ""))[:300],
-             "type": str(e.get("type", ""))} for e in exc.errors()[:20]]  # fmt: skip
+             "type": str(e.get("type", ""))} for e in exc.errors()[:20]]
 
 
 def _preload(ctx: ServiceContext) -> None:
@@ -101,7 +101,7 @@ def _install_error_handlers(app: FastAPI) -> None:
         return handler
 
     for error, status in ((InvalidPoseError, 422), (RenderInputError, 422), (VideoRejected, 422),
-                          (InvalidIdError, 404), (UploadTooLarge, 413)):  # fmt: skip
+                          (InvalidIdError, 404), (UploadTooLarge, 413)):
         app.add_exception_handler(error, reason(status))
 
     @app.exception_handler(StarletteHTTPException)
@@ -157,7 +157,7 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
         yield
 
     app = FastAPI(title="EVA avatar service", version=eva_engine.__version__, description=DESCRIPTION,
-                  lifespan=lifespan)  # fmt: skip
+                  lifespan=lifespan)
     try:
         job_queue = queue or JobQueue(settings.jobs)
     except JobStoreError as err:
@@ -173,7 +173,7 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
         rules=body_rules(settings), default_max_bytes=settings.max_json_bytes,
         max_requests=settings.max_requests, body_timeout_s=settings.body_timeout_s,
         open_paths=OPEN_PATHS, open_prefixes=OPEN_PREFIXES,
-    )  # fmt: skip
+    )
     app.add_middleware(RequestGuard, config=guard)
     app.add_middleware(TrustedHostMiddleware, allowed_hosts=settings.trusted_hosts)  # outermost
     _install_error_handlers(app)

@@ -109,4 +109,4 @@ def check_job_quota(ctx: ServiceContext) -> None:
     queued = ctx.queue.store.counts()["queued"]
     if queued >= ctx.settings.max_queued_jobs:
         raise HTTPException(503, f"{queued} jobs are waiting for a worker (the quota); retry later",
-                            headers={"Retry-After": str(30 * RETRY_AFTER_S)})  # fmt: skip
+                            headers={"Retry-After": str(30 * RETRY_AFTER_S)})

@@ -83,7 +83,7 @@ class JobInfo(BaseModel):
         "cancel_requested": False, "filename": "me.mp4", "options": JobOptions().model_dump(),
         "created_at": "2026-11-22T17:00:00Z", "started_at": "2026-11-22T17:00:01Z",
         "finished_at": None, "updated_at": "2026-11-22T17:01:10Z",
-    }]})  # fmt: skip
+    }]})
 
     job_id: str
     kind: Literal["avatar", "animation"] = "avatar"
@@ -118,7 +118,7 @@ class JobInfo(BaseModel):
             options=options, created_at=utc_time(job.created_at),
             started_at=utc_time(job.started_at), finished_at=utc_time(job.finished_at),
             updated_at=utc_time(job.updated_at),
-        )  # fmt: skip
+        )
 
 
 class AvatarInfo(BaseModel):
@@ -165,6 +165,6 @@ class RenderRequest(RenderSpec):
             {"camera": "left", "background": [0, 0, 0], "format": "jpeg"},
             {"frame": 3},
         ]},
-    )  # fmt: skip
+    )
 
     format: Literal["png", "jpeg"] = "png"

@@ -140,7 +140,7 @@ def publish_seeded_avatar(queue, model, frames: int = 3, size: tuple[int, int] =
         params=model.default_params(frames), K=intrinsics(size[1], size[0], 40.0).expand(frames, 3, 3),
         viewmat=orbit_camera(0.0, 0.0, 2.6).float().expand(frames, 4, 4),
         timestamps=torch.arange(frames, dtype=torch.float64) / 10.0, image_size=size, fps=10.0,
-    )  # fmt: skip
+    )
     save_avatar(avatar, folder, frames=kept)
     assert queue.store.finish(job.id, "succeeded", owner=worker)
     return queue.store.get(job.id)

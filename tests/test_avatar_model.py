@@ -30,7 +30,7 @@ def avatars(anny_model):
     plain = Avatar.create(
         anny_model, anny_model.shape_defaults,
         AvatarConfig(**SMALL, weight_offsets=False, pose_refine=False), seed=3,
-    )  # fmt: skip
+    )
     return full, plain
 
 

@@ -67,7 +67,7 @@ def test_the_build_context_holds_no_data_venv_or_history():
                 "out/demo/service/jobs/work/x/input.mp4", "tests/test_service_api.py",
                 "bench/results/service.md", "eva_engine/__pycache__/paths.cpython-311.pyc",
                 "service/__pycache__/app.cpython-311.pyc", ".env", "docs/evaluation.md",
-                "scripts/install-system-deps.sh"]  # fmt: skip
+                "scripts/install-system-deps.sh"]
     for path in excluded:
         assert not in_context(path, rules), path
     tracked = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout
@@ -150,7 +150,7 @@ def test_a_worker_keeps_its_health_file_fresh(tmp_path):
 
     alive = tmp_path / "alive"
     worker = start_process([EVA, "worker", "--data-dir", str(tmp_path / "data"), "--health-file", str(alive)],
-                           tmp_path / "worker.log")  # fmt: skip
+                           tmp_path / "worker.log")
     try:
         wait_for(alive.exists, 60, "the health file")
         assert healthcheck.main(["--role", "worker"]) == 1  # the default path is not this one

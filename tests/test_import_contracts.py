@@ -31,7 +31,7 @@ FORBIDDEN = [
     ("jobs", ("service",), "the worker runs without the web service"),
     ("eva_engine.render", ("eva_engine.body", "eva_engine.avatar", "eva_engine.train"),
      "the rasterizer is the bottom layer"),
-]  # fmt: skip
+]
 
 
 @dataclass(frozen=True)

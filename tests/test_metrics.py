@@ -282,7 +282,7 @@ def test_prepare_lpips_finds_and_verifies_weights():
     weights = load_lpips_weights(paths["alex"])
     assert [tuple(w.shape) for w in weights.conv_weights] == [
         (64, 3, 11, 11), (192, 64, 5, 5), (384, 192, 3, 3), (256, 384, 3, 3), (256, 256, 3, 3),
-    ]  # fmt: skip
+    ]
     assert [tuple(w.shape) for w in weights.lin_weights] == [(1, c, 1, 1) for c in (64, 192, 384, 256, 256)]
 
 
@@ -333,7 +333,7 @@ def test_ssim_matches_skimage(dtype):
                 data_range=1.0, channel_axis=0,
             )
             for i in range(img.shape[0])
-        ]  # fmt: skip
+        ]
         assert got.shape == (img.shape[0],)
         np.testing.assert_allclose(got.double().numpy(), expected, atol=1e-4)
     same = torch.rand(1, 3, 20, 20)

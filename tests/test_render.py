@@ -173,7 +173,7 @@ def stacked(n: int = 300, size: int = 15) -> dict:
         opacities=torch.full((n,), 0.5, dtype=torch.float64),
         colors=torch.rand(n, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64),
         viewmat=viewmat, K=K, width=size, height=size, background=torch.ones(3, dtype=torch.float64),
-    )  # fmt: skip
+    )
 
 
 def cast(scene: dict, dtype) -> dict:
@@ -452,7 +452,7 @@ def test_no_gaussians(kernel):
         empty, torch.zeros(0, 4, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64),
         torch.zeros(0, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64), viewmat, K, 20, 12,
         background=bg, config=RasterConfig(kernel=kernel),
-    )  # fmt: skip
+    )
     assert torch.equal(out.image, bg.detach().expand(12, 20, 3))
     assert torch.all(out.alpha == 0) and torch.all(out.depth == 0)
     assert out.radii.shape == (0,) and out.means2d.shape == (0, 2)

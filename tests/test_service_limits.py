@@ -73,7 +73,7 @@ HUGE = [
     ('{"width": 1e300}', "width"),
     ('{"frame": 1, "width": ' + "9" * 400 + "}", "width"),  # was a 500 (float overflow)
     ('{"frame": ' + "9" * 400 + "}", "frame"),
-]  # fmt: skip
+]
 
 
 @pytest.mark.parametrize(("raw", "needle"), HUGE, ids=[f"{i}-{n}" for i, (_, n) in enumerate(HUGE)])
@@ -129,7 +129,7 @@ def test_concurrent_first_requests_load_the_avatar_once(seeded, monkeypatch):
     folder = ctx.queue.storage.avatar_dir(aid)
     results = []
     threads = [threading.Thread(target=lambda: results.append(ctx.avatars.get(aid, folder)))
-               for _ in range(6)]  # fmt: skip
+               for _ in range(6)]
     for t in threads:
         t.start()
     for t in threads:

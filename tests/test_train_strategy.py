@@ -116,7 +116,7 @@ def fake_render(n: int, grad: torch.Tensor, width: int = 100, height: int = 50) 
         image=torch.zeros(height, width, 3), alpha=torch.zeros(height, width, 1),
         depth=torch.zeros(height, width, 1),
         means2d=means2d, radii=torch.ones(n, dtype=torch.int32), depths=torch.ones(n), num_intersections=0,
-    )  # fmt: skip
+    )
 
 
 def test_default_strategy_densifies_and_prunes():

@@ -28,7 +28,7 @@ def head_and_shoulders(ds: SceneDataset, rows: int) -> SceneDataset:
         dataclasses.replace(f, image=f.image[:rows], mask=f.mask[:rows],
                             regions={k: m[:rows] for k, m in f.regions.items()})
         for f in ds.frames
-    ]  # fmt: skip
+    ]
     return dataclasses.replace(ds, frames=frames)
 
 

@@ -200,7 +200,7 @@ def build_correspondence(
         valid[k] = (
             len(cands) >= 0.6 * len(views) and spread[k] <= max_spread and on_face
             and k not in oval and k < IRIS_START
-        )  # fmt: skip
+        )
     logger.info("face-mesh correspondence: %d of %d landmarks valid", int(valid.sum()), NUM_LANDMARKS)
     return FaceMeshCorrespondence(tri, bary_out, valid, spread)
 

@@ -89,7 +89,7 @@ class Detections:
             self.keypoints[rows], self.hand_depth[rows], self.pose_world[rows],
             [self.masks[i] for i in rows], [self.found[i] for i in rows],
             self.face_mesh[rows] if self.face_mesh is not None else None,
-        )  # fmt: skip
+        )
 
     def regions_found(self) -> np.ndarray:
         """[F, 3] bool per frame: left hand, right hand, face found (``REGION_MASKS`` order)."""
@@ -119,7 +119,7 @@ def detect_frames(
                 progress(ProgressEvent("detect", i + 1, total, message))
     if not results:
         return Detections(np.zeros((0, len(KEYPOINT_NAMES), 3), np.float32), np.zeros((0, 42), np.float32),
-                          np.zeros((0, 33, 4), np.float32), [], [])  # fmt: skip
+                          np.zeros((0, 33, 4), np.float32), [], [])
     return Detections(
         keypoints=np.stack([r.keypoints for r in results]),
         hand_depth=np.stack([r.hand_depth for r in results]),
@@ -223,7 +223,7 @@ def preprocess_video(
     meta = DatasetMeta(
         source="video", fps=fps, image_size=(h, w), name=Path(video).stem,
         body_model=model.name if params is not None else None, camera_source="estimated",
-    )  # fmt: skip
+    )
     n = len(keep)
     test = list(range(config.test_every - 1, n, config.test_every)) if config.test_every else []
     train = [i for i in range(n) if i not in set(test)]
@@ -234,7 +234,7 @@ def preprocess_video(
             writer.add_frame(
                 clip.frames[i], mask, K=K, viewmat=viewmat, time=float(clip.timestamps[i]),
                 regions=regions[j] if regions is not None else None,
-            )  # fmt: skip
+            )
             if progress is not None:
                 progress(ProgressEvent("write", j + 1, n, f"writing frame {j + 1}/{n}"))
         root = writer.finish(
@@ -249,7 +249,7 @@ def preprocess_video(
                 "hand_depth": targets.hand_depth, "pose_world": targets.pose_world,
                 **({"face_mesh": targets.face_mesh} if targets.face_mesh is not None else {}),
                 **({"hand_confidence": fit.hand_confidence.float()} if fit is not None else {}),
-            },  # fmt: skip
+            },
             extra={
                 "video": str(Path(video).name),
                 "detector": {"name": "mediapipe-holistic-0.10.21", **asdict(config.detector)},

@@ -24,7 +24,7 @@ from eva_engine.body.rest_axes import RestAxes, rest_axes
 
 Vec3 = tuple[float, float, float]
 _SKELETON = {f"{j}.{s}" for j in ("upperarm01", "lowerarm01", "wrist", "finger2-1", "finger3-1", "finger5-1")
-             for s in "LR"}  # fmt: skip
+             for s in "LR"}
 
 
 class JointTerm(BaseModel):
@@ -64,7 +64,7 @@ def _joint_controls(axes: RestAxes) -> list[PoseControl]:
     def split(axis: Vec3, lower: str, upper: str, low_gain: float) -> list[JointTerm]:
         """A rotation shared by two joints of a chain (neck and head, lower and upper spine)."""
         return [JointTerm(joint=lower, axis=axis, gain=low_gain),
-                JointTerm(joint=upper, axis=axis, gain=1.0 - low_gain)]  # fmt: skip
+                JointTerm(joint=upper, axis=axis, gain=1.0 - low_gain)]
 
     head, torso = ("neck01", "head", 0.4), ("spine01", "spine03", 0.4)
     c: list[PoseControl] = [
@@ -75,7 +75,7 @@ def _joint_controls(axes: RestAxes) -> list[PoseControl]:
                     joints=split(x, *torso)),
         PoseControl(name="torso_twist", label="Twist", group="Torso", min=-0.8, max=0.8,
                     joints=split(y, *torso)),
-    ]  # fmt: skip
+    ]
     for s, side in (("L", "Left"), ("R", "Right")):
         sign = 1.0 if s == "L" else -1.0
         thumb = axes.finger[s][0]
@@ -104,7 +104,7 @@ def _joint_controls(axes: RestAxes) -> list[PoseControl]:
                         joints=[JointTerm(joint=f"upperleg01.{s}", axis=minus_x)]),
             PoseControl(name=f"knee.{s}", label="Bend knee", group=leg, min=0.0, max=2.2,
                         joints=[JointTerm(joint=f"lowerleg01.{s}", axis=x)]),
-        ]  # fmt: skip
+        ]
 
     return c
 
@@ -112,7 +112,7 @@ def _joint_controls(axes: RestAxes) -> list[PoseControl]:
 def _face_controls() -> list[PoseControl]:
     def face(name: str, label: str, *names: str) -> PoseControl:
         return PoseControl(name=name, label=label, group="Face", min=0.0, max=1.0,
-                           expressions=[ExpressionTerm(expression=n) for n in names])  # fmt: skip
+                           expressions=[ExpressionTerm(expression=n) for n in names])
 
     return [
         face("jaw_open", "Open jaw", "jawOpen"),
@@ -161,7 +161,7 @@ def pose_from_controls(controls: list[PoseControl], values: dict[str, float]) ->
             expression[term.expression] = expression.get(term.expression, 0.0) + term.gain * value
     joints = {name: tuple(float(v) for v in r.as_rotvec()) for name, r in rotations.items()}
     return BodyPose(joints={k: v for k, v in joints.items() if any(v)},
-                    expression={k: v for k, v in expression.items() if v})  # type: ignore[arg-type]  # fmt: skip
+                    expression={k: v for k, v in expression.items() if v})  # type: ignore[arg-type]
 
 
 def params_from_controls(

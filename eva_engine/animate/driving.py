@@ -123,7 +123,7 @@ def driving_from_dataset(path: str | Path, body: BodyModel, dropped: int = 0) ->
         raise DrivingError(f"{path} has no body parameters (preprocess it with the body model fit)")
     if ds.meta.body_model not in (None, body.name) or params.joints.shape[1] != len(body.pose_joint_names):
         raise DrivingError(f"{path} was fitted with body model {ds.meta.body_model!r}; "
-                           f"the avatar's is {body.name!r}")  # fmt: skip
+                           f"the avatar's is {body.name!r}")
     order = torch.argsort(ds.timestamps)
     ids = order.tolist()
     times = ds.timestamps[order].clone()
@@ -134,7 +134,7 @@ def driving_from_dataset(path: str | Path, body: BodyModel, dropped: int = 0) ->
         params=params[ids], times=times, fps=float(ds.meta.fps),
         K=ds.K[ids].float(), viewmat=ds.viewmat[ids].float(), image_size=tuple(ds.image_size), frames=frames,
         retarget=True, dropped=dropped,
-    )  # fmt: skip
+    )
 
 
 def driving_from_video(

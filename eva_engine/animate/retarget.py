@@ -81,4 +81,4 @@ def recenter(params: BodyParams, reference: int = 0) -> BodyParams:
     (the origin of an orbit camera's default target): the motion's displacements stay."""
     shift = params.transl[reference].clone()
     return BodyParams(params.root_orient, params.transl - shift, params.joints, params.expression,
-                      params.shape)  # fmt: skip
+                      params.shape)

@@ -57,7 +57,7 @@ def write_ply(path: str | Path, splats: dict[str, torch.Tensor]) -> None:
     columns = [
         ("x", means[:, 0]), ("y", means[:, 1]), ("z", means[:, 2]),
         ("nx", np.zeros(n)), ("ny", np.zeros(n)), ("nz", np.zeros(n)),
-    ]  # fmt: skip
+    ]
     columns += [(f"f_dc_{i}", f_dc[:, i]) for i in range(3)]
     columns += [(f"f_rest_{i}", f_rest[:, i]) for i in range(f_rest.shape[1])]
     columns += [("opacity", splats["opacities"].detach().cpu().float().numpy())]

@@ -28,14 +28,17 @@ POSE_NAMES = (
     "right_pinky", "left_index", "right_index", "left_thumb", "right_thumb", "left_hip",
     "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle", "left_heel",
     "right_heel", "left_foot_index", "right_foot_index",
-)  # fmt: skip
+)
+# One line per finger, base to tip.
+# fmt: off
 HAND_NAMES = (
     "wrist", "thumb_cmc", "thumb_mcp", "thumb_ip", "thumb_tip",
     "index_finger_mcp", "index_finger_pip", "index_finger_dip", "index_finger_tip",
     "middle_finger_mcp", "middle_finger_pip", "middle_finger_dip", "middle_finger_tip",
     "ring_finger_mcp", "ring_finger_pip", "ring_finger_dip", "ring_finger_tip",
     "pinky_mcp", "pinky_pip", "pinky_dip", "pinky_tip",
-)  # fmt: skip
+)
+# fmt: on
 FACE_MESH_INDEX: Mapping[str, int] = {
     "face_right_eye_outer": 33,
     "face_right_eye_inner": 133,

@@ -255,7 +255,7 @@ class SmplxBody(BodyModel):
             for ours, theirs in (
                 ("thumb", "thumb"), ("index_finger", "index"), ("middle_finger", "middle"),
                 ("ring_finger", "ring"), ("pinky", "pinky"),
-            ):  # fmt: skip
+            ):
                 names = ("cmc", "mcp", "ip") if ours == "thumb" else ("mcp", "pip", "dip")
                 for k, n in enumerate(names, start=1):
                     jt[h + f"{ours}_{n}"] = {j[f"{side}_{theirs}{k}"]: 1.0}

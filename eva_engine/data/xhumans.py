@@ -40,7 +40,7 @@ SMPLX_JOINT_NAMES = (
     "left_ring3", "left_thumb1", "left_thumb2", "left_thumb3", "right_index1", "right_index2", "right_index3",
     "right_middle1", "right_middle2", "right_middle3", "right_pinky1", "right_pinky2", "right_pinky3",
     "right_ring1", "right_ring2", "right_ring3", "right_thumb1", "right_thumb2", "right_thumb3",
-)  # fmt: skip
+)
 """SMPL-X's 55 kinematic joints (the ``smplx`` package's order); the root is ``pelvis``."""
 
 _FRAME = re.compile(r"color_(\d+)\.png$")
@@ -84,7 +84,7 @@ def _load_smplx(path: Path) -> dict[str, np.ndarray]:
     except Exception as err:
         raise DatasetError(f"cannot read SMPL-X parameters {path}: {err}") from err
     keys = ("betas", "global_orient", "body_pose", "left_hand_pose", "right_hand_pose", "jaw_pose",
-            "leye_pose", "reye_pose", "expression", "transl")  # fmt: skip
+            "leye_pose", "reye_pose", "expression", "transl")
     if not isinstance(d, dict) or any(k not in d for k in keys):
         raise DatasetError(f"{path} lacks SMPL-X keys (need {list(keys)})")
     return {k: np.asarray(d[k], dtype=np.float32).reshape(-1) for k in keys}
@@ -100,9 +100,9 @@ def _params(frames: list[dict[str, np.ndarray]]) -> BodyParams:
          stack("reye_pose").view(n, 1, 3), stack("left_hand_pose").view(n, 15, 3),
          stack("right_hand_pose").view(n, 15, 3)],
         dim=1,
-    )  # fmt: skip
+    )
     return BodyParams(root_orient=stack("global_orient"), transl=stack("transl"), joints=joints,
-                      expression=stack("expression"), shape=stack("betas"))  # fmt: skip
+                      expression=stack("expression"), shape=stack("betas"))
 
 
 def _read(path: Path, flags: int) -> np.ndarray:
@@ -191,7 +191,7 @@ def read_xhumans(
                     meta = DatasetMeta(
                         source="xhumans", fps=opts.fps, image_size=(h, w), name=f"xhumans-{root.name}",
                         body_model="smplx", camera_source="ground_truth",
-                    )  # fmt: skip
+                    )
                     writer = DatasetWriter(out, meta, overwrite=overwrite)
                     regions = RegionMaskRenderer(model, (h, w)) if model is not None else None
                 K_t, view_t = torch.from_numpy(K).float(), torch.from_numpy(view).float()
@@ -215,7 +215,7 @@ def read_xhumans(
         return writer.finish(
             split_ids, params=params, params_names=names, params_source="ground_truth", gt_params=params,
             extra={"subject": root.name, "gender": gender, "source_frames": source_frames},
-        )  # fmt: skip
+        )
     finally:
         if writer is not None:
             writer.discard()

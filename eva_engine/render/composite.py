@@ -372,7 +372,7 @@ class _CompositeImage(torch.autograd.Function):
         g, g_bg = ctx.ops.composite_image_backward(
             means2d, conics, opacities, colors, depths, background, *ctx.tiles,
             t_final, count, grad_image, grad_depth, grad_alpha,
-        )  # fmt: skip
+        )
         d = colors.shape[1]
         return g[:, :2], g[:, 2:5], g[:, 5], g[:, 6 : 6 + d], g[:, 6 + d], g_bg, None, None, None, None
 

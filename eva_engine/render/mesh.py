@@ -231,7 +231,7 @@ class MeshRenderer:
                 self._prog,
                 [(self._pos, "3f", "in_pos"), (self._nrm, "3f", "in_normal"),
                  (self._col, "3f", "in_color"), (self._uv, "2f", "in_uv")],
-            )  # fmt: skip
+            )
             light = np.asarray(c.light, dtype=np.float64)
             self._light = light / np.linalg.norm(light)
             self._prog["light"].value = tuple(self._light)

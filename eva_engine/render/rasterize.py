@@ -131,7 +131,7 @@ def rasterize(
         image, depth, alpha = composite_image(
             means2d, proj.conics, opacities, colors, proj.depths, bins, width, height, background,
             cfg.composite, kernel,
-        )  # fmt: skip
+        )
     else:
         # Depth is composited as one more feature channel, with no background term.
         feats = torch.cat([colors, proj.depths[:, None]], dim=-1)

@@ -73,7 +73,7 @@ class PoseCorrection(nn.Module):
     """
 
     def __init__(self, num_frames: int, joint_part_ids: Tensor, expression_dim: int,
-                 config: PoseCorrectionConfig) -> None:  # fmt: skip
+                 config: PoseCorrectionConfig) -> None:
         super().__init__()
         self.config = config
         self.register_buffer("joint_part_ids", joint_part_ids.to(torch.int64).clone())

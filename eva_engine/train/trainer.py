@@ -39,7 +39,7 @@ class TrainingError(RuntimeError):
 
 
 def _train_event(stage: str, done: int, total: int, loss: float | None, num_gaussians: int,
-                elapsed: float, eta: float | None) -> ProgressEvent:  # fmt: skip
+                elapsed: float, eta: float | None) -> ProgressEvent:
     """A training progress report: stage "setup", "train" or "done", iteration ``done`` (1-based)
     of ``total``, the current loss, the Gaussian count, elapsed and remaining seconds."""
     message = f"iteration {done}/{total}, {num_gaussians} Gaussians"
@@ -244,7 +244,7 @@ def train_avatar(
     state = strategy.initialize_state()
     parts_before = part_counts(avatar.gaussians.part_ids)
     logger.info("setup %.1fs: %d frames, %d Gaussians", time.perf_counter() - t_setup, len(train_ids),
-                len(avatar.gaussians))  # fmt: skip
+                len(avatar.gaussians))
 
     frame_order = torch.Generator().manual_seed(config.seed)
     order: list[int] = []
@@ -325,4 +325,4 @@ def train_avatar(
     return TrainResult(
         avatar, losses, train_seconds, timings, refinements, per_part, train_ids, trained,
         correction.magnitudes() if correction is not None else {},
-    )  # fmt: skip
+    )
