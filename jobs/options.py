@@ -37,8 +37,9 @@ class JobOptions(BaseModel):
         1.0, gt=0.0, le=4.0, description="Scales the body fit's L-BFGS iterations (1: the paper's)."
     )
     method: Method | None = Field(
-        None, description=f"Training method: {describe_methods()}; none: the preset's own (3DGS density "
-        "control with the full objective)."
+        None,
+        description=f"Training method: {describe_methods()}; none: the preset's own (3DGS density "
+        "control with the full objective).",
     )
 
     def fit_config(self):

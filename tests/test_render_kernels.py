@@ -149,7 +149,13 @@ def test_compiled_projection_matches_torch(compiled, dtype):
     for kernel in ("cpp", "torch"):
         inputs = {k: scene[k].clone().requires_grad_(True) for k in names}
         proj = project_gaussians(
-            inputs["means"], inputs["quats"], inputs["scales"], scene["viewmat"], scene["K"], 30, 20,
+            inputs["means"],
+            inputs["quats"],
+            inputs["scales"],
+            scene["viewmat"],
+            scene["K"],
+            30,
+            20,
             kernel=kernel,
         )
         g.manual_seed(3)

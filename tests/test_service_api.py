@@ -47,8 +47,14 @@ def test_health_and_docs(client):
     assert client.get("/docs").status_code == 200
     spec = client.get("/openapi.json").json()
     paths = spec["paths"]
-    for path in ("/avatars", "/avatars/{avatar_id}", "/avatars/{avatar_id}/render",
-                 "/avatars/{avatar_id}/export", "/jobs/{job_id}", "/healthz"):
+    for path in (
+        "/avatars",
+        "/avatars/{avatar_id}",
+        "/avatars/{avatar_id}/render",
+        "/avatars/{avatar_id}/export",
+        "/jobs/{job_id}",
+        "/healthz",
+    ):
         assert path in paths, path
     render = spec["components"]["schemas"]["RenderRequest"]
     assert render["examples"][0]["pose"]["joints"]
@@ -77,9 +83,11 @@ def test_upload_queues_a_job_that_can_be_cancelled(client, signer_video, tmp_pat
     avatar = client.get(f"/avatars/{ids['avatar_id']}").json()
     assert avatar["status"] == "pending" and avatar["num_gaussians"] is None
     # Not finished yet: 409 with the reason.
-    for res in (client.post(f"/avatars/{ids['avatar_id']}/render", json={}),
-                client.get(f"/avatars/{ids['avatar_id']}/export"),
-                client.delete(f"/avatars/{ids['avatar_id']}")):
+    for res in (
+        client.post(f"/avatars/{ids['avatar_id']}/render", json={}),
+        client.get(f"/avatars/{ids['avatar_id']}/export"),
+        client.delete(f"/avatars/{ids['avatar_id']}"),
+    ):
         assert res.status_code == 409 and "queued" in res.text + "cancel" or res.status_code == 409, res.text
     # Cancel: at once for a queued job; its upload is removed.
     res = client.delete(f"/jobs/{ids['job_id']}")

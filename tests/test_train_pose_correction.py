@@ -49,7 +49,9 @@ def test_training_corrects_a_misfitted_frame(anny_model):
     k = ds.splits["train"][1]
     ds.params = perturbed(anny_model, ds.params, k)
     cfg = preset(
-        "tiny", iterations=150, loss=LossConfig(lambda_lpips=0.0),
+        "tiny",
+        iterations=150,
+        loss=LossConfig(lambda_lpips=0.0),
         pose_correction=PoseCorrectionConfig(enabled=True, start_iter=50),
     )
     result = train_avatar(ds, cfg, body=anny_model)

@@ -86,8 +86,11 @@ class Detections:
     def select(self, rows: list[int]) -> Detections:
         """The detections of frames ``rows``."""
         return Detections(
-            self.keypoints[rows], self.hand_depth[rows], self.pose_world[rows],
-            [self.masks[i] for i in rows], [self.found[i] for i in rows],
+            self.keypoints[rows],
+            self.hand_depth[rows],
+            self.pose_world[rows],
+            [self.masks[i] for i in rows],
+            [self.found[i] for i in rows],
             self.face_mesh[rows] if self.face_mesh is not None else None,
         )
 
@@ -118,8 +121,13 @@ def detect_frames(
                 message = f"detecting the person: frame {i + 1}/{total}"
                 progress(ProgressEvent("detect", i + 1, total, message))
     if not results:
-        return Detections(np.zeros((0, len(KEYPOINT_NAMES), 3), np.float32), np.zeros((0, 42), np.float32),
-                          np.zeros((0, 33, 4), np.float32), [], [])
+        return Detections(
+            np.zeros((0, len(KEYPOINT_NAMES), 3), np.float32),
+            np.zeros((0, 42), np.float32),
+            np.zeros((0, 33, 4), np.float32),
+            [],
+            [],
+        )
     return Detections(
         keypoints=np.stack([r.keypoints for r in results]),
         hand_depth=np.stack([r.hand_depth for r in results]),
@@ -221,8 +229,12 @@ def preprocess_video(
     started = time.perf_counter()
     fps = clip.fps / config.every if clip.fps > 0 else 25.0
     meta = DatasetMeta(
-        source="video", fps=fps, image_size=(h, w), name=Path(video).stem,
-        body_model=model.name if params is not None else None, camera_source="estimated",
+        source="video",
+        fps=fps,
+        image_size=(h, w),
+        name=Path(video).stem,
+        body_model=model.name if params is not None else None,
+        camera_source="estimated",
     )
     n = len(keep)
     test = list(range(config.test_every - 1, n, config.test_every)) if config.test_every else []
@@ -232,7 +244,11 @@ def preprocess_video(
             mask = det.masks[j]
             mask = np.ones((h, w), np.float32) if mask is None else mask
             writer.add_frame(
-                clip.frames[i], mask, K=K, viewmat=viewmat, time=float(clip.timestamps[i]),
+                clip.frames[i],
+                mask,
+                K=K,
+                viewmat=viewmat,
+                time=float(clip.timestamps[i]),
                 regions=regions[j] if regions is not None else None,
             )
             if progress is not None:
@@ -246,7 +262,8 @@ def preprocess_video(
             keypoint_names=list(KEYPOINT_NAMES),
             keypoints_source="mediapipe",
             keypoint_extras={
-                "hand_depth": targets.hand_depth, "pose_world": targets.pose_world,
+                "hand_depth": targets.hand_depth,
+                "pose_world": targets.pose_world,
                 **({"face_mesh": targets.face_mesh} if targets.face_mesh is not None else {}),
                 **({"hand_confidence": fit.hand_confidence.float()} if fit is not None else {}),
             },

@@ -218,8 +218,17 @@ class Avatar(nn.Module):
         if background is not None:
             background = background.to(colors)
         return rasterize(
-            posed.means, posed.quats, posed.scales, posed.opacities, colors,
-            camera.viewmat, camera.K, camera.width, camera.height, background=background, config=raster,
+            posed.means,
+            posed.quats,
+            posed.scales,
+            posed.opacities,
+            colors,
+            camera.viewmat,
+            camera.K,
+            camera.width,
+            camera.height,
+            background=background,
+            config=raster,
         )
 
     @torch.no_grad()

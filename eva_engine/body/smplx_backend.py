@@ -253,8 +253,11 @@ class SmplxBody(BodyModel):
             h = f"{side}_hand_"
             jt[h + "wrist"] = {j[f"{side}_wrist"]: 1.0}
             for ours, theirs in (
-                ("thumb", "thumb"), ("index_finger", "index"), ("middle_finger", "middle"),
-                ("ring_finger", "ring"), ("pinky", "pinky"),
+                ("thumb", "thumb"),
+                ("index_finger", "index"),
+                ("middle_finger", "middle"),
+                ("ring_finger", "ring"),
+                ("pinky", "pinky"),
             ):
                 names = ("cmc", "mcp", "ip") if ours == "thumb" else ("mcp", "pip", "dip")
                 for k, n in enumerate(names, start=1):

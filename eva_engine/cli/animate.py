@@ -64,9 +64,15 @@ def animate(
     console = Console(stderr=True)
     if out.suffix.lower() != ".mp4":
         raise typer.BadParameter(f"the output must be an .mp4 file, got {out.name}", param_hint="--out")
-    doc = {"camera": camera_value(camera, allow_driving=True), "side_by_side": side_by_side, "fps": fps,
-           "width": width, "height": height, "smooth_s": smooth,
-           "background": background_value(background)}
+    doc = {
+        "camera": camera_value(camera, allow_driving=True),
+        "side_by_side": side_by_side,
+        "fps": fps,
+        "width": width,
+        "height": height,
+        "smooth_s": smooth,
+        "background": background_value(background),
+    }
     try:
         config = AnimationConfig.model_validate(doc)
     except ValidationError as err:

@@ -50,8 +50,9 @@ def synth(
     if target.exists() and not target.is_dir():
         raise typer.BadParameter(f"{target} exists and is not a folder", param_hint="--out")
     if target.exists() and not overwrite:
-        raise typer.BadParameter(f"{target} already exists (pass --overwrite to replace a dataset)",
-                                 param_hint="--out")
+        raise typer.BadParameter(
+            f"{target} already exists (pass --overwrite to replace a dataset)", param_hint="--out"
+        )
 
     from eva_engine.body import AnnyCacheError, load_body_model
     from eva_engine.render.mesh import MeshRenderError

@@ -129,8 +129,17 @@ def rasterize(
     )
     if cfg.backend == "tiled":
         image, depth, alpha = composite_image(
-            means2d, proj.conics, opacities, colors, proj.depths, bins, width, height, background,
-            cfg.composite, kernel,
+            means2d,
+            proj.conics,
+            opacities,
+            colors,
+            proj.depths,
+            bins,
+            width,
+            height,
+            background,
+            cfg.composite,
+            kernel,
         )
     else:
         # Depth is composited as one more feature channel, with no background term.
