@@ -137,9 +137,10 @@ class JobRun:
         except Exception as err:  # every failure ends the job with its reason
             stage = (self.store.get(job.id) or job).stage or stage
             reason = failure_reason(err, stage, self.config)
+            # No server paths in messages.
             reason = re.sub(
                 re.escape(str(self.storage.work_dir(job.id))) + r"/\S*", "the uploaded video", reason
-            )  # no server paths in messages
+            )
             logger.warning(
                 "job %s failed in stage %s: %s", job.id, stage, reason, exc_info=not is_input_error(err)
             )

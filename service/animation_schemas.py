@@ -91,9 +91,9 @@ class AnimationInfo(BaseModel):
             animation_id=job.avatar_id,
             avatar_id=job.options["avatar_id"],
             job_id=job.id,
-            state=job.state,
-            stage=job.stage,
-            progress=round(job.progress, 4),  # type: ignore[arg-type]
+            state=job.state,  # type: ignore[arg-type]
+            stage=job.stage,  # type: ignore[arg-type]
+            progress=round(job.progress, 4),
             eta_seconds=job.eta_s,
             message=job.message,
             error=job.error,

@@ -130,7 +130,7 @@ class JobInfo(BaseModel):
         return cls(
             job_id=job.id,
             **ids,
-            state=job.state,
+            state=job.state,  # type: ignore[arg-type]
             stage=job.stage,  # type: ignore[arg-type]
             progress=round(job.progress, 4),
             eta_seconds=job.eta_s,

@@ -232,9 +232,9 @@ def pose_from_controls(controls: list[PoseControl], values: dict[str, float]) ->
             expression[term.expression] = expression.get(term.expression, 0.0) + term.gain * value
     joints = {name: tuple(float(v) for v in r.as_rotvec()) for name, r in rotations.items()}
     return BodyPose(
-        joints={k: v for k, v in joints.items() if any(v)},
+        joints={k: v for k, v in joints.items() if any(v)},  # type: ignore[arg-type]
         expression={k: v for k, v in expression.items() if v},
-    )  # type: ignore[arg-type]
+    )
 
 
 def params_from_controls(
