@@ -1,6 +1,7 @@
 # One entry point for a newcomer: `make demo` (the main job end to end) and `make test`.
 PY ?= $(shell command -v python3.11 || command -v python3)
-VENV := .venv
+# VENV=path uses a venv elsewhere (.ci/run reuses one installed venv for a copy of the tree).
+VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 # Runtime deps installed with --no-deps (measured to install together): mediapipe
@@ -25,9 +26,11 @@ demo: install
 
 lint: install
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 
 test: install
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/pytest -q
 
 bench: install

@@ -159,11 +159,13 @@ def table3(model, dataset: Path, preset_name: str, iterations: int | None, image
             k: {
                 "train_seconds": v.train_seconds,
                 "n_gaussians": v.num_gaussians,
-                **{r: {"psnr": m.psnr, "ssim": m.ssim, "lpips_vgg": m.lpips_vgg, "lpips_alex": m.lpips_alex}
-                   for r, m in v.regions.items()},
+                **{
+                    r: {"psnr": m.psnr, "ssim": m.ssim, "lpips_vgg": m.lpips_vgg, "lpips_alex": m.lpips_alex}
+                    for r, m in v.regions.items()
+                },
             }
             for k, v in rows.items()
-        },  # fmt: skip
+        },
     }
 
 
@@ -268,14 +270,16 @@ def markdown(report: dict) -> str:
         f"## Synthetic `wild` preset ({s['frames']} frames, {s['image_size'][1]} px, "
         "MediaPipe on the renders)",
         "",
-        "Detection rates: " + ", ".join(f"{k} {v:.0%}" for k, v in s["detection_rates"].items())
+        "Detection rates: "
+        + ", ".join(f"{k} {v:.0%}" for k, v in s["detection_rates"].items())
         + ". Detector error vs ground truth (median px): "
-        + ", ".join(f"{k} {v:.1f}" for k, v in s["detection_px_vs_ground_truth"].items()) + ".",
+        + ", ".join(f"{k} {v:.1f}" for k, v in s["detection_px_vs_ground_truth"].items())
+        + ".",
         "",
         "| estimate | MPJPE body in view (mm) | MPJPE body all (mm) | MPJPE hands (mm) | expression (mm) "
         "| 2D body (px) | 2D hands (px) | 2D face (px) | face mesh px per frame (median / p90) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---|",
-    ]  # fmt: skip
+    ]
     for name in ("initial", "fitted", "fitted_to_exact_targets", "ground_truth_params"):
         if name not in s:
             continue
@@ -298,8 +302,12 @@ def markdown(report: dict) -> str:
         "MPJPE: body hip-centred (in view: only the body joints inside the image, all: every joint, "
         "legs of a waist-up frame included), hands wrist-centred; expression: mean distance of the face "
         "vertices the true expression moves, fitted vs true expression on the true rest face. "
-        + (f"Hands: {s['hands']['rejected']} wrong-side detections dropped, {s['hands']['filled_frames']} "
-           "hand-frames filled from neighbours." if "hands" in s else ""),
+        + (
+            f"Hands: {s['hands']['rejected']} wrong-side detections dropped, {s['hands']['filled_frames']} "
+            "hand-frames filled from neighbours."
+            if "hands" in s
+            else ""
+        ),
         "",
     ]
     if report.get("table3"):

@@ -87,9 +87,12 @@ def run_one(ds, config, metrics, label: str) -> dict:
     }
     for region, m in ev.regions.items():
         entry[region] = {k: getattr(m, k) for k in (*METRICS, "frames", "crops", "box_px")}
-    print(f"  [{label}] {entry['n_gaussians']} GS, {entry['train_seconds']:.0f}s, LPIPS-VGG "
-          + ", ".join(f"{r} {1000 * entry[r]['lpips_vgg']:.1f}" for r in REGIONS if r in entry),
-          file=sys.stderr, flush=True)  # fmt: skip
+    print(
+        f"  [{label}] {entry['n_gaussians']} GS, {entry['train_seconds']:.0f}s, LPIPS-VGG "
+        + ", ".join(f"{r} {1000 * entry[r]['lpips_vgg']:.1f}" for r in REGIONS if r in entry),
+        file=sys.stderr,
+        flush=True,
+    )
     return entry
 
 
@@ -144,7 +147,7 @@ def merge(docs: list[dict]) -> dict:
             **docs[0]["config"],
             "seeds": seeds,
             "train_config": {m: c for d in docs for m, c in d["config"]["train_config"].items()},
-        },  # fmt: skip
+        },
         "methods": {m: aggregate([by_seed[s] for s in sorted(by_seed)]) for m, by_seed in runs.items()},
     }
 
@@ -227,8 +230,9 @@ def markdown(doc: dict) -> str:
                 cells += (
                     [fmt(m["psnr"]), fmt(m["ssim"], digits=4)]
                     + [fmt(m["lpips_vgg"], 1000, 1), fmt(m["lpips_alex"], 1000, 1)]
-                    if m else ["–"] * 4
-                )  # fmt: skip
+                    if m
+                    else ["–"] * 4
+                )
             cells.append(fmt(e["train_seconds"], digits=0))
             lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
@@ -242,8 +246,11 @@ def markdown(doc: dict) -> str:
         lines.append(f"- {name}: {per} (mean over seeds); densified {fmt(e['densified'], digits=0)}")
     box = next(iter(doc["methods"].values()))
     if "hand" in box:
-        lines += ["", f"Region sizes (median box side): hand {fmt(box['hand']['box_px'], digits=0)} px, "
-                      f"face {fmt(box['face']['box_px'], digits=0)} px."]  # fmt: skip
+        lines += [
+            "",
+            f"Region sizes (median box side): hand {fmt(box['hand']['box_px'], digits=0)} px, "
+            f"face {fmt(box['face']['box_px'], digits=0)} px.",
+        ]
     lines += [
         "",
         "## Findings",
@@ -283,8 +290,12 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=list(ROWS))
     ap.add_argument("--name", default="paper_tables", help="result file stem (.json, .md)")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--pixel-norm", default="person_box", choices=["person_box", "frame"],
-                    help="normalisation of the pixel loss terms (a densification check)")  # fmt: skip
+    ap.add_argument(
+        "--pixel-norm",
+        default="person_box",
+        choices=["person_box", "frame"],
+        help="normalisation of the pixel loss terms (a densification check)",
+    )
     ap.add_argument("--replot", action="store_true", help="only rewrite the .md from the .json")
     ap.add_argument(
         "--merge", nargs="+", metavar="NAME", help="only combine the runs of result files of one setting"
@@ -314,11 +325,15 @@ def main() -> None:
     base = with_pixel_norm(preset(args.preset), args.pixel_norm)
     s = base.strategy
     config = {
-        "size": args.size, "seeds": args.seeds, "preset": args.preset, "iterations": base.iterations,
-        "refine": [s.refine_start_iter, s.refine_stop_iter, s.refine_every], "threads": args.threads,
+        "size": args.size,
+        "seeds": args.seeds,
+        "preset": args.preset,
+        "iterations": base.iterations,
+        "refine": [s.refine_start_iter, s.refine_stop_iter, s.refine_every],
+        "threads": args.threads,
         "pixel_norm": args.pixel_norm,
         "train_config": {m: with_method(base, m).to_dict() for m in args.methods},
-    }  # fmt: skip
+    }
     doc = json.loads(path.read_text()) if path.is_file() else {}
     # Resume only a run of the same settings (compared as JSON: tuples are lists there).
     same = bool(doc) and same_settings(doc["config"], json.loads(json.dumps(config, default=str)))
@@ -330,18 +345,17 @@ def main() -> None:
     for seed in args.seeds:
         ds = load_dataset(dataset_for(args.size, seed))
         config.update(
-            image_size=list(ds.image_size), train_frames=len(ds.splits["train"]),
+            image_size=list(ds.image_size),
+            train_frames=len(ds.splits["train"]),
             test_frames=len(ds.splits["test_pose"]),
             test_takes=len(set(ds.meta.extra["take_of_frame"][i] for i in ds.splits["test_pose"])),
-        )  # fmt: skip
+        )
         for method in args.methods:
             if any(r["seed"] == seed for r in runs.get(method, [])):
                 continue
             label = f"{method} seed {seed}"
             print(f"{label} ...", file=sys.stderr, flush=True)
-            cfg = with_method(
-                with_pixel_norm(preset(args.preset, seed=seed), args.pixel_norm), method
-            )
+            cfg = with_method(with_pixel_norm(preset(args.preset, seed=seed), args.pixel_norm), method)
             entry = {"seed": seed, **run_one(ds, cfg, metrics, label)}
             runs.setdefault(method, []).append(entry)
             doc = {

@@ -122,9 +122,17 @@ def body_scene(n: int, size: int, seed: int = 0) -> dict:
     focal = 0.9 * size * 2.75 / 1.75
     K = torch.tensor([[focal, 0.0, size / 2], [0.0, focal, size / 2], [0.0, 0.0, 1.0]])
     return dict(
-        means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
-        viewmat=viewmat, K=K, width=size, height=size, background=torch.ones(3),
-    )  # fmt: skip
+        means=means,
+        quats=quats,
+        scales=scales,
+        opacities=opacities,
+        colors=colors,
+        viewmat=viewmat,
+        K=K,
+        width=size,
+        height=size,
+        background=torch.ones(3),
+    )
 
 
 # ----------------------------------------------------------------------------- one measurement
@@ -171,13 +179,19 @@ def measure(n: int, size: int, variant: str, mode: str, repeats: int, threads: i
             times.append(elapsed)
             cpu_times.append(cpu)
     return dict(
-        n=n, size=size, variant=variant, mode=mode, repeats=repeats,
-        times_ms=[1e3 * t for t in times], cpu_ms=[1e3 * t for t in cpu_times],
+        n=n,
+        size=size,
+        variant=variant,
+        mode=mode,
+        repeats=repeats,
+        times_ms=[1e3 * t for t in times],
+        cpu_ms=[1e3 * t for t in cpu_times],
         peak_rss_delta_mb=(_rss_bytes() - rss_before) / 2**20,
         peak_rss_mb=_rss_bytes() / 2**20,
-        intersections=out.num_intersections, pairs=pairs,
+        intersections=out.num_intersections,
+        pairs=pairs,
         coverage=float(out.alpha.detach().mean()),
-    )  # fmt: skip
+    )
 
 
 def _run_child(
@@ -199,8 +213,10 @@ def _extract(ref: str, into: Path) -> str:
     """``eva_engine`` as of git ``ref`` under ``into``; returns the full commit hash."""
     commit = subprocess.run(
         ["git", "-C", str(ROOT), "rev-parse", "--verify", f"{ref}^{{commit}}"],
-        capture_output=True, text=True, check=True,
-    ).stdout.strip()  # fmt: skip
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
     archive = subprocess.run(
         ["git", "-C", str(ROOT), "archive", commit, "eva_engine"], capture_output=True, check=True
     ).stdout
@@ -232,9 +248,13 @@ def _load() -> list[float]:
 
 def _machine(threads: int) -> dict:
     return dict(
-        cpu=cpu_name(), logical_cores=os.cpu_count(), torch_threads=threads, torch=torch.__version__,
-        python=platform.python_version(), platform=platform.platform(),
-    )  # fmt: skip
+        cpu=cpu_name(),
+        logical_cores=os.cpu_count(),
+        torch_threads=threads,
+        torch=torch.__version__,
+        python=platform.python_version(),
+        platform=platform.platform(),
+    )
 
 
 def _summary(results: list[dict]) -> list[dict]:
@@ -254,10 +274,15 @@ def _summary(results: list[dict]) -> list[dict]:
         cpu = [t for r in ok for t in r["cpu_ms"]]
         median = statistics.median(times)
         row.update(
-            runs=len(times), median_ms=median, min_ms=min(times), cpu_median_ms=statistics.median(cpu),
-            fps=1e3 / median, pairs=ok[0]["pairs"], mpairs_per_s=ok[0]["pairs"] / median / 1e3,
+            runs=len(times),
+            median_ms=median,
+            min_ms=min(times),
+            cpu_median_ms=statistics.median(cpu),
+            fps=1e3 / median,
+            pairs=ok[0]["pairs"],
+            mpairs_per_s=ok[0]["pairs"] / median / 1e3,
             peak_rss_delta_mb=max(r["peak_rss_delta_mb"] for r in ok),
-        )  # fmt: skip
+        )
         rows.append(row)
     order = {v: i for i, v in enumerate((*VARIANTS, "autograd"))}
     return sorted(
@@ -431,9 +456,15 @@ def main() -> None:
                         for variant in variants:
                             if variant == "autograd" and n * size * size > 100_000 * 256 * 256:
                                 results.append(
-                                    dict(n=n, size=size, variant=variant, mode=mode, threads=nt,
-                                         skipped="skipped: the reference's memory grows with the pairs")
-                                )  # fmt: skip
+                                    dict(
+                                        n=n,
+                                        size=size,
+                                        variant=variant,
+                                        mode=mode,
+                                        threads=nt,
+                                        skipped="skipped: the reference's memory grows with the pairs",
+                                    )
+                                )
                                 continue
                             r = _run_child(
                                 roots[variant], n, size, variant, mode, repeats, nt, args.omp_wait_policy

@@ -151,10 +151,20 @@ def contact_sheet(ds, avatars: dict, params: dict, indices: list[int], tile: int
         else:
             close = [torch.ones(tile, tile, 3) for _ in range(1 + len(renders))]
         scale = tile / h
-        tiles = [cv2.resize((img.numpy() * 255).round().astype(np.uint8), (round(w * scale), tile),
-                            interpolation=cv2.INTER_AREA) for img in full]  # fmt: skip
-        tiles += [cv2.resize((img.numpy() * 255).round().astype(np.uint8), (tile, tile),
-                             interpolation=cv2.INTER_CUBIC) for img in close]  # fmt: skip
+        tiles = [
+            cv2.resize(
+                (img.numpy() * 255).round().astype(np.uint8),
+                (round(w * scale), tile),
+                interpolation=cv2.INTER_AREA,
+            )
+            for img in full
+        ]
+        tiles += [
+            cv2.resize(
+                (img.numpy() * 255).round().astype(np.uint8), (tile, tile), interpolation=cv2.INTER_CUBIC
+            )
+            for img in close
+        ]
         rows.append(np.concatenate(tiles, axis=1))
     return np.concatenate(rows, axis=0)
 
@@ -194,8 +204,9 @@ def markdown(doc: dict) -> str:
                 cells += (
                     [f"{m['psnr']:.2f}", f"{m['ssim']:.4f}"]
                     + [f"{1000 * m['lpips_vgg']:.1f}", f"{1000 * m['lpips_alex']:.1f}"]
-                    if m else ["–"] * 4
-                )  # fmt: skip
+                    if m
+                    else ["–"] * 4
+                )
             counts = " / ".join(str(e[r]["frames"]) if r in e else "0" for r in ("hand", "face"))
             lines.append("| " + " | ".join(cells) + f" | {counts} |")
     lines += ["", "## Per video", ""]
@@ -246,8 +257,11 @@ def main() -> None:
         else []
     )
     if not videos:
-        print(f"skipping: no videos in {args.videos} (the reference videos sit in ../shared beside a "
-              "checkout; pass --videos DIR)", file=sys.stderr)  # fmt: skip
+        print(
+            f"skipping: no videos in {args.videos} (the reference videos sit in ../shared beside a "
+            "checkout; pass --videos DIR)",
+            file=sys.stderr,
+        )
         return
 
     from eva_engine.data import load_dataset
@@ -273,7 +287,7 @@ def main() -> None:
             "iterations": preset(args.preset).iterations,
             "methods": args.methods,
             "protocol": refinement.protocol if refinement else FITTED_POSES,
-        },  # fmt: skip
+        },
         "videos": {},
     }
     for video in videos:
@@ -292,9 +306,15 @@ def main() -> None:
             print(f"{video.name}: {method} ...", file=sys.stderr, flush=True)
             tag = method.replace("+", "_")
             entry["methods"][method], avatars[method], ev = train_and_eval(
-                ds, method, args.preset, args.seed, metrics, folder / f"avatar-{tag}",
-                refinement, args.reuse,
-            )  # fmt: skip
+                ds,
+                method,
+                args.preset,
+                args.seed,
+                metrics,
+                folder / f"avatar-{tag}",
+                refinement,
+                args.reuse,
+            )
             poses[method] = ev.refined_params if ev.refined_params is not None else ds.params
         test = ds.splits["test_pose"]
         picks = [test[i] for i in np.linspace(0, len(test) - 1, 5).round().astype(int)]

@@ -61,9 +61,17 @@ def main() -> None:
                 n = len(stamps)
                 per_frame = (stamps[-1] - stamps[0]) / max(n - 1, 1)
                 setup = stamps[0] - t0 - per_frame  # motion, forward pass, texture bake
-                rows.append({"preset": preset, "size": size, "frames": n, "px": SIZES[size].image_size,
-                             "total_s": round(total, 2), "setup_s": round(setup, 2),
-                             "per_frame_ms": round(1e3 * per_frame, 1)})  # fmt: skip
+                rows.append(
+                    {
+                        "preset": preset,
+                        "size": size,
+                        "frames": n,
+                        "px": SIZES[size].image_size,
+                        "total_s": round(total, 2),
+                        "setup_s": round(setup, 2),
+                        "per_frame_ms": round(1e3 * per_frame, 1),
+                    }
+                )
                 print(rows[-1], flush=True)
                 if args.contact_sheet and size == "bench" and not sheet_done:
                     import cv2
@@ -99,11 +107,16 @@ def main() -> None:
         "|---|---|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
-        lines.append(f"| {r['preset']} | {r['size']} | {r['frames']} | {r['px']} | {r['total_s']} | "
-                     f"{r['setup_s']} | {r['per_frame_ms']} |")  # fmt: skip
-    lines += ["", "Per frame: render (mesh rasterizer, supersampled), region masks, PNG writing. Setup: "
-              "motion, body-model forward, texture bake. Model load excluded "
-              f"({info['model_load_s']} s)."]  # fmt: skip
+        lines.append(
+            f"| {r['preset']} | {r['size']} | {r['frames']} | {r['px']} | {r['total_s']} | "
+            f"{r['setup_s']} | {r['per_frame_ms']} |"
+        )
+    lines += [
+        "",
+        "Per frame: render (mesh rasterizer, supersampled), region masks, PNG writing. Setup: "
+        "motion, body-model forward, texture bake. Model load excluded "
+        f"({info['model_load_s']} s).",
+    ]
     (RESULTS / "synth.md").write_text("\n".join(lines) + "\n")
 
 

@@ -53,8 +53,12 @@ def run_one(ds, method: str, preset_name: str, seed: int, metrics, split: str) -
         point = {"step": step, "train_seconds": seconds, "n_gaussians": len(avatar.gaussians)}
         point.update({r: {"lpips_vgg": m.lpips_vgg, "psnr": m.psnr} for r, m in ev.regions.items()})
         points.append(point)
-        print(f"  [{method} seed {seed}] step {step}: {seconds:.0f} s, full LPIPS-VGG "
-              f"{1000 * point['full']['lpips_vgg']:.1f}", file=sys.stderr, flush=True)  # fmt: skip
+        print(
+            f"  [{method} seed {seed}] step {step}: {seconds:.0f} s, full LPIPS-VGG "
+            f"{1000 * point['full']['lpips_vgg']:.1f}",
+            file=sys.stderr,
+            flush=True,
+        )
 
     steps = checkpoints_for(config.iterations)
     result = train_avatar(ds, config, checkpoint=evaluate, checkpoint_steps=tuple(steps))

@@ -71,8 +71,9 @@ def main() -> None:
 
     def report(e) -> None:
         if e.stage != "train" or e.done % 100 == 0:
-            print(f"{e.stage}: {e.message}, {e.elapsed:.0f}s eta {e.eta or 0:.0f}s", file=sys.stderr,
-                  flush=True)  # fmt: skip
+            print(
+                f"{e.stage}: {e.message}, {e.elapsed:.0f}s eta {e.eta or 0:.0f}s", file=sys.stderr, flush=True
+            )
 
     result = train_avatar(ds, config, progress=report)
     ev = evaluate_avatar(result.avatar, ds, train_seconds=result.train_seconds)
@@ -139,10 +140,13 @@ def markdown(runs: dict, metrics_table) -> str:
         ]
         ev = e["eval"]
         res = EvalResult(
-            split=ev["split"], num_frames=ev["num_frames"], num_gaussians=ev["num_gaussians"],
-            render_fps=ev["render_fps"], train_seconds=ev["train_seconds"],
+            split=ev["split"],
+            num_frames=ev["num_frames"],
+            num_gaussians=ev["num_gaussians"],
+            render_fps=ev["render_fps"],
+            train_seconds=ev["train_seconds"],
             regions={k: region_metrics(v) for k, v in ev["regions"].items()},
-        )  # fmt: skip
+        )
         lines += [metrics_table({e["preset"]: res}), ""]
     return "\n".join(lines)
 

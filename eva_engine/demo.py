@@ -98,9 +98,17 @@ def render_demo(model: BodyModel, width: int = 384, height: int = 512, yaws=(0.0
     views = []
     for yaw in yaws:
         out = rasterize(
-            g.means, g.quats, g.scales, opacities, colors, orbit_camera(yaw, 5.0, 2.7), K, width, height,
+            g.means,
+            g.quats,
+            g.scales,
+            opacities,
+            colors,
+            orbit_camera(yaw, 5.0, 2.7),
+            K,
+            width,
+            height,
             background=background,
-        )  # fmt: skip
+        )
         views.append(out.image.clamp(0, 1))
     return torch.cat(views, dim=1)
 

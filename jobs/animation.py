@@ -37,8 +37,12 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger("eva.jobs")
 
-ANIMATION_STAGE_SPANS = {"preprocess": (0.0, 0.25), "align": (0.25, 0.45), "render": (0.45, 0.98),
-                         "export": (0.98, 1.0)}  # fmt: skip
+ANIMATION_STAGE_SPANS = {
+    "preprocess": (0.0, 0.25),
+    "align": (0.25, 0.45),
+    "render": (0.45, 0.98),
+    "export": (0.98, 1.0),
+}
 VIDEO_NAME, INFO_NAME = "animation.mp4", "animation.json"
 
 
@@ -58,8 +62,9 @@ class AnimationOptions(AnimationRequest):
     avatar_id: str = Field(..., pattern=r"^[0-9a-f]{32}$")
 
 
-def animation_pixels(options: AnimationConfig, frames: int, fps: float,
-                     image_size: tuple[int, int] | None) -> tuple[int, int, int, int]:  # fmt: skip
+def animation_pixels(
+    options: AnimationConfig, frames: int, fps: float, image_size: tuple[int, int] | None
+) -> tuple[int, int, int, int]:
     """(frames, width, height, pixels) of the animation of ``frames`` driving frames at ``fps``
     of ``image_size`` (height, width; None for poses): what its rendered frames hold in memory
     until they are encoded (width includes the driving frame beside the avatar)."""
@@ -71,8 +76,9 @@ def animation_pixels(options: AnimationConfig, frames: int, fps: float,
     return count, width, height, count * total * height
 
 
-def check_animation_budget(options: AnimationConfig, frames: int, fps: float,
-                           image_size: tuple[int, int] | None, budget: int) -> None:  # fmt: skip
+def check_animation_budget(
+    options: AnimationConfig, frames: int, fps: float, image_size: tuple[int, int] | None, budget: int
+) -> None:
     """``AnimationError`` when the rendered frames would exceed ``budget`` pixels."""
     count, width, height, pixels = animation_pixels(options, frames, fps, image_size)
     if pixels > budget:
@@ -141,8 +147,9 @@ def _driving(run: JobRun, work: Path, dataset_dir: Path, body, options: Animatio
 
     progress = preprocess_progress(report, fitted=" to the driving video")
 
-    config = PreprocessConfig(max_frames=options.max_frames, max_size=options.max_size,
-                              fitting=scaled_fit_config(options.fit_scale))  # fmt: skip
+    config = PreprocessConfig(
+        max_frames=options.max_frames, max_size=options.max_size, fitting=scaled_fit_config(options.fit_scale)
+    )
     partial = dataset_dir.with_name(f"{dataset_dir.name}.partial-{run.attempt}")
     result = preprocess_video(upload, partial, config, model=body, progress=progress, overwrite=True)
     report(ProgressEvent("align", 1, 1, "driving video aligned"), force=True)  # still ours: put it in place
@@ -151,8 +158,9 @@ def _driving(run: JobRun, work: Path, dataset_dir: Path, body, options: Animatio
     return driving_from_dataset(dataset_dir, body, dropped=result.dropped_frames)
 
 
-def _render(run: JobRun, job: JobRecord, avatar, driving, options: AnimationOptions, out: Path,
-            report: Reporter) -> None:  # fmt: skip
+def _render(
+    run: JobRun, job: JobRecord, avatar, driving, options: AnimationOptions, out: Path, report: Reporter
+) -> None:
     from eva_engine.animate import animate, write_animation
     from jobs.storage import move_into_place
 
@@ -170,12 +178,21 @@ def _render(run: JobRun, job: JobRecord, avatar, driving, options: AnimationOpti
     write_animation(partial / VIDEO_NAME, result)
     h, w = result.frames.shape[1:3]
     info = {
-        "animation_id": job.avatar_id, "avatar_id": options.avatar_id, "job_id": job.id,
-        "source": job.filename, "frames": len(result), "fps": result.fps, "width": w, "height": h,
-        "duration_s": len(result) / result.fps, "driving_frames": len(driving),
-        "driving_frames_without_person": driving.dropped, "options": options.model_dump(mode="json"),
-        "render_seconds": time.monotonic() - started, "created_at": time.time(),
-    }  # fmt: skip
+        "animation_id": job.avatar_id,
+        "avatar_id": options.avatar_id,
+        "job_id": job.id,
+        "source": job.filename,
+        "frames": len(result),
+        "fps": result.fps,
+        "width": w,
+        "height": h,
+        "duration_s": len(result) / result.fps,
+        "driving_frames": len(driving),
+        "driving_frames_without_person": driving.dropped,
+        "options": options.model_dump(mode="json"),
+        "render_seconds": time.monotonic() - started,
+        "created_at": time.time(),
+    }
     (partial / INFO_NAME).write_text(json.dumps(info, indent=2))
     report(ProgressEvent("render", 1, 1, "animation encoded"), force=True)  # still ours: put it in place
     move_into_place(partial, out)

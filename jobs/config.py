@@ -66,9 +66,13 @@ class JobsConfig(BaseModel):
         ``EVA_JOB_TIMEOUT_S``, ``EVA_MAX_FRAME_PIXELS``; ``overrides`` that are not None win."""
         from eva_engine.paths import data_dir
 
-        names = {"queue_url": "EVA_QUEUE_URL", "threads": "EVA_JOB_THREADS",
-                 "job_memory_mb": "EVA_JOB_MEMORY_MB", "job_timeout_s": "EVA_JOB_TIMEOUT_S",
-                 "max_frame_pixels": "EVA_MAX_FRAME_PIXELS"}  # fmt: skip
+        names = {
+            "queue_url": "EVA_QUEUE_URL",
+            "threads": "EVA_JOB_THREADS",
+            "job_memory_mb": "EVA_JOB_MEMORY_MB",
+            "job_timeout_s": "EVA_JOB_TIMEOUT_S",
+            "max_frame_pixels": "EVA_MAX_FRAME_PIXELS",
+        }
         env: dict = {k: os.environ[v] for k, v in names.items() if os.environ.get(v)}
         env["data_dir"] = os.environ.get("EVA_SERVICE_DIR") or data_dir()
         if env.get("job_memory_mb", "").strip() == "0":

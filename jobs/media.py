@@ -111,8 +111,15 @@ def probe_video(path: str | Path, max_side: int = 4096, decode_first: bool = Tru
             duration = _packet_span(container, stream)
         if duration is None:
             raise VideoRejected("the video's duration is unknown (no timestamps in its headers or packets)")
-        info = VideoInfo(demuxer, stream.codec_context.name or "?", width, height, duration,
-                         float(rate) if rate else 0.0, int(stream.frames) or None)  # fmt: skip
+        info = VideoInfo(
+            demuxer,
+            stream.codec_context.name or "?",
+            width,
+            height,
+            duration,
+            float(rate) if rate else 0.0,
+            int(stream.frames) or None,
+        )
         if decode_first:
             stream.thread_type = "SLICE"  # one frame in flight, not one per thread
             try:
@@ -155,13 +162,23 @@ def check_frame_budget(info: VideoInfo, max_frames: int, max_size: int, budget: 
         )
 
 
-def probe_in_subprocess(path: Path, max_side: int = 4096, timeout_s: float = 30.0,
-                        memory_mb: int = 1024) -> VideoInfo:  # fmt: skip
+def probe_in_subprocess(
+    path: Path, max_side: int = 4096, timeout_s: float = 30.0, memory_mb: int = 1024
+) -> VideoInfo:
     """``probe_video`` in a child process limited to ``memory_mb`` of address space and
     ``timeout_s`` of wall time; whatever the file does to FFmpeg, the caller only sees
     ``VideoRejected``."""
-    args = [sys.executable, "-m", "jobs", "probe", str(path), "--max-side", str(max_side),
-            "--memory-mb", str(memory_mb)]  # fmt: skip
+    args = [
+        sys.executable,
+        "-m",
+        "jobs",
+        "probe",
+        str(path),
+        "--max-side",
+        str(max_side),
+        "--memory-mb",
+        str(memory_mb),
+    ]
     try:
         done = subprocess.run(args, capture_output=True, timeout=timeout_s, stdin=subprocess.DEVNULL)
     except subprocess.TimeoutExpired as err:  # run() has killed it

@@ -37,9 +37,10 @@ class JobOptions(BaseModel):
         1.0, gt=0.0, le=4.0, description="Scales the body fit's L-BFGS iterations (1: the paper's)."
     )
     method: Method | None = Field(
-        None, description=f"Training method: {describe_methods()}; none: the preset's own (3DGS density "
-        "control with the full objective)."
-    )  # fmt: skip
+        None,
+        description=f"Training method: {describe_methods()}; none: the preset's own (3DGS density "
+        "control with the full objective).",
+    )
 
     def fit_config(self):
         """The alignment's ``FitConfig`` with ``fit_scale`` applied."""

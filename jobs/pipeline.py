@@ -49,8 +49,14 @@ class Reporter:
     """Turns engine callbacks into job-record updates (throttled) and stops the stage when the
     job was cancelled (``JobCancelled``) or this attempt no longer owns it (``JobLost``)."""
 
-    def __init__(self, store: JobStore, job: JobRecord, worker: str, interval: float = 0.5,
-                 spans: dict[str, tuple[float, float]] | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        store: JobStore,
+        job: JobRecord,
+        worker: str,
+        interval: float = 0.5,
+        spans: dict[str, tuple[float, float]] | None = None,
+    ) -> None:
         self.store, self.job, self.worker, self.interval = store, job, worker, interval
         self.spans = spans or STAGE_SPANS
         self._last = 0.0
@@ -67,8 +73,15 @@ class Reporter:
         lo, hi = self.spans[stage]
         progress = lo + (hi - lo) * event.fraction
         eta = event.eta if event.eta is not None and math.isfinite(event.eta) else None
-        if not self.store.update(self.job.id, owner=self.worker, stage=stage, progress=progress, eta_s=eta,
-                                 message=event.message, heartbeat_at=time.time()):  # fmt: skip
+        if not self.store.update(
+            self.job.id,
+            owner=self.worker,
+            stage=stage,
+            progress=progress,
+            eta_s=eta,
+            message=event.message,
+            heartbeat_at=time.time(),
+        ):
             raise JobLost(self.job.id)
         current = self.store.get(self.job.id)
         if current is None or current.cancel_requested:
@@ -124,10 +137,13 @@ class JobRun:
         except Exception as err:  # every failure ends the job with its reason
             stage = (self.store.get(job.id) or job).stage or stage
             reason = failure_reason(err, stage, self.config)
-            reason = re.sub(re.escape(str(self.storage.work_dir(job.id))) + r"/\S*", "the uploaded video",
-                            reason)  # no server paths in messages  # fmt: skip
-            logger.warning("job %s failed in stage %s: %s", job.id, stage, reason,
-                           exc_info=not is_input_error(err))  # fmt: skip
+            # No server paths in messages.
+            reason = re.sub(
+                re.escape(str(self.storage.work_dir(job.id))) + r"/\S*", "the uploaded video", reason
+            )
+            logger.warning(
+                "job %s failed in stage %s: %s", job.id, stage, reason, exc_info=not is_input_error(err)
+            )
             state, fields = "failed", {"error": reason}
         else:
             state, fields = "succeeded", {"message": f"{job.kind} ready"}
@@ -175,16 +191,18 @@ class JobRun:
 
         progress = preprocess_progress(report)
 
-        config = PreprocessConfig(max_frames=options.max_frames, max_size=options.max_size,
-                                  fitting=options.fit_config())  # fmt: skip
+        config = PreprocessConfig(
+            max_frames=options.max_frames, max_size=options.max_size, fitting=options.fit_config()
+        )
         partial = out.with_name(f"{out.name}.partial-{self.attempt}")
         preprocess_video(video, partial, config, model=model, progress=progress, overwrite=True)
         report(ProgressEvent("align", 1, 1, "dataset ready"), force=True)  # still ours: put it in place
         move_into_place(partial, out)
         video.unlink(missing_ok=True)  # the dataset holds the frames now
 
-    def _train(self, job: JobRecord, dataset_dir: Path, out: Path, options: JobOptions,
-               report: Reporter) -> None:  # fmt: skip
+    def _train(
+        self, job: JobRecord, dataset_dir: Path, out: Path, options: JobOptions, report: Reporter
+    ) -> None:
         import dataclasses
 
         from eva_engine.avatar import save_avatar
@@ -212,10 +230,16 @@ class JobRun:
         result = train_avatar(ds, config, body=body, progress=progress)
         report(ProgressEvent("train", 0.95, 1, "measuring the fit on training frames"), force=True)
         record = result.record(
-            config, preset=options.preset, method=options.method, options=options.model_dump(),
-            metrics=_training_metrics(result.avatar, ds), avatar_id=job.avatar_id, job_id=job.id,
-            source_video=job.filename, created_at=time.time(),
-        )  # fmt: skip
+            config,
+            preset=options.preset,
+            method=options.method,
+            options=options.model_dump(),
+            metrics=_training_metrics(result.avatar, ds),
+            avatar_id=job.avatar_id,
+            job_id=job.id,
+            source_video=job.filename,
+            created_at=time.time(),
+        )
         partial = out.with_name(f"{out.name}.partial-{self.attempt}")
         # Each training frame's pose (as trained) and camera: a client renders one to compare with the input.
         save_avatar(result.avatar, partial, record, frames=result.frames(ds))
@@ -248,8 +272,17 @@ def is_input_error(err: Exception) -> bool:
     from eva_engine.train import TrainingError
     from jobs.media import VideoRejected
 
-    inputs = (VideoError, VideoRejected, PreprocessError, DatasetError, TrainingError, FileNotFoundError,
-              DrivingError, AnimationError, AvatarFileError)  # fmt: skip
+    inputs = (
+        VideoError,
+        VideoRejected,
+        PreprocessError,
+        DatasetError,
+        TrainingError,
+        FileNotFoundError,
+        DrivingError,
+        AnimationError,
+        AvatarFileError,
+    )
     return isinstance(err, inputs)
 
 
@@ -277,8 +310,10 @@ def failure_reason(err: Exception, stage: str | None, config: JobsConfig) -> str
     where = f" (stage {stage})" if stage else ""
     if is_out_of_memory(err, config.job_memory_mb):
         limit = f" of {config.job_memory_mb} MB" if config.job_memory_mb else ""
-        return (f"the job ran out of memory{where}: it needs more than its limit{limit}; "
-                "lower max_frames, max_size or iterations")  # fmt: skip
+        return (
+            f"the job ran out of memory{where}: it needs more than its limit{limit}; "
+            "lower max_frames, max_size or iterations"
+        )
     if isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT):
         return f"the server's disk is full{where}"
     if is_input_error(err):

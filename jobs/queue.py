@@ -38,8 +38,9 @@ def make_huey(config: JobsConfig, immediate: bool = False):
         return RedisHuey(config.queue_name, url=config.queue_url, immediate=immediate, results=False)
     path = config.sqlite_queue_path
     path.parent.mkdir(parents=True, exist_ok=True)
-    return SqliteHuey(config.queue_name, filename=str(path), immediate=immediate, immediate_use_memory=False,
-                      results=False)  # fmt: skip
+    return SqliteHuey(
+        config.queue_name, filename=str(path), immediate=immediate, immediate_use_memory=False, results=False
+    )
 
 
 def _transient_queue_errors() -> tuple[type[BaseException], ...]:
@@ -154,8 +155,11 @@ class JobQueue:
             {"requeued": result.requeued, "failed": result.failed, "cancelled": result.cancelled}.get(
                 outcome or "", []
             ).append(job.id)
-        stale = [j for j in self.store.list(states=("queued",), with_deleted=True)
-                 if now - (j.enqueued_at or j.created_at) > self.config.requeue_after_s]  # fmt: skip
+        stale = [
+            j
+            for j in self.store.list(states=("queued",), with_deleted=True)
+            if now - (j.enqueued_at or j.created_at) > self.config.requeue_after_s
+        ]
         if stale:
             waiting = self._pending_job_ids()
             for job in stale:
@@ -163,8 +167,13 @@ class JobQueue:
                     self.enqueue(job.id)
                     result.resent.append(job.id)
         if result.requeued or result.failed or result.resent or result.cancelled:
-            logger.warning("recovered jobs: requeued %s, failed %s, resent %s, cancelled %s",
-                           result.requeued, result.failed, result.resent, result.cancelled)  # fmt: skip
+            logger.warning(
+                "recovered jobs: requeued %s, failed %s, resent %s, cancelled %s",
+                result.requeued,
+                result.failed,
+                result.resent,
+                result.cancelled,
+            )
         return result
 
     def _pending_job_ids(self) -> set[str]:
@@ -180,14 +189,21 @@ class JobQueue:
             state, fields = "cancelled", {"message": f"cancelled ({why})"}
         elif job.attempts >= self.config.max_attempts:
             state = "failed"
-            fields = {"error": f"{why} during stage {stage!r}, {job.attempts} time(s); giving up after "
-                               f"{self.config.max_attempts} attempts"}  # fmt: skip
+            fields = {
+                "error": f"{why} during stage {stage!r}, {job.attempts} time(s); giving up after "
+                f"{self.config.max_attempts} attempts"
+            }
         else:
             resume = _next_stage(job.completed_stage, job.kind)
             changed = self.store.update(
-                job.id, **condition, state="queued", worker=None, stage=resume, eta_s=None,
+                job.id,
+                **condition,
+                state="queued",
+                worker=None,
+                stage=resume,
+                eta_s=None,
                 message=f"{why} during stage {stage!r}; retrying from stage {resume!r}",
-            )  # fmt: skip
+            )
             if not changed:
                 return None
             self.enqueue(job.id)

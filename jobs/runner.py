@@ -159,8 +159,9 @@ class JobRunner:
                 if current is not None and current.worker == self.worker and current.finished:
                     child.wait()  # it has just ended the job itself and is exiting
                     return None
-                logger.warning("job %s: taken from %s (it looked dead); stopping its process",
-                               job.id, self.worker)  # fmt: skip
+                logger.warning(
+                    "job %s: taken from %s (it looked dead); stopping its process", job.id, self.worker
+                )
                 _stop(child)
                 return None
             now = time.monotonic()

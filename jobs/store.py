@@ -72,10 +72,27 @@ CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state);
 # Columns added since the first release: added to an older file when it is opened.
 _ADDED_COLUMNS = {"enqueued_at": "REAL", "kind": "TEXT NOT NULL DEFAULT 'avatar'"}
 # File systems where SQLite's WAL (shared-memory index, POSIX locks) is unsafe.
-NETWORK_FILESYSTEMS = frozenset({
-    "nfs", "nfs4", "cifs", "smb3", "smbfs", "ceph", "glusterfs", "fuse.glusterfs", "fuse.sshfs",
-    "fuse.s3fs", "lustre", "gpfs", "afs", "9p", "fuse.rclone", "beegfs", "ocfs2",
-})  # fmt: skip
+NETWORK_FILESYSTEMS = frozenset(
+    {
+        "nfs",
+        "nfs4",
+        "cifs",
+        "smb3",
+        "smbfs",
+        "ceph",
+        "glusterfs",
+        "fuse.glusterfs",
+        "fuse.sshfs",
+        "fuse.s3fs",
+        "lustre",
+        "gpfs",
+        "afs",
+        "9p",
+        "fuse.rclone",
+        "beegfs",
+        "ocfs2",
+    }
+)
 _BUSY_RETRIES = 4
 
 
@@ -218,8 +235,9 @@ class JobStore:
         return JobRecord.from_row(row) if row else None
 
     @_retry_busy
-    def by_avatar(self, avatar_id: str, with_deleted: bool = False,
-                  kind: str | None = "avatar") -> JobRecord | None:  # fmt: skip
+    def by_avatar(
+        self, avatar_id: str, with_deleted: bool = False, kind: str | None = "avatar"
+    ) -> JobRecord | None:
         """The job that made ``avatar_id`` (for ``kind="animation"``: the animation with that id;
         ``kind=None``: either)."""
         query, args = "SELECT * FROM jobs WHERE avatar_id = ?", [avatar_id]
@@ -233,8 +251,9 @@ class JobStore:
         return JobRecord.from_row(row) if row else None
 
     @_retry_busy
-    def list(self, states: tuple[str, ...] | None = None, with_deleted: bool = False,
-             kind: str | None = None) -> list[JobRecord]:  # fmt: skip
+    def list(
+        self, states: tuple[str, ...] | None = None, with_deleted: bool = False, kind: str | None = None
+    ) -> list[JobRecord]:
         query, args = "SELECT * FROM jobs WHERE 1 = 1", []
         if kind is not None:
             query += " AND kind = ?"
@@ -259,16 +278,28 @@ class JobStore:
 
     # -- writes --------------------------------------------------------------------------------
     @_retry_busy
-    def create(self, options: dict[str, Any], filename: str | None = None,
-               job_id: str | None = None, avatar_id: str | None = None,
-               kind: str = "avatar") -> JobRecord:  # fmt: skip
+    def create(
+        self,
+        options: dict[str, Any],
+        filename: str | None = None,
+        job_id: str | None = None,
+        avatar_id: str | None = None,
+        kind: str = "avatar",
+    ) -> JobRecord:
         if kind not in KINDS:
             raise ValueError(f"unknown job kind {kind!r}; choose one of {KINDS}")
         now = time.time()
         job = JobRecord(
-            id=job_id or new_id(), avatar_id=avatar_id or new_id(), state="queued", options=options,
-            created_at=now, updated_at=now, filename=filename, message="waiting for a worker", kind=kind,
-        )  # fmt: skip
+            id=job_id or new_id(),
+            avatar_id=avatar_id or new_id(),
+            state="queued",
+            options=options,
+            created_at=now,
+            updated_at=now,
+            filename=filename,
+            message="waiting for a worker",
+            kind=kind,
+        )
         row = (job.id, job.avatar_id, kind, job.state, json.dumps(options), filename, job.message, now, now)
         with self._connect() as db:
             db.execute(
@@ -279,8 +310,15 @@ class JobStore:
         return job
 
     @_retry_busy
-    def update(self, job_id: str, *, where_state: tuple[str, ...] | None = None, owner: str | None = None,
-               expect: JobRecord | None = None, **fields: Any) -> bool:  # fmt: skip
+    def update(
+        self,
+        job_id: str,
+        *,
+        where_state: tuple[str, ...] | None = None,
+        owner: str | None = None,
+        expect: JobRecord | None = None,
+        **fields: Any,
+    ) -> bool:
         """Set ``fields`` (column names) if the job still matches, and say whether it did (the
         compare-and-set behind claims, cancels and recovery). Conditions: ``where_state``, the
         job's state is one of these; ``owner``, it is running and claimed by this worker;
@@ -315,18 +353,32 @@ class JobStore:
             ).rowcount
         return self.get(job_id) if changed == 1 else None
 
-    def finish(self, job_id: str, state: str, error: str | None = None, message: str | None = None,
-               from_states: tuple[str, ...] = ("queued", "running"), owner: str | None = None,
-               expect: JobRecord | None = None) -> bool:  # fmt: skip
+    def finish(
+        self,
+        job_id: str,
+        state: str,
+        error: str | None = None,
+        message: str | None = None,
+        from_states: tuple[str, ...] = ("queued", "running"),
+        owner: str | None = None,
+        expect: JobRecord | None = None,
+    ) -> bool:
         """Move a job to a terminal state (only from ``from_states``; ``owner`` / ``expect`` as in
         ``update``)."""
         if state not in TERMINAL:
             raise ValueError(f"{state!r} is not a terminal state")
         extra: dict[str, Any] = {"progress": 1.0, "eta_s": 0.0} if state == "succeeded" else {"eta_s": None}
         return self.update(
-            job_id, where_state=from_states, owner=owner, expect=expect, state=state, error=error,
-            message=message, finished_at=time.time(), **extra,
-        )  # fmt: skip
+            job_id,
+            where_state=from_states,
+            owner=owner,
+            expect=expect,
+            state=state,
+            error=error,
+            message=message,
+            finished_at=time.time(),
+            **extra,
+        )
 
     @_retry_busy
     def heartbeat(self, job_id: str, worker: str) -> JobRecord | None:
@@ -350,8 +402,11 @@ class JobStore:
         serve (failed, cancelled, or their avatar deleted); returns them."""
         where = "state IN ('failed', 'cancelled') OR (state = 'succeeded' AND avatar_deleted = 1)"
         with self._connect() as db:
-            rows = db.execute(f"SELECT * FROM jobs WHERE finished_at < ? AND ({where})",
-                              (finished_before,)).fetchall()  # fmt: skip
-            db.executemany("DELETE FROM jobs WHERE id = ? AND finished_at < ?",
-                           [(r["id"], finished_before) for r in rows])  # fmt: skip
+            rows = db.execute(
+                f"SELECT * FROM jobs WHERE finished_at < ? AND ({where})", (finished_before,)
+            ).fetchall()
+            db.executemany(
+                "DELETE FROM jobs WHERE id = ? AND finished_at < ?",
+                [(r["id"], finished_before) for r in rows],
+            )
         return [JobRecord.from_row(r) for r in rows]

@@ -42,16 +42,27 @@ def run_worker(
     me = queue.runner.worker
     recovered = queue.recover(this_worker=me)
     swept = sweep(config, queue.store, queue.storage)
-    logger.info("worker %s: queue %s, data %s; recovered %s; swept %d folder(s), %d record(s)", me,
-                config.queue_url or config.sqlite_queue_path, config.data_dir, recovered,
-                len(swept.folders), len(swept.records))  # fmt: skip
+    logger.info(
+        "worker %s: queue %s, data %s; recovered %s; swept %d folder(s), %d record(s)",
+        me,
+        config.queue_url or config.sqlite_queue_path,
+        config.data_dir,
+        recovered,
+        len(swept.folders),
+        len(swept.records),
+    )
     stop = threading.Event()
     if health_file is not None:
         threading.Thread(target=_touch_forever, args=(health_file, stop), daemon=True, name="health").start()
     consumer = queue.huey.create_consumer(
-        workers=workers, worker_type="thread", initial_delay=0.1, backoff=1.15, max_delay=poll_s,
-        periodic=True, check_worker_health=True,
-    )  # fmt: skip
+        workers=workers,
+        worker_type="thread",
+        initial_delay=0.1,
+        backoff=1.15,
+        max_delay=poll_s,
+        periodic=True,
+        check_worker_health=True,
+    )
     try:
         consumer.run()
     finally:

@@ -24,9 +24,11 @@ class AnimationForm(AnimationRequest):
     model_config = ConfigDict(extra="ignore")
 
     camera: Literal["driving"] | CameraSpec = Field(
-        "front", validate_default=True, description="A preset (front, left, ...), 'driving' (the video's "
-        "own camera) or a CameraSpec as JSON; an orbit without target/distance is framed on the avatar."
-    )  # fmt: skip
+        "front",
+        validate_default=True,
+        description="A preset (front, left, ...), 'driving' (the video's "
+        "own camera) or a CameraSpec as JSON; an orbit without target/distance is framed on the avatar.",
+    )
 
     @field_validator("camera", mode="before")
     @classmethod
@@ -86,15 +88,25 @@ class AnimationInfo(BaseModel):
         info = info or {}
         done = job.state == "succeeded" and bool(info)
         return cls(
-            animation_id=job.avatar_id, avatar_id=job.options["avatar_id"], job_id=job.id,
-            state=job.state, stage=job.stage, progress=round(job.progress, 4),  # type: ignore[arg-type]
-            eta_seconds=job.eta_s, message=job.message, error=job.error, source=job.filename,
-            options=AnimationOptions.model_validate(job.options), created_at=utc_time(job.created_at),
+            animation_id=job.avatar_id,
+            avatar_id=job.options["avatar_id"],
+            job_id=job.id,
+            state=job.state,  # type: ignore[arg-type]
+            stage=job.stage,  # type: ignore[arg-type]
+            progress=round(job.progress, 4),
+            eta_seconds=job.eta_s,
+            message=job.message,
+            error=job.error,
+            source=job.filename,
+            options=AnimationOptions.model_validate(job.options),
+            created_at=utc_time(job.created_at),
             finished_at=utc_time(job.finished_at),
             video_url=f"/animations/{job.avatar_id}/video" if done else None,
-            **{k: info.get(k) for k in ("frames", "fps", "width", "height", "duration_s",
-                                        "driving_frames_without_person")},
-        )  # type: ignore[arg-type]  # fmt: skip
+            **{
+                k: info.get(k)
+                for k in ("frames", "fps", "width", "height", "duration_s", "driving_frames_without_person")
+            },
+        )  # type: ignore[arg-type]
 
 
 class AnimationList(BaseModel):

@@ -68,8 +68,14 @@ def body_rules(settings: ServiceSettings) -> tuple[BodyRule, ...]:
 
 def _validation_errors(exc: RequestValidationError) -> list[dict]:
     # FastAPI's default echoes the input, which may hold NaN (not JSON) or be huge: keep loc, msg, type.
-    return [{"loc": [str(x)[:80] for x in e.get("loc", ())][:8], "msg": str(e.get("msg", ""))[:300],
-             "type": str(e.get("type", ""))} for e in exc.errors()[:20]]  # fmt: skip
+    return [
+        {
+            "loc": [str(x)[:80] for x in e.get("loc", ())][:8],
+            "msg": str(e.get("msg", ""))[:300],
+            "type": str(e.get("type", "")),
+        }
+        for e in exc.errors()[:20]
+    ]
 
 
 def _preload(ctx: ServiceContext) -> None:
@@ -100,8 +106,13 @@ def _install_error_handlers(app: FastAPI) -> None:
 
         return handler
 
-    for error, status in ((InvalidPoseError, 422), (RenderInputError, 422), (VideoRejected, 422),
-                          (InvalidIdError, 404), (UploadTooLarge, 413)):  # fmt: skip
+    for error, status in (
+        (InvalidPoseError, 422),
+        (RenderInputError, 422),
+        (VideoRejected, 422),
+        (InvalidIdError, 404),
+        (UploadTooLarge, 413),
+    ):
         app.add_exception_handler(error, reason(status))
 
     @app.exception_handler(StarletteHTTPException)
@@ -156,8 +167,9 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
             threading.Thread(target=_preload, args=(ctx,), daemon=True, name="preload").start()
         yield
 
-    app = FastAPI(title="EVA avatar service", version=eva_engine.__version__, description=DESCRIPTION,
-                  lifespan=lifespan)  # fmt: skip
+    app = FastAPI(
+        title="EVA avatar service", version=eva_engine.__version__, description=DESCRIPTION, lifespan=lifespan
+    )
     try:
         job_queue = queue or JobQueue(settings.jobs)
     except JobStoreError as err:
@@ -169,11 +181,16 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
         renders=RenderGate(settings.max_renders, settings.render_queue, settings.render_wait_s),
     )
     guard = GuardConfig(
-        api_key=settings.api_key, public_paths=PUBLIC_PATHS, trusted_hosts=tuple(settings.trusted_hosts),
-        rules=body_rules(settings), default_max_bytes=settings.max_json_bytes,
-        max_requests=settings.max_requests, body_timeout_s=settings.body_timeout_s,
-        open_paths=OPEN_PATHS, open_prefixes=OPEN_PREFIXES,
-    )  # fmt: skip
+        api_key=settings.api_key,
+        public_paths=PUBLIC_PATHS,
+        trusted_hosts=tuple(settings.trusted_hosts),
+        rules=body_rules(settings),
+        default_max_bytes=settings.max_json_bytes,
+        max_requests=settings.max_requests,
+        body_timeout_s=settings.body_timeout_s,
+        open_paths=OPEN_PATHS,
+        open_prefixes=OPEN_PREFIXES,
+    )
     app.add_middleware(RequestGuard, config=guard)
     app.add_middleware(TrustedHostMiddleware, allowed_hosts=settings.trusted_hosts)  # outermost
     _install_error_handlers(app)

@@ -151,8 +151,11 @@ def run_service_demo(
                 if options and options.get("fit_scale"):
                     form["fit_scale"] = options["fit_scale"]
                 with driving.open("rb") as f:
-                    created = api.post(f"/avatars/{avatar_id}/animations", data=form,
-                                       files={"video": ("someone_else.mp4", f, "video/mp4")})  # fmt: skip
+                    created = api.post(
+                        f"/avatars/{avatar_id}/animations",
+                        data=form,
+                        files={"video": ("someone_else.mp4", f, "video/mp4")},
+                    )
                 created = _check(created, "animation upload").json()
                 follow(created["job_id"], "animate ")
                 video = _check(api.get(f"/animations/{created['animation_id']}/video"), "animation").content
@@ -171,8 +174,15 @@ def run_service_demo(
     say.stop()
     out_png.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.concatenate(panels, axis=1)).save(out_png)
-    return DemoResult(out_png, avatar_id, time.perf_counter() - started, info.get("num_gaussians"), workdir,
-                      out_mp4, say.phases)  # fmt: skip
+    return DemoResult(
+        out_png,
+        avatar_id,
+        time.perf_counter() - started,
+        info.get("num_gaussians"),
+        workdir,
+        out_mp4,
+        say.phases,
+    )
 
 
 def _follower(api, procs, workdir: Path, say: Progress, deadline: float):

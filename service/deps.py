@@ -108,5 +108,8 @@ def check_job_quota(ctx: ServiceContext) -> None:
     for a worker. Blocking (reads the store): call it from a thread."""
     queued = ctx.queue.store.counts()["queued"]
     if queued >= ctx.settings.max_queued_jobs:
-        raise HTTPException(503, f"{queued} jobs are waiting for a worker (the quota); retry later",
-                            headers={"Retry-After": str(30 * RETRY_AFTER_S)})  # fmt: skip
+        raise HTTPException(
+            503,
+            f"{queued} jobs are waiting for a worker (the quota); retry later",
+            headers={"Retry-After": str(30 * RETRY_AFTER_S)},
+        )

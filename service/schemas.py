@@ -76,14 +76,30 @@ class JobInfo(BaseModel):
     train, export) or ``animation`` (makes ``animation_id``, an mp4 of the avatar ``avatar_id``
     performing a driving video: stages preprocess, align, render, export)."""
 
-    model_config = ConfigDict(json_schema_extra={"examples": [{
-        "job_id": "0a1b2c3d4e5f60718293a4b5c6d7e8f9", "avatar_id": "9f1c2b7e4a5d4c3b8e7f6a5b4c3d2e1f",
-        "state": "running", "stage": "train", "progress": 0.62, "eta_seconds": 41.5,
-        "message": "iteration 150/600, 9120 Gaussians, loss 0.0412", "error": None, "attempts": 1,
-        "cancel_requested": False, "filename": "me.mp4", "options": JobOptions().model_dump(),
-        "created_at": "2026-11-22T17:00:00Z", "started_at": "2026-11-22T17:00:01Z",
-        "finished_at": None, "updated_at": "2026-11-22T17:01:10Z",
-    }]})  # fmt: skip
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "job_id": "0a1b2c3d4e5f60718293a4b5c6d7e8f9",
+                    "avatar_id": "9f1c2b7e4a5d4c3b8e7f6a5b4c3d2e1f",
+                    "state": "running",
+                    "stage": "train",
+                    "progress": 0.62,
+                    "eta_seconds": 41.5,
+                    "message": "iteration 150/600, 9120 Gaussians, loss 0.0412",
+                    "error": None,
+                    "attempts": 1,
+                    "cancel_requested": False,
+                    "filename": "me.mp4",
+                    "options": JobOptions().model_dump(),
+                    "created_at": "2026-11-22T17:00:00Z",
+                    "started_at": "2026-11-22T17:00:01Z",
+                    "finished_at": None,
+                    "updated_at": "2026-11-22T17:01:10Z",
+                }
+            ]
+        }
+    )
 
     job_id: str
     kind: Literal["avatar", "animation"] = "avatar"
@@ -112,13 +128,23 @@ class JobInfo(BaseModel):
         else:
             options, ids = JobOptions.model_validate(job.options), {"avatar_id": job.avatar_id}
         return cls(
-            job_id=job.id, **ids, state=job.state, stage=job.stage,  # type: ignore[arg-type]
-            progress=round(job.progress, 4), eta_seconds=job.eta_s, message=job.message, error=job.error,
-            attempts=job.attempts, cancel_requested=job.cancel_requested, filename=job.filename,
-            options=options, created_at=utc_time(job.created_at),
-            started_at=utc_time(job.started_at), finished_at=utc_time(job.finished_at),
+            job_id=job.id,
+            **ids,
+            state=job.state,  # type: ignore[arg-type]
+            stage=job.stage,  # type: ignore[arg-type]
+            progress=round(job.progress, 4),
+            eta_seconds=job.eta_s,
+            message=job.message,
+            error=job.error,
+            attempts=job.attempts,
+            cancel_requested=job.cancel_requested,
+            filename=job.filename,
+            options=options,
+            created_at=utc_time(job.created_at),
+            started_at=utc_time(job.started_at),
+            finished_at=utc_time(job.finished_at),
             updated_at=utc_time(job.updated_at),
-        )  # fmt: skip
+        )
 
 
 class AvatarInfo(BaseModel):
@@ -156,15 +182,24 @@ class RenderRequest(RenderSpec):
     """
 
     model_config = ConfigDict(
-        extra="forbid", allow_inf_nan=False,
-        json_schema_extra={"examples": [
-            {"pose": {"joints": {"upperarm01.L": [0.0, 0.0, -1.1], "lowerarm01.L": [0.0, -1.2, 0.0]},
-                      "expression": {"mouthSmileLeft": 0.8, "mouthSmileRight": 0.8}},
-             "camera": {"yaw": 30, "pitch": 5, "distance": 2.6}, "width": 512, "height": 512,
-             "format": "png"},
-            {"camera": "left", "background": [0, 0, 0], "format": "jpeg"},
-            {"frame": 3},
-        ]},
-    )  # fmt: skip
+        extra="forbid",
+        allow_inf_nan=False,
+        json_schema_extra={
+            "examples": [
+                {
+                    "pose": {
+                        "joints": {"upperarm01.L": [0.0, 0.0, -1.1], "lowerarm01.L": [0.0, -1.2, 0.0]},
+                        "expression": {"mouthSmileLeft": 0.8, "mouthSmileRight": 0.8},
+                    },
+                    "camera": {"yaw": 30, "pitch": 5, "distance": 2.6},
+                    "width": 512,
+                    "height": 512,
+                    "format": "png",
+                },
+                {"camera": "left", "background": [0, 0, 0], "format": "jpeg"},
+                {"frame": 3},
+            ]
+        },
+    )
 
     format: Literal["png", "jpeg"] = "png"

@@ -104,10 +104,17 @@ class ServiceSettings(BaseModel):
         ``EVA_MAX_UPLOAD_MB``, ``EVA_MAX_VIDEO_SECONDS``, ``EVA_MAX_RENDER_PIXELS`` (width x
         height), ``EVA_MAX_RENDER_SIDE``, ``EVA_MAX_QUEUED_JOBS``, ``EVA_MAX_RENDERS`` (and
         ``JobsConfig.from_env``); ``overrides`` that are not None win."""
-        names = {"host": "EVA_HOST", "port": "EVA_PORT", "api_key": "EVA_API_KEY",
-                 "max_upload_mb": "EVA_MAX_UPLOAD_MB", "max_video_seconds": "EVA_MAX_VIDEO_SECONDS",
-                 "max_render_pixels": "EVA_MAX_RENDER_PIXELS", "max_render_side": "EVA_MAX_RENDER_SIDE",
-                 "max_queued_jobs": "EVA_MAX_QUEUED_JOBS", "max_renders": "EVA_MAX_RENDERS"}  # fmt: skip
+        names = {
+            "host": "EVA_HOST",
+            "port": "EVA_PORT",
+            "api_key": "EVA_API_KEY",
+            "max_upload_mb": "EVA_MAX_UPLOAD_MB",
+            "max_video_seconds": "EVA_MAX_VIDEO_SECONDS",
+            "max_render_pixels": "EVA_MAX_RENDER_PIXELS",
+            "max_render_side": "EVA_MAX_RENDER_SIDE",
+            "max_queued_jobs": "EVA_MAX_QUEUED_JOBS",
+            "max_renders": "EVA_MAX_RENDERS",
+        }
         values: dict = {k: os.environ[v] for k, v in names.items() if os.environ.get(v)}
         if os.environ.get("EVA_ALLOWED_HOSTS"):
             values["allowed_hosts"] = tuple(

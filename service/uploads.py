@@ -50,8 +50,14 @@ def save_upload(source: BinaryIO, dest: Path, max_bytes: int) -> int:
     return size
 
 
-def check_video(path: Path, options: JobOptions | AnimationOptions, jobs: JobsConfig, max_seconds: float,
-                timeout_s: float, memory_mb: int) -> VideoInfo:  # fmt: skip
+def check_video(
+    path: Path,
+    options: JobOptions | AnimationOptions,
+    jobs: JobsConfig,
+    max_seconds: float,
+    timeout_s: float,
+    memory_mb: int,
+) -> VideoInfo:
     """The upload's headers, probed in a child process: a safe container, frames of at most
     ``jobs.max_video_side``, at most ``max_seconds`` long, one decodable frame, and decoded
     frames (``options.max_frames`` of at most ``options.max_size``: an avatar's video or an

@@ -24,10 +24,16 @@ SMPLX_NUM_VERTICES = 10475
 def _smplx_joint_positions() -> np.ndarray:
     """A rough adult skeleton in SMPL-X joint order (Y up, facing +Z, +X = subject's left)."""
     left = {
-        "hip": (0.09, -0.08, 0.0), "knee": (0.1, -0.48, 0.0), "ankle": (0.1, -0.88, -0.02),
-        "foot": (0.1, -0.93, 0.1), "collar": (0.07, 0.42, 0.0), "shoulder": (0.17, 0.45, 0.0),
-        "elbow": (0.42, 0.45, 0.0), "wrist": (0.67, 0.45, 0.0), "eye": (0.03, 0.68, 0.08),
-    }  # fmt: skip
+        "hip": (0.09, -0.08, 0.0),
+        "knee": (0.1, -0.48, 0.0),
+        "ankle": (0.1, -0.88, -0.02),
+        "foot": (0.1, -0.93, 0.1),
+        "collar": (0.07, 0.42, 0.0),
+        "shoulder": (0.17, 0.45, 0.0),
+        "elbow": (0.42, 0.45, 0.0),
+        "wrist": (0.67, 0.45, 0.0),
+        "eye": (0.03, 0.68, 0.08),
+    }
     fingers = {  # name: (first joint offset from wrist, direction)
         "index": ((0.09, 0.0, 0.03), (1.0, 0.0, 0.0)),
         "middle": ((0.095, 0.0, 0.01), (1.0, 0.0, 0.0)),
@@ -36,10 +42,14 @@ def _smplx_joint_positions() -> np.ndarray:
         "thumb": ((0.03, -0.01, 0.04), (0.6, -0.2, 0.7)),
     }
     pos = {
-        "pelvis": (0.0, 0.0, 0.0), "spine1": (0.0, 0.1, 0.0), "spine2": (0.0, 0.22, 0.0),
-        "spine3": (0.0, 0.28, 0.0), "neck": (0.0, 0.5, 0.0), "head": (0.0, 0.62, 0.02),
+        "pelvis": (0.0, 0.0, 0.0),
+        "spine1": (0.0, 0.1, 0.0),
+        "spine2": (0.0, 0.22, 0.0),
+        "spine3": (0.0, 0.28, 0.0),
+        "neck": (0.0, 0.5, 0.0),
+        "head": (0.0, 0.62, 0.02),
         "jaw": (0.0, 0.6, 0.05),
-    }  # fmt: skip
+    }
     for side, sign in (("left", 1.0), ("right", -1.0)):
         for name, p in left.items():
             key = f"{side}_{name}_smplhf" if name == "eye" else f"{side}_{name}"

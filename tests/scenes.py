@@ -66,8 +66,14 @@ class SceneDataset:
 
     def __post_init__(self) -> None:
         h, w = self.frames[0].image.shape[:2]
-        self.meta = DatasetMeta(source="synthetic", fps=1.0, image_size=(h, w), num_frames=len(self.frames),
-                                body_model="anny", background=(1.0, 1.0, 1.0))  # fmt: skip
+        self.meta = DatasetMeta(
+            source="synthetic",
+            fps=1.0,
+            image_size=(h, w),
+            num_frames=len(self.frames),
+            body_model="anny",
+            background=(1.0, 1.0, 1.0),
+        )
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -84,8 +90,17 @@ def region_masks(avatar: Avatar, params: BodyParams, camera: Camera) -> dict[str
     posed = avatar.pose(params)
     sided = avatar.body.sided_part_ids[avatar.gaussians.vertex_ids]
     onehot = torch.nn.functional.one_hot(sided, 4).float()[:, 1:]  # body is black
-    out = rasterize(posed.means, posed.quats, posed.scales, posed.opacities, onehot,
-                    camera.viewmat, camera.K, camera.width, camera.height)  # fmt: skip
+    out = rasterize(
+        posed.means,
+        posed.quats,
+        posed.scales,
+        posed.opacities,
+        onehot,
+        camera.viewmat,
+        camera.K,
+        camera.width,
+        camera.height,
+    )
     names = ("hand_left", "hand_right", "face")
     return {name: (out.image[..., c] > 0.5).float() for c, name in enumerate(names)}
 
@@ -103,11 +118,17 @@ def teacher_scene(
     frames = []
     for i in range(n_frames):
         out = teacher(params[i], cam, bg)
-        frames.append(Frame(
-            index=i, image=out.image.clamp(0, 1), mask=out.alpha[..., 0].clamp(0, 1),
-            regions=region_masks(teacher, params[i], cam),
-            K=cam.K, viewmat=cam.viewmat, time=float(i),
-        ))  # fmt: skip
+        frames.append(
+            Frame(
+                index=i,
+                image=out.image.clamp(0, 1),
+                mask=out.alpha[..., 0].clamp(0, 1),
+                regions=region_masks(teacher, params[i], cam),
+                K=cam.K,
+                viewmat=cam.viewmat,
+                time=float(i),
+            )
+        )
     test = list(range(2, n_frames, 3))
     train = [i for i in range(n_frames) if i not in test]
     ds = SceneDataset(frames, params, {"train": train, "test_pose": test, "test_view": []})

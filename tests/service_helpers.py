@@ -137,10 +137,13 @@ def publish_seeded_avatar(queue, model, frames: int = 3, size: tuple[int, int] =
     avatar = Avatar.create(model, model.shape_defaults, config)
     folder = queue.storage.avatar_dir(job.avatar_id)
     kept = AvatarFrames(
-        params=model.default_params(frames), K=intrinsics(size[1], size[0], 40.0).expand(frames, 3, 3),
+        params=model.default_params(frames),
+        K=intrinsics(size[1], size[0], 40.0).expand(frames, 3, 3),
         viewmat=orbit_camera(0.0, 0.0, 2.6).float().expand(frames, 4, 4),
-        timestamps=torch.arange(frames, dtype=torch.float64) / 10.0, image_size=size, fps=10.0,
-    )  # fmt: skip
+        timestamps=torch.arange(frames, dtype=torch.float64) / 10.0,
+        image_size=size,
+        fps=10.0,
+    )
     save_avatar(avatar, folder, frames=kept)
     assert queue.store.finish(job.id, "succeeded", owner=worker)
     return queue.store.get(job.id)

@@ -22,8 +22,10 @@ from eva_engine.cli import app
 from eva_engine.data import read_video, write_video
 
 other_signer_video = helpers.other_signer_video  # a fixture
-RAISED = {"joints": {"upperarm01.L": [0.0, 0.0, 1.2], "lowerarm01.L": [0.0, -1.0, 0.0]},
-          "expression": {"jawOpen": 0.6}}  # fmt: skip
+RAISED = {
+    "joints": {"upperarm01.L": [0.0, 0.0, 1.2], "lowerarm01.L": [0.0, -1.0, 0.0]},
+    "expression": {"jawOpen": 0.6},
+}
 
 
 @pytest.fixture(scope="module")
@@ -33,10 +35,13 @@ def avatar_dir(anny_model, tmp_path_factory):
     avatar = teacher_avatar(anny_model, n=3000)
     cam = front_camera(64)
     frames = AvatarFrames(
-        params=random_params(anny_model, 3, seed=2), K=cam.K.expand(3, 3, 3),
-        viewmat=cam.viewmat.expand(3, 4, 4), timestamps=torch.tensor([0.0, 0.1, 0.2], dtype=torch.float64),
-        image_size=(80, 64), fps=10.0,
-    )  # fmt: skip
+        params=random_params(anny_model, 3, seed=2),
+        K=cam.K.expand(3, 3, 3),
+        viewmat=cam.viewmat.expand(3, 4, 4),
+        timestamps=torch.tensor([0.0, 0.1, 0.2], dtype=torch.float64),
+        image_size=(80, 64),
+        fps=10.0,
+    )
     save_avatar(avatar, folder, frames=frames)
     return folder
 
@@ -65,8 +70,21 @@ def test_render_a_pose_from_json(avatar_dir, tmp_path):
     assert 0.05 < person.mean() < 0.8  # framed on the avatar: it fills the picture, not lost in it
     # Inline JSON is the same pose.
     inline = tmp_path / "inline.png"
-    assert _run("render", avatar_dir, "--pose", json.dumps(RAISED), "--out", inline, "--width", 96,
-                "--height", 128).code == 0  # fmt: skip
+    assert (
+        _run(
+            "render",
+            avatar_dir,
+            "--pose",
+            json.dumps(RAISED),
+            "--out",
+            inline,
+            "--width",
+            96,
+            "--height",
+            128,
+        ).code
+        == 0
+    )
     assert np.array_equal(_png(inline), b)
 
 
@@ -76,8 +94,23 @@ def test_render_frames_cameras_and_backgrounds(avatar_dir, tmp_path):
     assert res.code == 0, res.out
     assert _png(out).shape == (80, 64, 3)  # the training frame's own size and camera
     side = tmp_path / "side.jpg"
-    assert _run("render", avatar_dir, "--camera", "left", "--background", "black", "--out", side,
-                "--width", 64, "--height", 64).code == 0  # fmt: skip
+    assert (
+        _run(
+            "render",
+            avatar_dir,
+            "--camera",
+            "left",
+            "--background",
+            "black",
+            "--out",
+            side,
+            "--width",
+            64,
+            "--height",
+            64,
+        ).code
+        == 0
+    )
     img = _png(side)
     assert img[0, 0].sum() < 30 and (img.sum(-1) > 60).mean() > 0.02  # black around a person
     cam = {"yaw": 30, "pitch": 10, "distance": 3.0, "target": [0, 0.2, 0]}
@@ -132,8 +165,21 @@ def test_animate_a_json_motion(avatar_dir, tmp_path):
     assert max(change[0], change[1], change[3], change[4]) < 0.5, change  # a held pose is a still picture
     assert change[2] > 4 * max(max(change[0], change[1], change[3], change[4]), 0.25), change
     # --fps resamples the motion in time: 0.5 s at 20 fps is 11 frames, the switch eased over one.
-    res = _run("animate", avatar_dir, motion, "--out", tmp_path / "fast.mp4", "--width", 64, "--height", 64,
-               "--fps", 20, "--smooth", 0)  # fmt: skip
+    res = _run(
+        "animate",
+        avatar_dir,
+        motion,
+        "--out",
+        tmp_path / "fast.mp4",
+        "--width",
+        64,
+        "--height",
+        64,
+        "--fps",
+        20,
+        "--smooth",
+        0,
+    )
     assert res.code == 0, res.out
     assert _frames(tmp_path / "fast.mp4").shape[0] == 11
 
@@ -175,8 +221,20 @@ def test_animate_bad_driving_input_is_a_clear_error(avatar_dir, tmp_path):
 @pytest.mark.slow
 def test_animate_with_a_video_of_someone_else(avatar_dir, other_signer_video, tmp_path):
     out = tmp_path / "side.mp4"
-    res = _run("animate", avatar_dir, other_signer_video, "--out", out, "--side-by-side",
-               "--camera", "driving", "--fit-scale", "0.1", "--smooth", 0)  # fmt: skip
+    res = _run(
+        "animate",
+        avatar_dir,
+        other_signer_video,
+        "--out",
+        out,
+        "--side-by-side",
+        "--camera",
+        "driving",
+        "--fit-scale",
+        "0.1",
+        "--smooth",
+        0,
+    )
     assert res.code == 0, res.out
     f = _frames(out)
     assert f.shape == (8, 256, 512, 3)  # every driving frame, the driving frame | the avatar

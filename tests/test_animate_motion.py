@@ -115,7 +115,8 @@ def test_retarget_keeps_rotations_and_scales_the_root_about_the_camera(anny_mode
     assert torch.allclose(same.transl, source.transl, atol=1e-5)
     moved = recenter(out)
     assert torch.allclose(moved.transl[0], torch.zeros(3)) and torch.allclose(
-        moved.transl[1] - moved.transl[0], out.transl[1] - out.transl[0])  # fmt: skip
+        moved.transl[1] - moved.transl[0], out.transl[1] - out.transl[0]
+    )
 
 
 def test_pose_sequences_from_json(anny_model):
@@ -138,8 +139,17 @@ def test_pose_sequences_from_json(anny_model):
 def test_pose_controls_move_the_right_joints(anny_model):
     controls = pose_controls(anny_model)
     names = {c.name for c in controls}
-    assert {"arm_out.L", "elbow.R", "fingers.L", "fingers.R", "head_turn", "jaw_open", "smile", "brows_up",
-            "blink"} <= names  # fmt: skip
+    assert {
+        "arm_out.L",
+        "elbow.R",
+        "fingers.L",
+        "fingers.R",
+        "head_turn",
+        "jaw_open",
+        "smile",
+        "brows_up",
+        "blink",
+    } <= names
     assert all(c.min <= 0.0 <= c.max for c in controls)
     assert pose_from_controls(controls, {}).joints == {}
     params = anny_model.params_from_pose(pose_from_controls(controls, {"arm_out.L": 1.2, "smile": 0.5}))

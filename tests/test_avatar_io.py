@@ -108,10 +108,13 @@ def test_load_errors_are_clear(tmp_path, anny_model, trained_like):
 def test_the_whole_directory_round_trips(tmp_path, anny_model, trained_like):
     """Gaussians, avatar.json (typed) and the training frames: written once, read back as one."""
     frames = AvatarFrames(
-        params=random_params(anny_model, 3, seed=4), K=front_camera(40).K.expand(3, 3, 3),
+        params=random_params(anny_model, 3, seed=4),
+        K=front_camera(40).K.expand(3, 3, 3),
         viewmat=front_camera(40).viewmat.expand(3, 4, 4),
-        timestamps=torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64), image_size=(48, 40), fps=2.0,
-    )  # fmt: skip
+        timestamps=torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64),
+        image_size=(48, 40),
+        fps=2.0,
+    )
     record = TrainingRecord(preset="tiny", method="eva", iterations=30, metrics={"psnr": 31.5})
     out = save_avatar(trained_like, tmp_path / "av", record, frames=frames)
     saved = load_saved_avatar(out, body=anny_model)
@@ -134,13 +137,20 @@ def test_reads_avatar_json_as_earlier_versions_wrote_it(tmp_path, anny_model, tr
     reader does not know, no active SH degree)."""
     out = save_avatar(trained_like, tmp_path / "av")
     old = {
-        "format": "eva-avatar", "version": 1, "body_model": "anny",
+        "format": "eva-avatar",
+        "version": 1,
+        "body_model": "anny",
         "num_gaussians": len(trained_like.gaussians),
         "avatar_config": json.loads((out / "avatar.json").read_text())["avatar_config"],
-        "preset": "fast", "method": None, "train_seconds": 12.5, "iterations": 600, "final_loss": 0.05,
+        "preset": "fast",
+        "method": None,
+        "train_seconds": 12.5,
+        "iterations": 600,
+        "final_loss": 0.05,
         "metrics": {"split": "train", "psnr": 28.0},
-        "frames": {"count": 4, "image_size": [96, 64], "fps": 25.0}, "some_later_field": {"kept": False},
-    }  # fmt: skip
+        "frames": {"count": 4, "image_size": [96, 64], "fps": 25.0},
+        "some_later_field": {"kept": False},
+    }
     (out / "avatar.json").write_text(json.dumps(old))
     meta = read_avatar_meta(out)
     assert meta.preset == "fast" and meta.method is None and meta.train_seconds == 12.5

@@ -28,9 +28,11 @@ def avatars(anny_model):
     torch.manual_seed(0)
     full = Avatar.create(anny_model, anny_model.shape_defaults, AvatarConfig(**SMALL), seed=3)
     plain = Avatar.create(
-        anny_model, anny_model.shape_defaults,
-        AvatarConfig(**SMALL, weight_offsets=False, pose_refine=False), seed=3,
-    )  # fmt: skip
+        anny_model,
+        anny_model.shape_defaults,
+        AvatarConfig(**SMALL, weight_offsets=False, pose_refine=False),
+        seed=3,
+    )
     return full, plain
 
 

@@ -169,9 +169,13 @@ def test_part_ids_plausible_and_hand_vertices_near_hand_joints(model):
     out = model(params)
     verts = out.vertices[0][model.part_vertex_ids("hand")]
     hand_joint = [
-        i for i, n in enumerate(model.joint_names) if "wrist" in n or "finger" in n or "metacarpal" in n
+        i
+        for i, n in enumerate(model.joint_names)
+        if "wrist" in n
+        or "finger" in n
+        or "metacarpal" in n
         or n[:-1].endswith(("index", "middle", "pinky", "ring", "thumb"))
-    ]  # fmt: skip
+    ]
     dist = torch.cdist(verts, out.joints[0, hand_joint]).min(dim=1).values
     assert dist.max() < 0.08, f"a hand vertex is {dist.max():.3f} m from every hand joint"
 

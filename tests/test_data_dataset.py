@@ -18,10 +18,12 @@ N, H, W, P, E, S, K = 5, 12, 10, 4, 3, 2, 6
 def _params(seed: int) -> BodyParams:
     g = torch.Generator().manual_seed(seed)
     return BodyParams(
-        root_orient=torch.randn(N, 3, generator=g), transl=torch.randn(N, 3, generator=g),
-        joints=torch.randn(N, P, 3, generator=g), expression=torch.rand(N, E, generator=g),
+        root_orient=torch.randn(N, 3, generator=g),
+        transl=torch.randn(N, 3, generator=g),
+        joints=torch.randn(N, P, 3, generator=g),
+        expression=torch.rand(N, E, generator=g),
         shape=torch.rand(N, S, generator=g),
-    )  # fmt: skip
+    )
 
 
 NAMES = ParamNames([f"j{i}" for i in range(P)], [f"e{i}" for i in range(E)], [f"s{i}" for i in range(S)])
@@ -35,21 +37,38 @@ def write_sample(root, regions=True, params=True, overwrite=False):
     view = torch.eye(4).repeat(N, 1, 1)
     view[:, 2, 3] = torch.arange(N).float()
     kp = torch.rand(N, K, 3)
-    meta = DatasetMeta(name="t", source="video", body_model="anny", fps=30.0, image_size=(H, W), num_frames=0,
-                       camera_source="estimated", extra={"detector": "mediapipe"})  # fmt: skip
+    meta = DatasetMeta(
+        name="t",
+        source="video",
+        body_model="anny",
+        fps=30.0,
+        image_size=(H, W),
+        num_frames=0,
+        camera_source="estimated",
+        extra={"detector": "mediapipe"},
+    )
     with DatasetWriter(root, meta, overwrite=overwrite) as w:
         for i in range(N):
             w.add_frame(
-                images[i], masks[i], K=K_[i], viewmat=view[i], time=0.5 * i,
+                images[i],
+                masks[i],
+                K=K_[i],
+                viewmat=view[i],
+                time=0.5 * i,
                 regions={"hand_left": masks[i] // 2, "hand_right": masks[i] // 4, "face": masks[i] // 3}
-                if regions else None,
-            )  # fmt: skip
+                if regions
+                else None,
+            )
         out = w.finish(
             {"train": [0, 2, 4], "test_pose": [1, 3]},
-            params=_params(1) if params else None, params_names=NAMES, params_source="fitted",
-            keypoints=kp, keypoint_names=[f"k{i}" for i in range(K)], keypoints_source="mediapipe",
+            params=_params(1) if params else None,
+            params_names=NAMES,
+            params_source="fitted",
+            keypoints=kp,
+            keypoint_names=[f"k{i}" for i in range(K)],
+            keypoints_source="mediapipe",
             gt_params=_params(2) if params else None,
-        )  # fmt: skip
+        )
     return out, images, masks, K_, view, kp
 
 
@@ -125,12 +144,18 @@ def test_writer_validates(tmp_path):
             w.add_frame(np.zeros((H + 1, W, 3)), np.zeros((H, W)), K=torch.eye(3), viewmat=torch.eye(4))
         w.add_frame(np.zeros((H, W, 3)), np.zeros((H, W)), K=torch.eye(3), viewmat=torch.eye(4))
         with pytest.raises(ValueError, match="regions must hold exactly"):
-            w.add_frame(np.zeros((H, W, 3)), np.zeros((H, W)), K=torch.eye(3), viewmat=torch.eye(4),
-                        regions={"hand": np.zeros((H, W)), "face": np.zeros((H, W))})  # fmt: skip
+            w.add_frame(
+                np.zeros((H, W, 3)),
+                np.zeros((H, W)),
+                K=torch.eye(3),
+                viewmat=torch.eye(4),
+                regions={"hand": np.zeros((H, W)), "face": np.zeros((H, W))},
+            )
         with pytest.raises(ValueError, match="every frame or for none"):
             zeros = {r: np.zeros((H, W)) for r in ("hand_left", "hand_right", "face")}
-            w.add_frame(np.zeros((H, W, 3)), np.zeros((H, W)), K=torch.eye(3), viewmat=torch.eye(4),
-                        regions=zeros)  # fmt: skip
+            w.add_frame(
+                np.zeros((H, W, 3)), np.zeros((H, W)), K=torch.eye(3), viewmat=torch.eye(4), regions=zeros
+            )
         with pytest.raises(ValueError, match="outside"):
             w.finish({"train": [0, 1]})
         with pytest.raises(ValueError, match="unknown split"):

@@ -39,8 +39,11 @@ def make_take(take: Path, n: int, rng: np.random.Generator, with_depth: bool = T
     frames = []
     extrinsic = np.tile(np.eye(4)[None, :3], (n, 1, 1))
     extrinsic[:, 2, 3] = np.arange(n) + 3.0
-    np.savez(take / "render" / "cameras.npz", intrinsic=np.array([[20.0, 0, 8], [0, 20.0, 12], [0, 0, 1]]),
-             extrinsic=extrinsic)  # fmt: skip
+    np.savez(
+        take / "render" / "cameras.npz",
+        intrinsic=np.array([[20.0, 0, 8], [0, 20.0, 12], [0, 0, 1]]),
+        extrinsic=extrinsic,
+    )
     for k in range(1, n + 1):
         img = np.full((H, W, 3), 255, np.uint8)
         img[6:18, 4:12] = (200, 120, 90)

@@ -19,9 +19,21 @@ def test_quat_from_z_maps_z_onto_direction():
 def test_surfels_on_a_cube_point_outward():
     verts = torch.tensor([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
     faces = torch.tensor(
-        [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
-    )  # fmt: skip
+        [
+            [0, 1, 3],
+            [0, 3, 2],
+            [4, 6, 7],
+            [4, 7, 5],
+            [0, 4, 5],
+            [0, 5, 1],
+            [2, 3, 7],
+            [2, 7, 6],
+            [0, 2, 6],
+            [0, 6, 4],
+            [1, 5, 7],
+            [1, 7, 3],
+        ]
+    )
     normals = torch.from_numpy(vertex_normals(verts, faces))
     assert (torch.sum(normals * verts, dim=-1) > 0).all()  # outward on a closed, consistently wound mesh
     g = surface_gaussians(verts, faces)
@@ -50,8 +62,21 @@ def test_eva_demo_runs_the_product_end_to_end(tmp_path):
     from service.cli import app
 
     out, work, mp4 = tmp_path / "demo.png", tmp_path / "work", tmp_path / "demo.mp4"
-    args = ["demo", "--out", str(out), "--workdir", str(work), "--preset", "tiny", "--iterations", "3",
-            "--animation", str(mp4), "--fit-scale", "0.1"]  # fmt: skip
+    args = [
+        "demo",
+        "--out",
+        str(out),
+        "--workdir",
+        str(work),
+        "--preset",
+        "tiny",
+        "--iterations",
+        "3",
+        "--animation",
+        str(mp4),
+        "--fit-scale",
+        "0.1",
+    ]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     assert "http://127.0.0.1:8000/" in res.output  # where to see it in the web page

@@ -62,12 +62,23 @@ def in_context(relpath: str, rules) -> bool:
 
 def test_the_build_context_holds_no_data_venv_or_history():
     rules = dockerignore_rules()
-    excluded = [".git/HEAD", ".venv/.installed", ".venv/bin/python", "data/service/jobs/jobs.db",
-                "data/service/avatars/0123/avatar.ply", "data/cache/anny/x.safetensors", "out/demo.png",
-                "out/demo/service/jobs/work/x/input.mp4", "tests/test_service_api.py",
-                "bench/results/service.md", "eva_engine/__pycache__/paths.cpython-311.pyc",
-                "service/__pycache__/app.cpython-311.pyc", ".env", "docs/evaluation.md",
-                "scripts/install-system-deps.sh"]  # fmt: skip
+    excluded = [
+        ".git/HEAD",
+        ".venv/.installed",
+        ".venv/bin/python",
+        "data/service/jobs/jobs.db",
+        "data/service/avatars/0123/avatar.ply",
+        "data/cache/anny/x.safetensors",
+        "out/demo.png",
+        "out/demo/service/jobs/work/x/input.mp4",
+        "tests/test_service_api.py",
+        "bench/results/service.md",
+        "eva_engine/__pycache__/paths.cpython-311.pyc",
+        "service/__pycache__/app.cpython-311.pyc",
+        ".env",
+        "docs/evaluation.md",
+        "scripts/install-system-deps.sh",
+    ]
     for path in excluded:
         assert not in_context(path, rules), path
     tracked = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout
@@ -149,8 +160,10 @@ def test_a_worker_keeps_its_health_file_fresh(tmp_path):
     from service_helpers import EVA, start_process, stop, wait_for
 
     alive = tmp_path / "alive"
-    worker = start_process([EVA, "worker", "--data-dir", str(tmp_path / "data"), "--health-file", str(alive)],
-                           tmp_path / "worker.log")  # fmt: skip
+    worker = start_process(
+        [EVA, "worker", "--data-dir", str(tmp_path / "data"), "--health-file", str(alive)],
+        tmp_path / "worker.log",
+    )
     try:
         wait_for(alive.exists, 60, "the health file")
         assert healthcheck.main(["--role", "worker"]) == 1  # the default path is not this one

@@ -94,11 +94,17 @@ def test_each_hand_is_scored_on_its_own_crop(anny_model, metrics):
 
 def test_table_in_the_papers_layout():
     r = EvalResult(
-        split="test_pose", num_frames=4, num_gaussians=19458, render_fps=12.5, train_seconds=300.0,
-        regions={"full": RegionMetrics(28.88, 0.9609, 0.04493, 0.0321, 4, 4, 512.0),
-                 "hand": RegionMetrics(25.28, 0.9189, 0.09137, 0.0712, 3, 5, 21.0)},
+        split="test_pose",
+        num_frames=4,
+        num_gaussians=19458,
+        render_fps=12.5,
+        train_seconds=300.0,
+        regions={
+            "full": RegionMetrics(28.88, 0.9609, 0.04493, 0.0321, 4, 4, 512.0),
+            "hand": RegionMetrics(25.28, 0.9189, 0.09137, 0.0712, 3, 5, 21.0),
+        },
         notes=["hand regions are small"],
-    )  # fmt: skip
+    )
     table = metrics_table({"3DGS + body": r})
     lines = table.strip().splitlines()
     assert lines[0].startswith(

@@ -29,9 +29,12 @@ PACKAGES = ("eva_engine", "jobs", "service")
 FORBIDDEN = [
     ("eva_engine", ("jobs", "service"), "the engine is a library; jobs and service use it"),
     ("jobs", ("service",), "the worker runs without the web service"),
-    ("eva_engine.render", ("eva_engine.body", "eva_engine.avatar", "eva_engine.train"),
-     "the rasterizer is the bottom layer"),
-]  # fmt: skip
+    (
+        "eva_engine.render",
+        ("eva_engine.body", "eva_engine.avatar", "eva_engine.train"),
+        "the rasterizer is the bottom layer",
+    ),
+]
 
 
 @dataclass(frozen=True)
@@ -111,7 +114,7 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
         path.append(node)
         for nxt in sorted(graph.get(node, ())):
             if state.get(nxt) == 1:
-                return path[path.index(nxt):] + [nxt]
+                return path[path.index(nxt) :] + [nxt]
             if nxt not in state and (cycle := visit(nxt)):
                 return cycle
         path.pop()
@@ -141,7 +144,7 @@ def part_graph(package: str, modules: Iterable[str], edges: Iterable[Edge]) -> d
     def part(name: str) -> str | None:
         if name == package or not name.startswith(prefix):
             return None
-        return prefix + name[len(prefix):].split(".")[0]
+        return prefix + name[len(prefix) :].split(".")[0]
 
     graph: dict[str, set[str]] = {}
     for edge in edges:
@@ -164,8 +167,9 @@ def project() -> tuple[dict[str, Path], list[Edge]]:
 @pytest.mark.parametrize(("importer", "forbidden", "why"), FORBIDDEN, ids=[f[0] for f in FORBIDDEN])
 def test_boundaries(project, importer, forbidden, why):
     _, edges = project
-    crossing = [e for e in edges
-                if _within(e.source, importer) and any(_within(e.target, f) for f in forbidden)]
+    crossing = [
+        e for e in edges if _within(e.source, importer) and any(_within(e.target, f) for f in forbidden)
+    ]
     assert not crossing, f"{why}:\n" + "\n".join(map(str, crossing))
 
 

@@ -56,8 +56,15 @@ def test_a_killed_worker_is_replaced_and_the_job_resumes(tmp_path, signer_video)
         ids = upload(client, signer_video, **options)
         worker = start_worker(data, log)
         try:
-            job = wait_for(lambda: (j := client.get(f"/jobs/{ids['job_id']}").json())["stage"] == "train"
-                           and j["state"] == "running" and j, 300, "the training stage")  # fmt: skip
+            job = wait_for(
+                lambda: (
+                    (j := client.get(f"/jobs/{ids['job_id']}").json())["stage"] == "train"
+                    and j["state"] == "running"
+                    and j
+                ),
+                300,
+                "the training stage",
+            )
             worker.send_signal(signal.SIGKILL)
             worker.wait()
             job = client.get(f"/jobs/{ids['job_id']}").json()
@@ -96,8 +103,14 @@ def test_a_silent_worker_is_not_raced_by_another(tmp_path, signer_video):
         a = start_worker(data, logs[0], stale_after=2)
         b = None
         try:
-            wait_for(lambda: (j := client.get(f"/jobs/{ids['job_id']}").json())["stage"] == "train"
-                     and j["state"] == "running", 300, "the training stage")  # fmt: skip
+            wait_for(
+                lambda: (
+                    (j := client.get(f"/jobs/{ids['job_id']}").json())["stage"] == "train"
+                    and j["state"] == "running"
+                ),
+                300,
+                "the training stage",
+            )
             paused = [a.pid, *job_processes(ids["job_id"])]
             for pid in paused:
                 os.kill(pid, signal.SIGSTOP)
@@ -149,11 +162,33 @@ def redis_url(tmp_path):
     if server is None:
         pytest.fail("redis-server is not installed (scripts/install-system-deps.sh installs it)")
     port = free_port()
-    subprocess.run([server, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
-                    "--dir", str(tmp_path), "--daemonize", "yes"], check=True)  # fmt: skip
+    subprocess.run(
+        [
+            server,
+            "--port",
+            str(port),
+            "--bind",
+            "127.0.0.1",
+            "--save",
+            "",
+            "--appendonly",
+            "no",
+            "--dir",
+            str(tmp_path),
+            "--daemonize",
+            "yes",
+        ],
+        check=True,
+    )
     try:
-        wait_for(lambda: subprocess.run(["redis-cli", "-p", str(port), "ping"], capture_output=True)
-                 .stdout.strip() == b"PONG", 20, "redis-server")  # fmt: skip
+        wait_for(
+            lambda: (
+                subprocess.run(["redis-cli", "-p", str(port), "ping"], capture_output=True).stdout.strip()
+                == b"PONG"
+            ),
+            20,
+            "redis-server",
+        )
         yield f"redis://127.0.0.1:{port}/0"
     finally:
         subprocess.run(["redis-cli", "-p", str(port), "shutdown", "nosave"], capture_output=True)

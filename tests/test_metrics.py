@@ -281,8 +281,12 @@ def test_prepare_lpips_finds_and_verifies_weights():
     assert [tuple(w.shape) for w in vgg.lin_weights] == [(1, c, 1, 1) for c in (64, 128, 256, 512, 512)]
     weights = load_lpips_weights(paths["alex"])
     assert [tuple(w.shape) for w in weights.conv_weights] == [
-        (64, 3, 11, 11), (192, 64, 5, 5), (384, 192, 3, 3), (256, 384, 3, 3), (256, 256, 3, 3),
-    ]  # fmt: skip
+        (64, 3, 11, 11),
+        (192, 64, 5, 5),
+        (384, 192, 3, 3),
+        (256, 384, 3, 3),
+        (256, 256, 3, 3),
+    ]
     assert [tuple(w.shape) for w in weights.lin_weights] == [(1, c, 1, 1) for c in (64, 192, 384, 256, 256)]
 
 
@@ -329,11 +333,16 @@ def test_ssim_matches_skimage(dtype):
         got = ssim(torch.from_numpy(img).to(dtype), torch.from_numpy(ref).to(dtype))
         expected = [
             structural_similarity(
-                img[i], ref[i], gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
-                data_range=1.0, channel_axis=0,
+                img[i],
+                ref[i],
+                gaussian_weights=True,
+                sigma=1.5,
+                use_sample_covariance=False,
+                data_range=1.0,
+                channel_axis=0,
             )
             for i in range(img.shape[0])
-        ]  # fmt: skip
+        ]
         assert got.shape == (img.shape[0],)
         np.testing.assert_allclose(got.double().numpy(), expected, atol=1e-4)
     same = torch.rand(1, 3, 20, 20)

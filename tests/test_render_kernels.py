@@ -149,9 +149,15 @@ def test_compiled_projection_matches_torch(compiled, dtype):
     for kernel in ("cpp", "torch"):
         inputs = {k: scene[k].clone().requires_grad_(True) for k in names}
         proj = project_gaussians(
-            inputs["means"], inputs["quats"], inputs["scales"], scene["viewmat"], scene["K"], 30, 20,
+            inputs["means"],
+            inputs["quats"],
+            inputs["scales"],
+            scene["viewmat"],
+            scene["K"],
+            30,
+            20,
             kernel=kernel,
-        )  # fmt: skip
+        )
         g.manual_seed(3)
         loss = sum(
             (t * torch.randn(t.shape, generator=g, dtype=dtype)).sum() for t in (proj.means2d, proj.conics)

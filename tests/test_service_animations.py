@@ -69,8 +69,11 @@ def run_job(queue: JobQueue, job_id: str) -> str:
 def test_animate_json_poses_end_to_end(service):
     client, queue, avatar_id = service
     motion = {"fps": 8, "poses": [{}, {}, RAISED, RAISED]}
-    res = client.post(f"/avatars/{avatar_id}/animations", files={"poses": poses_file(motion)},
-                      data={"width": "64", "height": "80", "smooth_s": "0"})  # fmt: skip
+    res = client.post(
+        f"/avatars/{avatar_id}/animations",
+        files={"poses": poses_file(motion)},
+        data={"width": "64", "height": "80", "smooth_s": "0"},
+    )
     assert res.status_code == 202, res.text
     created = res.json()
     info = client.get(created["animation_url"]).json()
@@ -107,9 +110,11 @@ def test_animate_json_poses_end_to_end(service):
 @pytest.mark.slow
 def test_animate_a_video(service, signer_video):
     client, queue, avatar_id = service
-    res = client.post(f"/avatars/{avatar_id}/animations",
-                      files={"video": ("signer.mp4", signer_video.read_bytes(), "video/mp4")},
-                      data={"camera": "driving", "side_by_side": "true", "fit_scale": "0.1"})  # fmt: skip
+    res = client.post(
+        f"/avatars/{avatar_id}/animations",
+        files={"video": ("signer.mp4", signer_video.read_bytes(), "video/mp4")},
+        data={"camera": "driving", "side_by_side": "true", "fit_scale": "0.1"},
+    )
     assert res.status_code == 202, res.text
     created = res.json()
     assert run_job(queue, created["job_id"]) == "succeeded", client.get(created["job_url"]).json()
@@ -128,8 +133,11 @@ def test_form_fields_are_the_animation_request(service):
     options = client.get(res.json()["job_url"]).json()["options"]
     expected = AnimationOptions(avatar_id=avatar_id, camera="front", max_size=256, background=(0, 0.5, 1))
     assert options == expected.model_dump(mode="json")
-    res = client.post(f"/avatars/{avatar_id}/animations", files={"poses": poses_file([{}])},
-                      data={"camera": ' {"yaw": 30} '})  # fmt: skip
+    res = client.post(
+        f"/avatars/{avatar_id}/animations",
+        files={"poses": poses_file([{}])},
+        data={"camera": ' {"yaw": 30} '},
+    )
     assert client.get(res.json()["job_url"]).json()["options"]["camera"]["yaw"] == 30.0
 
 
@@ -145,8 +153,9 @@ def test_no_driving_upload_is_422(service):
 def test_a_video_without_a_person_fails_its_job_with_the_reason(service, tmp_path):
     client, queue, avatar_id = service
     video = no_person_video(tmp_path / "nobody.mp4")
-    res = client.post(f"/avatars/{avatar_id}/animations", files={"video": ("nobody.mp4", video.read_bytes(),
-                                                                          "video/mp4")})  # fmt: skip
+    res = client.post(
+        f"/avatars/{avatar_id}/animations", files={"video": ("nobody.mp4", video.read_bytes(), "video/mp4")}
+    )
     assert res.status_code == 202, res.text  # a valid video: whether someone is in it, the job finds out
     created = res.json()
     assert run_job(queue, created["job_id"]) == "failed"
@@ -164,8 +173,11 @@ def test_an_avatar_that_does_not_exist_is_404(service):
         assert res.status_code == 404, res.text
         assert client.get(f"/avatars/{avatar}/animations").status_code == 404
         assert client.get(f"/avatars/{avatar}/controls").status_code == 404
-    for path in ("/animations/0123456789abcdef0123456789abcdef", "/animations/nope",
-                 "/animations/0123456789abcdef0123456789abcdef/video"):  # fmt: skip
+    for path in (
+        "/animations/0123456789abcdef0123456789abcdef",
+        "/animations/nope",
+        "/animations/0123456789abcdef0123456789abcdef/video",
+    ):
         assert client.get(path).status_code == 404
 
 
@@ -193,9 +205,22 @@ def test_an_avatar_still_being_made_is_409(service):
         ({"video": ("clip.mp4", b"just some text, no video" * 10, "video/mp4")}, {}, "not a readable video"),
         ({"video": ("clip.mp4", b"", "video/mp4")}, {}, "empty"),
     ],
-    ids=["unknown-joint", "no-poses", "bad-json", "empty-poses", "driving-camera", "side-by-side",
-         "camera-name", "camera-bounds", "camera-json", "fps", "width", "not-a-video", "empty-video"],
-)  # fmt: skip
+    ids=[
+        "unknown-joint",
+        "no-poses",
+        "bad-json",
+        "empty-poses",
+        "driving-camera",
+        "side-by-side",
+        "camera-name",
+        "camera-bounds",
+        "camera-json",
+        "fps",
+        "width",
+        "not-a-video",
+        "empty-video",
+    ],
+)
 def test_bad_uploads_and_options_are_422_and_leave_nothing(service, files, data, needle):
     client, queue, avatar_id = service
     res = client.post(f"/avatars/{avatar_id}/animations", files=files, data=data)
@@ -217,8 +242,16 @@ def test_pose_controls_and_the_page(service):
     doc = client.get(f"/avatars/{avatar_id}/controls", params={"aspect": 0.75}).json()
     assert doc["body_model"] == "anny"
     names = {c["name"] for c in doc["controls"]}
-    assert {"arm_out.L", "elbow.R", "fingers.L", "fingers.R", "jaw_open", "smile", "brows_up",
-            "blink"} <= names  # fmt: skip
+    assert {
+        "arm_out.L",
+        "elbow.R",
+        "fingers.L",
+        "fingers.R",
+        "jaw_open",
+        "smile",
+        "brows_up",
+        "blink",
+    } <= names
     target, distance = doc["framing"]["target"], doc["framing"]["distance"]
     assert -0.5 < target[1] < 0.8 and 1.0 < distance < 8.0
     # A pose the page would send, from a control: it renders.
@@ -226,8 +259,9 @@ def test_pose_controls_and_the_page(service):
     term = arm["joints"][0]
     pose = {"joints": {term["joint"]: [a * 1.2 for a in term["axis"]]}}
     camera = {"yaw": 20, "pitch": 5, **doc["framing"]}
-    res = client.post(f"/avatars/{avatar_id}/render", json={"pose": pose, "camera": camera, "width": 48,
-                                                              "height": 64})  # fmt: skip
+    res = client.post(
+        f"/avatars/{avatar_id}/render", json={"pose": pose, "camera": camera, "width": 48, "height": 64}
+    )
     assert res.status_code == 200 and res.headers["content-type"] == "image/png"
     page = client.get("/")
     assert page.status_code == 200 and "text/html" in page.headers["content-type"]
@@ -264,8 +298,11 @@ def test_an_attempt_that_lost_its_animation_job_writes_nothing(service):
     """Recovery gave the job to another worker while this attempt ran: none of its writes land,
     nothing is published, and the new owner's run publishes the animation once."""
     client, queue, avatar_id = service
-    res = client.post(f"/avatars/{avatar_id}/animations", files={"poses": poses_file([{}, RAISED])},
-                      data={"width": "32", "height": "32"})  # fmt: skip
+    res = client.post(
+        f"/avatars/{avatar_id}/animations",
+        files={"poses": poses_file([{}, RAISED])},
+        data={"width": "32", "height": "32"},
+    )
     created = res.json()
     store = queue.store
     lost = store.claim(created["job_id"], "elsewhere:1:10:100:a")
@@ -287,8 +324,9 @@ def test_animation_uploads_meet_the_guard_and_the_quota(tmp_path, anny_model):
     poses have their own smaller cap, the rendered frames must fit the job's pixel budget, and
     the queue's quota counts animation jobs too."""
     jobs = JobsConfig(data_dir=tmp_path / "data", max_frame_pixels=64 * 64 * 50)
-    settings = ServiceSettings(jobs=jobs, preload_body_models=(), max_poses_mb=0.01, max_queued_jobs=2,
-                               max_render_pixels=128 * 128)  # fmt: skip
+    settings = ServiceSettings(
+        jobs=jobs, preload_body_models=(), max_poses_mb=0.01, max_queued_jobs=2, max_render_pixels=128 * 128
+    )
     queue = JobQueue(jobs)
     with TestClient(create_app(settings, queue=queue), base_url="http://127.0.0.1") as client:
         client.app.state.context.avatars._bodies["anny"] = anny_model

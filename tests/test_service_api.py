@@ -47,8 +47,14 @@ def test_health_and_docs(client):
     assert client.get("/docs").status_code == 200
     spec = client.get("/openapi.json").json()
     paths = spec["paths"]
-    for path in ("/avatars", "/avatars/{avatar_id}", "/avatars/{avatar_id}/render",
-                 "/avatars/{avatar_id}/export", "/jobs/{job_id}", "/healthz"):  # fmt: skip
+    for path in (
+        "/avatars",
+        "/avatars/{avatar_id}",
+        "/avatars/{avatar_id}/render",
+        "/avatars/{avatar_id}/export",
+        "/jobs/{job_id}",
+        "/healthz",
+    ):
         assert path in paths, path
     render = spec["components"]["schemas"]["RenderRequest"]
     assert render["examples"][0]["pose"]["joints"]
@@ -77,9 +83,11 @@ def test_upload_queues_a_job_that_can_be_cancelled(client, signer_video, tmp_pat
     avatar = client.get(f"/avatars/{ids['avatar_id']}").json()
     assert avatar["status"] == "pending" and avatar["num_gaussians"] is None
     # Not finished yet: 409 with the reason.
-    for res in (client.post(f"/avatars/{ids['avatar_id']}/render", json={}),
-                client.get(f"/avatars/{ids['avatar_id']}/export"),
-                client.delete(f"/avatars/{ids['avatar_id']}")):  # fmt: skip
+    for res in (
+        client.post(f"/avatars/{ids['avatar_id']}/render", json={}),
+        client.get(f"/avatars/{ids['avatar_id']}/export"),
+        client.delete(f"/avatars/{ids['avatar_id']}"),
+    ):
         assert res.status_code == 409 and "queued" in res.text + "cancel" or res.status_code == 409, res.text
     # Cancel: at once for a queued job; its upload is removed.
     res = client.delete(f"/jobs/{ids['job_id']}")
@@ -173,7 +181,7 @@ def test_form_fields_are_the_job_options(client, signer_video):
         ({"image_scale": "2"}, "image_scale"),
         ({"iterations": "many"}, "iterations"),
         ({"method": "gart"}, "method"),
-    ],  # fmt: skip
+    ],
     ids=["preset", "max_frames", "body_model", "image_scale", "iterations", "method"],
 )
 def test_bad_options_are_422(client, signer_video, tmp_path, options, needle):

@@ -116,8 +116,9 @@ def test_avatar_metadata(live, ready):
 def test_render_a_pose(live, ready):
     ids, _ = ready
     pose = {"joints": {"upperarm01.L": [0.0, 0.0, -1.0]}, "expression": {"jawOpen": 0.5}}
-    res = live.client.post(f"/avatars/{ids['avatar_id']}/render",
-                           json={"pose": pose, "width": 160, "height": 200})  # fmt: skip
+    res = live.client.post(
+        f"/avatars/{ids['avatar_id']}/render", json={"pose": pose, "width": 160, "height": 200}
+    )
     assert res.headers["content-type"] == "image/png"
     img = _png(res)
     assert img.shape == (200, 160, 3)
@@ -133,8 +134,9 @@ def test_render_cameras_formats_and_training_frames(live, ready):
     ids, _ = ready
     url = f"/avatars/{ids['avatar_id']}/render"
     c = live.client
-    jpeg = c.post(url, json={"camera": "left", "width": 96, "height": 128, "format": "jpeg",
-                             "background": [0, 0, 0]})  # fmt: skip
+    jpeg = c.post(
+        url, json={"camera": "left", "width": 96, "height": 128, "format": "jpeg", "background": [0, 0, 0]}
+    )
     assert jpeg.headers["content-type"] == "image/jpeg"
     _shows_a_person(_png(jpeg), background=(0, 0, 0))
     orbit = {"camera": {"yaw": 30, "pitch": 10, "distance": 3.0}, "width": 64, "height": 64}
@@ -204,11 +206,16 @@ def test_bad_render_requests_are_422_naming_the_problem(live, ready, body, needl
 
 def test_nan_in_a_pose_is_422(live, ready):
     ids, _ = ready
-    raws = ('{"pose": {"transl": [NaN, 0, 0]}}', '{"pose": {"joints": {"upperarm01.L": [Infinity, 0, 0]}}}',
-            '{"camera": {"yaw": NaN}}', "{not json")  # fmt: skip
+    raws = (
+        '{"pose": {"transl": [NaN, 0, 0]}}',
+        '{"pose": {"joints": {"upperarm01.L": [Infinity, 0, 0]}}}',
+        '{"camera": {"yaw": NaN}}',
+        "{not json",
+    )
     for raw in raws:
-        res = live.client.post(f"/avatars/{ids['avatar_id']}/render", content=raw,
-                               headers={"content-type": "application/json"})  # fmt: skip
+        res = live.client.post(
+            f"/avatars/{ids['avatar_id']}/render", content=raw, headers={"content-type": "application/json"}
+        )
         assert res.status_code == 422, (raw, res.text)
         json.loads(res.text)  # the error itself is valid JSON
 

@@ -32,8 +32,15 @@ signer_video = helpers.signer_video  # a fixture
 def server(tmp_path_factory):
     """A keyed server: 1 upload at once, bodies that stall for 1.5 s are cut off."""
     data = tmp_path_factory.mktemp("guarded")
-    settings = ServiceSettings(jobs=JobsConfig(data_dir=data), port=free_port(), api_key=KEY, max_uploads=1,
-                               body_timeout_s=1.5, preload_body_models=(), max_upload_mb=64)  # fmt: skip
+    settings = ServiceSettings(
+        jobs=JobsConfig(data_dir=data),
+        port=free_port(),
+        api_key=KEY,
+        max_uploads=1,
+        body_timeout_s=1.5,
+        preload_body_models=(),
+        max_upload_mb=64,
+    )
     log = data / "serve.log"
     proc, base = start_service(settings, log)
     try:
@@ -46,8 +53,15 @@ UPLOAD_HEAD = {"Content-Type": "multipart/form-data; boundary=x", "X-API-Key": K
 PART = b'--x\r\nContent-Disposition: form-data; name="video"; filename="a.mp4"\r\n\r\n'
 
 
-def push_body(base: str, path: str, length: int, headers: dict[str, str], chunk: int = 1 << 20,
-              pause: float = 0.0, prefix: bytes = b"") -> tuple[int, int]:  # fmt: skip
+def push_body(
+    base: str,
+    path: str,
+    length: int,
+    headers: dict[str, str],
+    chunk: int = 1 << 20,
+    pause: float = 0.0,
+    prefix: bytes = b"",
+) -> tuple[int, int]:
     """Send a POST declaring ``length`` bytes: ``prefix``, then zeros until the server answers (or
     all is sent); returns (status code, bytes of body sent before the answer came)."""
     host, port = base.removeprefix("http://").split(":")
@@ -90,8 +104,12 @@ def test_unauthenticated_oversized_body_is_refused_before_it_is_read(server, pat
 def test_authenticated_bodies_over_their_limit_are_413_from_the_headers(server):
     proc, base, _, _ = server
     before = rss_mb(proc.pid)
-    status, sent = push_body(base, "/avatars/0123456789abcdef0123456789abcdef/render", 400 * 2**20,
-                             {"Content-Type": "application/json", "X-API-Key": KEY})  # fmt: skip
+    status, sent = push_body(
+        base,
+        "/avatars/0123456789abcdef0123456789abcdef/render",
+        400 * 2**20,
+        {"Content-Type": "application/json", "X-API-Key": KEY},
+    )
     assert status == 413 and sent < 16 * 2**20
     status, sent = push_body(base, "/avatars", 400 * 2**20, UPLOAD_HEAD)
     assert status == 413 and sent < 16 * 2**20
@@ -101,8 +119,12 @@ def test_authenticated_bodies_over_their_limit_are_413_from_the_headers(server):
         for _ in range(64):
             yield b" " * 65536
 
-    res = httpx.post(f"{base}/avatars/0123456789abcdef0123456789abcdef/render", content=chunks(),
-                     headers={"Content-Type": "application/json", "X-API-Key": KEY}, timeout=30)  # fmt: skip
+    res = httpx.post(
+        f"{base}/avatars/0123456789abcdef0123456789abcdef/render",
+        content=chunks(),
+        headers={"Content-Type": "application/json", "X-API-Key": KEY},
+        timeout=30,
+    )
     assert res.status_code == 413 and "64 KB" in res.json()["detail"]
 
 
@@ -122,8 +144,12 @@ def test_uploads_at_once_are_capped_with_retry_after(server):
         head += [f"{k}: {v}\r\n" for k, v in UPLOAD_HEAD.items()]
         slow.sendall("".join(head).encode() + b"\r\n" + PART)
         time.sleep(0.5)
-        res = httpx.post(f"{base}/avatars", headers={"X-API-Key": KEY}, timeout=30,
-                         files={"video": ("a.mp4", b"\0" * 1000, "video/mp4")})  # fmt: skip
+        res = httpx.post(
+            f"{base}/avatars",
+            headers={"X-API-Key": KEY},
+            timeout=30,
+            files={"video": ("a.mp4", b"\0" * 1000, "video/mp4")},
+        )
         assert res.status_code == 503 and res.headers["retry-after"] == "1", res.text
         assert "retry" in res.json()["detail"]
     finally:
@@ -222,8 +248,9 @@ def test_no_open_api_on_a_network_address(tmp_path):
     assert "127.0.0.1" in ServiceSettings(jobs=jobs, host="::1").trusted_hosts
     from service.cli import app
 
-    result = CliRunner().invoke(app, ["serve", "--host", "0.0.0.0", "--data-dir", str(tmp_path / "data")],
-                                env={"EVA_API_KEY": ""})  # fmt: skip
+    result = CliRunner().invoke(
+        app, ["serve", "--host", "0.0.0.0", "--data-dir", str(tmp_path / "data")], env={"EVA_API_KEY": ""}
+    )
     assert result.exit_code == 2 and "without an API key" in result.output
 
 

@@ -66,14 +66,20 @@ HUGE = [
     ('{"pose": {"shape": {"age": -1e300}}}', "shape"),
     ('{"camera": {"target": [0, 1e300, 0]}}', "target"),
     ('{"camera": {"distance": 1e300}}', "distance"),
-    ('{"camera": {"K": [[1e300, 0, 32], [0, 1e300, 32], [0, 0, 1]], '
-     '"viewmat": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]]}}', "K"),
-    ('{"camera": {"K": [[50, 0, 32], [0, 50, 32], [0, 0, 1]], '
-     '"viewmat": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1e300], [0, 0, 0, 1]]}}', "viewmat"),
+    (
+        '{"camera": {"K": [[1e300, 0, 32], [0, 1e300, 32], [0, 0, 1]], '
+        '"viewmat": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]]}}',
+        "K",
+    ),
+    (
+        '{"camera": {"K": [[50, 0, 32], [0, 50, 32], [0, 0, 1]], '
+        '"viewmat": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1e300], [0, 0, 0, 1]]}}',
+        "viewmat",
+    ),
     ('{"width": 1e300}', "width"),
     ('{"frame": 1, "width": ' + "9" * 400 + "}", "width"),  # was a 500 (float overflow)
     ('{"frame": ' + "9" * 400 + "}", "frame"),
-]  # fmt: skip
+]
 
 
 @pytest.mark.parametrize(("raw", "needle"), HUGE, ids=[f"{i}-{n}" for i, (_, n) in enumerate(HUGE)])
@@ -128,8 +134,9 @@ def test_concurrent_first_requests_load_the_avatar_once(seeded, monkeypatch):
     monkeypatch.setattr(rendering_module, "load_saved_avatar", counting)
     folder = ctx.queue.storage.avatar_dir(aid)
     results = []
-    threads = [threading.Thread(target=lambda: results.append(ctx.avatars.get(aid, folder)))
-               for _ in range(6)]  # fmt: skip
+    threads = [
+        threading.Thread(target=lambda: results.append(ctx.avatars.get(aid, folder))) for _ in range(6)
+    ]
     for t in threads:
         t.start()
     for t in threads:

@@ -118,8 +118,10 @@ def test_a_body_cut_off_after_its_video_part_leaves_no_job(tmp_path, signer_vide
     video = signer_video.read_bytes()
 
     def body():  # chunked (no Content-Length): the video part is complete, then a huge field
-        yield (b'--x\r\nContent-Disposition: form-data; name="video"; filename="a.mp4"\r\n'
-               b"Content-Type: video/mp4\r\n\r\n" + video + b"\r\n")  # fmt: skip
+        yield (
+            b'--x\r\nContent-Disposition: form-data; name="video"; filename="a.mp4"\r\n'
+            b"Content-Type: video/mp4\r\n\r\n" + video + b"\r\n"
+        )
         yield b'--x\r\nContent-Disposition: form-data; name="preset"\r\n\r\n'
         for _ in range(40):
             yield b"a" * 65536

@@ -155,9 +155,11 @@ def test_training_take_keeps_held_out_expressions_out(datasets, anny_model):
     test take shows expressions the avatar never saw."""
     ctrl = datasets["controlled"]
     held = ctrl.meta.extra["held_out_face_actions"]
-    assert held and ctrl.meta.extra["motion"][0]["face_actions"] == [
-        a for a in FACE_ACTIONS if a not in held
-    ] and ctrl.meta.extra["motion"][1]["face_actions"] == list(FACE_ACTIONS)  # fmt: skip
+    assert (
+        held
+        and ctrl.meta.extra["motion"][0]["face_actions"] == [a for a in FACE_ACTIONS if a not in held]
+        and ctrl.meta.extra["motion"][1]["face_actions"] == list(FACE_ACTIONS)
+    )
     cols = [anny_model.expression_names.index(a) for a in held]
     assert ctrl.gt_params.expression[ctrl.splits["train"]][:, cols].abs().max() == 0
     # Densely sampled, another take of the same subject shows them.
@@ -204,8 +206,12 @@ def test_shading_follows_a_world_light_and_has_highlights(anny_model, tmp_path):
 def test_perturb_imitates_an_estimator(datasets, anny_model):
     gt = datasets["controlled"].gt_params
     names = anny_model.pose_joint_names
-    assert all(torch.equal(a, b) for a, b in zip(perturb(gt, 0.0, model=anny_model).tensors().values(),
-                                                 gt.tensors().values(), strict=True))  # fmt: skip
+    assert all(
+        torch.equal(a, b)
+        for a, b in zip(
+            perturb(gt, 0.0, model=anny_model).tensors().values(), gt.tensors().values(), strict=True
+        )
+    )
     noisy = perturb(gt, 1.0, model=anny_model, seed=3)
     again = perturb(gt, 1.0, model=anny_model, seed=3)
     assert torch.equal(noisy.joints, again.joints)

@@ -11,8 +11,9 @@ from eva_engine.data import load_dataset
 
 def test_synth_writes_a_dataset(tmp_path):
     out = tmp_path / "ds"
-    result = CliRunner().invoke(app, ["synth", "--preset", "controlled", "--size", "tiny", "--seed", "2",
-                                      "--out", str(out)])  # fmt: skip
+    result = CliRunner().invoke(
+        app, ["synth", "--preset", "controlled", "--size", "tiny", "--seed", "2", "--out", str(out)]
+    )
     assert result.exit_code == 0, result.output
     ds = load_dataset(out)
     assert ds.meta.extra["preset"] == "controlled" and ds.meta.extra["seed"] == 2 and len(ds) == 18

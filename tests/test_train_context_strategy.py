@@ -52,8 +52,9 @@ def render_with_grad(grad: torch.Tensor, visible: torch.Tensor | None = None) ->
     means2d = torch.zeros(n, 2, requires_grad=True)
     means2d.grad = torch.stack([grad, torch.zeros_like(grad)], dim=-1)
     radii = torch.ones(n, dtype=torch.int32) if visible is None else visible.to(torch.int32)
-    return RenderOutput(torch.zeros(2, 2, 3), torch.zeros(2, 2, 1), torch.zeros(2, 2, 1), means2d, radii,
-                        torch.ones(n), 0)  # fmt: skip
+    return RenderOutput(
+        torch.zeros(2, 2, 3), torch.zeros(2, 2, 1), torch.zeros(2, 2, 1), means2d, radii, torch.ones(n), 0
+    )
 
 
 def drive(strategy, gs, history: list[torch.Tensor], visible=None) -> dict:
@@ -135,8 +136,9 @@ def test_a_gaussian_budget_keeps_the_candidates_furthest_above_their_own_thresho
     assert stats["cloned"] == 1 and len(gs) == 4 and gs.part_ids.tolist() == [BODY, HAND, FACE, HAND]
     # The baseline (one threshold for all) takes the largest gradient.
     gs = gaussians([BODY, HAND, FACE])
-    base = DefaultStrategy(refine_start_iter=2 * R, refine_every=R, max_gaussians=4, grow_grad2d=1e-4,
-                           prune_template_dist=10.0)  # fmt: skip
+    base = DefaultStrategy(
+        refine_start_iter=2 * R, refine_every=R, max_gaussians=4, grow_grad2d=1e-4, prune_template_dist=10.0
+    )
     state = drive(base, gs, [torch.tensor([2.5e-4, 1.5e-4, 0.5e-4])] * (2 * R + 1))
     base.refine(gs, {}, state)
     assert gs.part_ids.tolist() == [BODY, HAND, FACE, BODY]
@@ -189,9 +191,13 @@ def test_same_part_distance_pruning():
     parts = torch.tensor([HAND, BODY, FACE, HAND])
     n = 4
     splats = {
-        "means": means, "scales": torch.full((n, 3), -6.0), "quats": torch.eye(4)[:1].expand(n, 4),
-        "opacities": torch.zeros(n), "sh0": torch.zeros(n, 1, 3), "shN": torch.zeros(n, 3, 3),
-    }  # fmt: skip
+        "means": means,
+        "scales": torch.full((n, 3), -6.0),
+        "quats": torch.eye(4)[:1].expand(n, 4),
+        "opacities": torch.zeros(n),
+        "sh0": torch.zeros(n, 1, 3),
+        "shN": torch.zeros(n, 3, 3),
+    }
     make = lambda: CanonicalGaussians(splats, parts, torch.zeros(n, dtype=torch.long), template, tparts)  # noqa: E731
 
     def refined(strategy) -> list[int]:

@@ -49,9 +49,11 @@ def test_training_corrects_a_misfitted_frame(anny_model):
     k = ds.splits["train"][1]
     ds.params = perturbed(anny_model, ds.params, k)
     cfg = preset(
-        "tiny", iterations=150, loss=LossConfig(lambda_lpips=0.0),
+        "tiny",
+        iterations=150,
+        loss=LossConfig(lambda_lpips=0.0),
         pose_correction=PoseCorrectionConfig(enabled=True, start_iter=50),
-    )  # fmt: skip
+    )
     result = train_avatar(ds, cfg, body=anny_model)
     row = result.train_indices.index(k)
     before = keypoint_error_mm(anny_model, ds.params[[k]], truth[[k]])

@@ -113,10 +113,14 @@ def fake_render(n: int, grad: torch.Tensor, width: int = 100, height: int = 50) 
     means2d = torch.zeros(n, 2, requires_grad=True)
     means2d.grad = grad
     return RenderOutput(
-        image=torch.zeros(height, width, 3), alpha=torch.zeros(height, width, 1),
+        image=torch.zeros(height, width, 3),
+        alpha=torch.zeros(height, width, 1),
         depth=torch.zeros(height, width, 1),
-        means2d=means2d, radii=torch.ones(n, dtype=torch.int32), depths=torch.ones(n), num_intersections=0,
-    )  # fmt: skip
+        means2d=means2d,
+        radii=torch.ones(n, dtype=torch.int32),
+        depths=torch.ones(n),
+        num_intersections=0,
+    )
 
 
 def test_default_strategy_densifies_and_prunes():

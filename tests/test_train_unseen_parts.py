@@ -25,10 +25,11 @@ def pixel_rows(avatar, params, camera, part: int) -> torch.Tensor:
 def head_and_shoulders(ds: SceneDataset, rows: int) -> SceneDataset:
     """The scene cropped to its top ``rows`` image rows (same intrinsics)."""
     frames = [
-        dataclasses.replace(f, image=f.image[:rows], mask=f.mask[:rows],
-                            regions={k: m[:rows] for k, m in f.regions.items()})
+        dataclasses.replace(
+            f, image=f.image[:rows], mask=f.mask[:rows], regions={k: m[:rows] for k, m in f.regions.items()}
+        )
         for f in ds.frames
-    ]  # fmt: skip
+    ]
     return dataclasses.replace(ds, frames=frames)
 
 

@@ -28,9 +28,18 @@ pytestmark = pytest.mark.slow
 OUT = Path(__file__).resolve().parent.parent / "out"
 CHROMIUM, CHROMEDRIVER = shutil.which("chromium") or "/usr/bin/chromium", shutil.which("chromedriver")
 # Chromium's own network calls fail on a closed network: keep it quiet (see the machine notes).
-CHROMIUM_FLAGS = ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--disable-dev-shm-usage", "--window-size=1400,1000")  # fmt: skip
+CHROMIUM_FLAGS = (
+    "--headless=new",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--disable-dev-shm-usage",
+    "--window-size=1400,1000",
+)
 
 
 def _browser():
@@ -115,8 +124,12 @@ def avatar(site, signer_video):
     Select(d.find_element(*_by("#preset"))).select_by_value("tiny")
     d.find_element(*_by("#new-avatar summary")).click()
     fast = helpers.FAST_OPTIONS
-    for field, value in (("iterations", fast["iterations"]), ("image-scale", fast["image_scale"]),
-                         ("max-frames", fast["max_frames"]), ("fit-scale", fast["fit_scale"])):  # fmt: skip
+    for field, value in (
+        ("iterations", fast["iterations"]),
+        ("image-scale", fast["image_scale"]),
+        ("max-frames", fast["max_frames"]),
+        ("fit-scale", fast["fit_scale"]),
+    ):
         d.find_element(*_by(f"#{field}")).send_keys(value)
     d.find_element(*_by("#upload-button")).click()
     stages = set()
@@ -159,8 +172,11 @@ def test_move_sliders_and_the_avatar_changes(site, avatar):
     before, count = _image(d), _renders(d)
     assert (np.abs(before - 255).sum(-1) > 40).mean() > 0.03  # the avatar is in the picture
     # A person drags the slider; here the keyboard moves it (each key press is an input event).
-    for name, keys in (("arm_out.L", [Keys.ARROW_RIGHT] * 35), ("elbow.R", [Keys.ARROW_RIGHT] * 40),
-                       ("smile", [Keys.END])):  # fmt: skip
+    for name, keys in (
+        ("arm_out.L", [Keys.ARROW_RIGHT] * 35),
+        ("elbow.R", [Keys.ARROW_RIGHT] * 40),
+        ("smile", [Keys.END]),
+    ):
         slider = d.find_element(*_by(f'input[data-control="{name}"]'))
         d.execute_script("arguments[0].scrollIntoView({block: 'center'})", slider)
         slider.click()
@@ -190,10 +206,16 @@ def test_animate_with_a_video_of_someone_else_and_play_it(site, avatar, other_si
     d.find_element(*_by("#animate-fit-scale")).send_keys("0.1")
     assert d.find_element(*_by("#side-by-side")).is_selected()
     d.find_element(*_by("#animate-button")).click()
-    wait_for(lambda: d.find_element(*_by("#animation-video")).get_attribute("data-animation-id"), 400,
-             "the animation to finish and load in the player", every=0.5)  # fmt: skip
-    metadata = ("const v = document.getElementById('animation-video');"
-                "return v.readyState >= 1 ? [v.videoWidth, v.videoHeight, v.duration] : null")  # fmt: skip
+    wait_for(
+        lambda: d.find_element(*_by("#animation-video")).get_attribute("data-animation-id"),
+        400,
+        "the animation to finish and load in the player",
+        every=0.5,
+    )
+    metadata = (
+        "const v = document.getElementById('animation-video');"
+        "return v.readyState >= 1 ? [v.videoWidth, v.videoHeight, v.duration] : null"
+    )
     width, height, duration = wait_for(lambda: d.execute_script(metadata), 30, "the video's metadata")
     assert (width, height) == (512, 256) and duration == pytest.approx(4.0, abs=0.6)  # 8 frames at 2 fps
     jobs = d.execute_script("return document.getElementById('jobs').textContent")
@@ -212,9 +234,23 @@ def test_eva_render_and_animate_on_the_service_avatar(site, avatar, tmp_path):
     folder = site.data / "avatars" / avatar.id
     pose = {"joints": {"upperarm01.R": [0.0, 0.0, -1.2]}, "expression": {"mouthSmileLeft": 0.9}}
     runner = CliRunner()
-    res = runner.invoke(app, ["render", str(folder), "--pose", json.dumps(pose), "--camera", "front_left",
-                              "--out", str(tmp_path / "pose.png"), "--width", "200",
-                              "--height", "240"])  # fmt: skip
+    res = runner.invoke(
+        app,
+        [
+            "render",
+            str(folder),
+            "--pose",
+            json.dumps(pose),
+            "--camera",
+            "front_left",
+            "--out",
+            str(tmp_path / "pose.png"),
+            "--width",
+            "200",
+            "--height",
+            "240",
+        ],
+    )
     assert res.exit_code == 0, res.output
     image = np.asarray(Image.open(tmp_path / "pose.png").convert("RGB")).astype(int)
     assert image.shape == (240, 200, 3) and (np.abs(image - 255).sum(-1) > 40).mean() > 0.03
@@ -223,8 +259,20 @@ def test_eva_render_and_animate_on_the_service_avatar(site, avatar, tmp_path):
     assert Image.open(tmp_path / "f.png").size == (256, 256)  # the training frame's size
     motion = tmp_path / "wave.json"
     motion.write_text(json.dumps({"fps": 5, "poses": [{}, pose, {}, pose]}))
-    res = runner.invoke(app, ["animate", str(folder), str(motion), "--out", str(tmp_path / "wave.mp4"),
-                              "--width", "96", "--height", "128"])  # fmt: skip
+    res = runner.invoke(
+        app,
+        [
+            "animate",
+            str(folder),
+            str(motion),
+            "--out",
+            str(tmp_path / "wave.mp4"),
+            "--width",
+            "96",
+            "--height",
+            "128",
+        ],
+    )
     assert res.exit_code == 0, res.output
     from eva_engine.data import read_video
 
@@ -256,13 +304,19 @@ def test_the_page_asks_for_the_key_once_and_sends_it(tmp_path):
         wait_for(lambda: d.execute_script(dialog), 30, "the page to ask for the key")
         d.find_element(*_by("#key-input")).send_keys("wrong")
         d.find_element(*_by("#key-form button")).click()
-        wait_for(lambda: d.execute_script(dialog) and d.find_element(*_by("#key-error")).is_displayed(), 30,
-                 "the page to say the key was refused")  # fmt: skip
+        wait_for(
+            lambda: d.execute_script(dialog) and d.find_element(*_by("#key-error")).is_displayed(),
+            30,
+            "the page to say the key was refused",
+        )
         d.find_element(*_by("#key-input")).send_keys("s3cret")
         d.find_element(*_by("#key-form button")).click()
         empty = "return document.getElementById('avatars').textContent"
-        wait_for(lambda: "No avatar yet" in d.execute_script(empty) and not d.execute_script(dialog), 30,
-                 "the avatar list, fetched with the key")  # fmt: skip
+        wait_for(
+            lambda: "No avatar yet" in d.execute_script(empty) and not d.execute_script(dialog),
+            30,
+            "the avatar list, fetched with the key",
+        )
         assert d.execute_script("return sessionStorage.getItem('eva-api-key')") == "s3cret"
         # The docs are behind the key, which a plain link cannot send: no link that answers 401.
         assert not d.find_element(*_by("a.docs")).is_displayed()

@@ -198,9 +198,12 @@ def build_correspondence(
         spread[k] = float(np.median(dist))
         on_face = bool((face_part[faces[f]] == face_index).all())
         valid[k] = (
-            len(cands) >= 0.6 * len(views) and spread[k] <= max_spread and on_face
-            and k not in oval and k < IRIS_START
-        )  # fmt: skip
+            len(cands) >= 0.6 * len(views)
+            and spread[k] <= max_spread
+            and on_face
+            and k not in oval
+            and k < IRIS_START
+        )
     logger.info("face-mesh correspondence: %d of %d landmarks valid", int(valid.sum()), NUM_LANDMARKS)
     return FaceMeshCorrespondence(tri, bary_out, valid, spread)
 

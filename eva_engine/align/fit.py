@@ -62,6 +62,7 @@ LEFT_HIP, RIGHT_HIP = 23, 24
 JOINT_LIMITS = {"body": 2.4, "hand": 1.75, "face": 0.9}
 PARAM_GROUPS = ("root", "transl", "body", "hand", "face", "expression", "shape")
 
+
 @dataclass
 class FitTargets:
     """What the fit is matched to, for F frames.
@@ -185,15 +186,26 @@ def default_stages() -> tuple[FitStage, ...]:
     has the measurements)."""
     return (
         FitStage(
-            "body", 120, ("root", "transl", "body", "shape"), w_face=0.3, rigid_face_only=True, body_3d=1.0,
+            "body",
+            120,
+            ("root", "transl", "body", "shape"),
+            w_face=0.3,
+            rigid_face_only=True,
+            body_3d=1.0,
             init_pull=0.05,
-        ),  # fmt: skip
+        ),
         FitStage("hands", 40, ("hand",), w_hand=1.0, hand_z=1.0, hand_prior=1.0, smooth=0.05),
         # Expression on its own: inside the joint refine stage its small gradients barely move.
         FitStage(
-            "face", 40, ("face", "expression"), w_pose=0.0, w_face=2.0, w_face_mesh=2.0, smooth=0.05,
+            "face",
+            40,
+            ("face", "expression"),
+            w_pose=0.0,
+            w_face=2.0,
+            w_face_mesh=2.0,
+            smooth=0.05,
             expression_reg=1e-3,
-        ),  # fmt: skip
+        ),
         FitStage(
             "refine",
             120,
@@ -206,7 +218,7 @@ def default_stages() -> tuple[FitStage, ...]:
             hand_prior=1.0,
             init_pull=0.01,
             expression_reg=1e-3,
-        ),  # fmt: skip
+        ),
     )
 
 

@@ -86,10 +86,13 @@ class Detections:
     def select(self, rows: list[int]) -> Detections:
         """The detections of frames ``rows``."""
         return Detections(
-            self.keypoints[rows], self.hand_depth[rows], self.pose_world[rows],
-            [self.masks[i] for i in rows], [self.found[i] for i in rows],
+            self.keypoints[rows],
+            self.hand_depth[rows],
+            self.pose_world[rows],
+            [self.masks[i] for i in rows],
+            [self.found[i] for i in rows],
             self.face_mesh[rows] if self.face_mesh is not None else None,
-        )  # fmt: skip
+        )
 
     def regions_found(self) -> np.ndarray:
         """[F, 3] bool per frame: left hand, right hand, face found (``REGION_MASKS`` order)."""
@@ -118,8 +121,13 @@ def detect_frames(
                 message = f"detecting the person: frame {i + 1}/{total}"
                 progress(ProgressEvent("detect", i + 1, total, message))
     if not results:
-        return Detections(np.zeros((0, len(KEYPOINT_NAMES), 3), np.float32), np.zeros((0, 42), np.float32),
-                          np.zeros((0, 33, 4), np.float32), [], [])  # fmt: skip
+        return Detections(
+            np.zeros((0, len(KEYPOINT_NAMES), 3), np.float32),
+            np.zeros((0, 42), np.float32),
+            np.zeros((0, 33, 4), np.float32),
+            [],
+            [],
+        )
     return Detections(
         keypoints=np.stack([r.keypoints for r in results]),
         hand_depth=np.stack([r.hand_depth for r in results]),
@@ -221,9 +229,13 @@ def preprocess_video(
     started = time.perf_counter()
     fps = clip.fps / config.every if clip.fps > 0 else 25.0
     meta = DatasetMeta(
-        source="video", fps=fps, image_size=(h, w), name=Path(video).stem,
-        body_model=model.name if params is not None else None, camera_source="estimated",
-    )  # fmt: skip
+        source="video",
+        fps=fps,
+        image_size=(h, w),
+        name=Path(video).stem,
+        body_model=model.name if params is not None else None,
+        camera_source="estimated",
+    )
     n = len(keep)
     test = list(range(config.test_every - 1, n, config.test_every)) if config.test_every else []
     train = [i for i in range(n) if i not in set(test)]
@@ -232,9 +244,13 @@ def preprocess_video(
             mask = det.masks[j]
             mask = np.ones((h, w), np.float32) if mask is None else mask
             writer.add_frame(
-                clip.frames[i], mask, K=K, viewmat=viewmat, time=float(clip.timestamps[i]),
+                clip.frames[i],
+                mask,
+                K=K,
+                viewmat=viewmat,
+                time=float(clip.timestamps[i]),
                 regions=regions[j] if regions is not None else None,
-            )  # fmt: skip
+            )
             if progress is not None:
                 progress(ProgressEvent("write", j + 1, n, f"writing frame {j + 1}/{n}"))
         root = writer.finish(
@@ -246,10 +262,11 @@ def preprocess_video(
             keypoint_names=list(KEYPOINT_NAMES),
             keypoints_source="mediapipe",
             keypoint_extras={
-                "hand_depth": targets.hand_depth, "pose_world": targets.pose_world,
+                "hand_depth": targets.hand_depth,
+                "pose_world": targets.pose_world,
                 **({"face_mesh": targets.face_mesh} if targets.face_mesh is not None else {}),
                 **({"hand_confidence": fit.hand_confidence.float()} if fit is not None else {}),
-            },  # fmt: skip
+            },
             extra={
                 "video": str(Path(video).name),
                 "detector": {"name": "mediapipe-holistic-0.10.21", **asdict(config.detector)},

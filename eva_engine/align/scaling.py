@@ -16,6 +16,7 @@ def scaled_fit_config(scale: float, base: FitConfig | None = None) -> FitConfig:
     base = base or FitConfig()
     if scale == 1.0:
         return base
-    stages = tuple(dataclasses.replace(st, iterations=max(1, round(st.iterations * scale)))
-                   for st in base.stages)  # fmt: skip
+    stages = tuple(
+        dataclasses.replace(st, iterations=max(1, round(st.iterations * scale))) for st in base.stages
+    )
     return dataclasses.replace(base, stages=stages, ik_iterations=max(1, round(base.ik_iterations * scale)))

@@ -183,8 +183,16 @@ def animate(
         frames.append(image)
         if progress is not None:
             done, elapsed = i + 1, time.perf_counter() - started
-            progress(ProgressEvent("render", done, len(times), f"rendering frame {done}/{len(times)}",
-                                   elapsed=elapsed, eta=elapsed / done * (len(times) - done)))  # fmt: skip
+            progress(
+                ProgressEvent(
+                    "render",
+                    done,
+                    len(times),
+                    f"rendering frame {done}/{len(times)}",
+                    elapsed=elapsed,
+                    eta=elapsed / done * (len(times) - done),
+                )
+            )
     return Animation(np.stack(frames), float(config.fps or driving.fps), times, params)
 
 

@@ -23,8 +23,11 @@ from eva_engine.body.params import BodyParams, BodyPose
 from eva_engine.body.rest_axes import RestAxes, rest_axes
 
 Vec3 = tuple[float, float, float]
-_SKELETON = {f"{j}.{s}" for j in ("upperarm01", "lowerarm01", "wrist", "finger2-1", "finger3-1", "finger5-1")
-             for s in "LR"}  # fmt: skip
+_SKELETON = {
+    f"{j}.{s}"
+    for j in ("upperarm01", "lowerarm01", "wrist", "finger2-1", "finger3-1", "finger5-1")
+    for s in "LR"
+}
 
 
 class JointTerm(BaseModel):
@@ -63,19 +66,23 @@ def _joint_controls(axes: RestAxes) -> list[PoseControl]:
 
     def split(axis: Vec3, lower: str, upper: str, low_gain: float) -> list[JointTerm]:
         """A rotation shared by two joints of a chain (neck and head, lower and upper spine)."""
-        return [JointTerm(joint=lower, axis=axis, gain=low_gain),
-                JointTerm(joint=upper, axis=axis, gain=1.0 - low_gain)]  # fmt: skip
+        return [
+            JointTerm(joint=lower, axis=axis, gain=low_gain),
+            JointTerm(joint=upper, axis=axis, gain=1.0 - low_gain),
+        ]
 
     head, torso = ("neck01", "head", 0.4), ("spine01", "spine03", 0.4)
     c: list[PoseControl] = [
         PoseControl(name="head_turn", label="Turn", group="Head", min=-1.2, max=1.2, joints=split(y, *head)),
         PoseControl(name="head_nod", label="Nod", group="Head", min=-0.8, max=0.8, joints=split(x, *head)),
         PoseControl(name="head_tilt", label="Tilt", group="Head", min=-0.6, max=0.6, joints=split(z, *head)),
-        PoseControl(name="torso_bend", label="Bend forward", group="Torso", min=-0.4, max=0.8,
-                    joints=split(x, *torso)),
-        PoseControl(name="torso_twist", label="Twist", group="Torso", min=-0.8, max=0.8,
-                    joints=split(y, *torso)),
-    ]  # fmt: skip
+        PoseControl(
+            name="torso_bend", label="Bend forward", group="Torso", min=-0.4, max=0.8, joints=split(x, *torso)
+        ),
+        PoseControl(
+            name="torso_twist", label="Twist", group="Torso", min=-0.8, max=0.8, joints=split(y, *torso)
+        ),
+    ]
     for s, side in (("L", "Left"), ("R", "Right")):
         sign = 1.0 if s == "L" else -1.0
         thumb = axes.finger[s][0]
@@ -83,36 +90,100 @@ def _joint_controls(axes: RestAxes) -> list[PoseControl]:
         curl = tuple(zip((1, 2, 3), (1.3, 1.5, 0.9), strict=True))  # per phalanx: bend more at the middle
         thumb_curl = tuple(zip((1, 2, 3), (0.5, 0.6, 0.5), strict=True))
         c += [
-            PoseControl(name=f"arm_forward.{s}", label="Raise forward", group=arm, min=-0.6, max=2.6,
-                        joints=[JointTerm(joint=f"upperarm01.{s}", axis=minus_x)]),
-            PoseControl(name=f"arm_out.{s}", label="Raise sideways", group=arm, min=-0.8, max=1.8,
-                        joints=[JointTerm(joint=f"upperarm01.{s}", axis=(0.0, 0.0, sign))]),
-            PoseControl(name=f"elbow.{s}", label="Bend elbow", group=arm, min=0.0, max=2.4,
-                        joints=[JointTerm(joint=f"lowerarm01.{s}", axis=_v(axes.elbow[s]))]),
-            PoseControl(name=f"forearm_twist.{s}", label="Twist forearm", group=arm, min=-1.5, max=1.5,
-                        joints=[JointTerm(joint=f"lowerarm02.{s}", axis=_v(axes.forearm[s]), gain=0.5),
-                                JointTerm(joint=f"wrist.{s}", axis=_v(axes.forearm[s]), gain=0.5)]),
-            PoseControl(name=f"wrist.{s}", label="Bend wrist", group=arm, min=-0.8, max=0.8,
-                        joints=[JointTerm(joint=f"wrist.{s}", axis=_v(axes.wrist_flex[s]))]),
-            PoseControl(name=f"fingers.{s}", label="Curl fingers", group=hand, min=0.0, max=1.0,
-                        joints=[JointTerm(joint=f"finger{i}-{k}.{s}", axis=_v(axes.finger[s][i - 1]), gain=g)
-                                for i in range(2, 6) for k, g in curl]),
-            PoseControl(name=f"thumb.{s}", label="Curl thumb", group=hand, min=0.0, max=1.0,
-                        joints=[JointTerm(joint=f"finger1-{k}.{s}", axis=_v(thumb), gain=g)
-                                for k, g in thumb_curl]),
-            PoseControl(name=f"hip.{s}", label="Raise leg", group=leg, min=-0.5, max=1.6,
-                        joints=[JointTerm(joint=f"upperleg01.{s}", axis=minus_x)]),
-            PoseControl(name=f"knee.{s}", label="Bend knee", group=leg, min=0.0, max=2.2,
-                        joints=[JointTerm(joint=f"lowerleg01.{s}", axis=x)]),
-        ]  # fmt: skip
+            PoseControl(
+                name=f"arm_forward.{s}",
+                label="Raise forward",
+                group=arm,
+                min=-0.6,
+                max=2.6,
+                joints=[JointTerm(joint=f"upperarm01.{s}", axis=minus_x)],
+            ),
+            PoseControl(
+                name=f"arm_out.{s}",
+                label="Raise sideways",
+                group=arm,
+                min=-0.8,
+                max=1.8,
+                joints=[JointTerm(joint=f"upperarm01.{s}", axis=(0.0, 0.0, sign))],
+            ),
+            PoseControl(
+                name=f"elbow.{s}",
+                label="Bend elbow",
+                group=arm,
+                min=0.0,
+                max=2.4,
+                joints=[JointTerm(joint=f"lowerarm01.{s}", axis=_v(axes.elbow[s]))],
+            ),
+            PoseControl(
+                name=f"forearm_twist.{s}",
+                label="Twist forearm",
+                group=arm,
+                min=-1.5,
+                max=1.5,
+                joints=[
+                    JointTerm(joint=f"lowerarm02.{s}", axis=_v(axes.forearm[s]), gain=0.5),
+                    JointTerm(joint=f"wrist.{s}", axis=_v(axes.forearm[s]), gain=0.5),
+                ],
+            ),
+            PoseControl(
+                name=f"wrist.{s}",
+                label="Bend wrist",
+                group=arm,
+                min=-0.8,
+                max=0.8,
+                joints=[JointTerm(joint=f"wrist.{s}", axis=_v(axes.wrist_flex[s]))],
+            ),
+            PoseControl(
+                name=f"fingers.{s}",
+                label="Curl fingers",
+                group=hand,
+                min=0.0,
+                max=1.0,
+                joints=[
+                    JointTerm(joint=f"finger{i}-{k}.{s}", axis=_v(axes.finger[s][i - 1]), gain=g)
+                    for i in range(2, 6)
+                    for k, g in curl
+                ],
+            ),
+            PoseControl(
+                name=f"thumb.{s}",
+                label="Curl thumb",
+                group=hand,
+                min=0.0,
+                max=1.0,
+                joints=[JointTerm(joint=f"finger1-{k}.{s}", axis=_v(thumb), gain=g) for k, g in thumb_curl],
+            ),
+            PoseControl(
+                name=f"hip.{s}",
+                label="Raise leg",
+                group=leg,
+                min=-0.5,
+                max=1.6,
+                joints=[JointTerm(joint=f"upperleg01.{s}", axis=minus_x)],
+            ),
+            PoseControl(
+                name=f"knee.{s}",
+                label="Bend knee",
+                group=leg,
+                min=0.0,
+                max=2.2,
+                joints=[JointTerm(joint=f"lowerleg01.{s}", axis=x)],
+            ),
+        ]
 
     return c
 
 
 def _face_controls() -> list[PoseControl]:
     def face(name: str, label: str, *names: str) -> PoseControl:
-        return PoseControl(name=name, label=label, group="Face", min=0.0, max=1.0,
-                           expressions=[ExpressionTerm(expression=n) for n in names])  # fmt: skip
+        return PoseControl(
+            name=name,
+            label=label,
+            group="Face",
+            min=0.0,
+            max=1.0,
+            expressions=[ExpressionTerm(expression=n) for n in names],
+        )
 
     return [
         face("jaw_open", "Open jaw", "jawOpen"),
@@ -160,8 +231,10 @@ def pose_from_controls(controls: list[PoseControl], values: dict[str, float]) ->
         for term in control.expressions:
             expression[term.expression] = expression.get(term.expression, 0.0) + term.gain * value
     joints = {name: tuple(float(v) for v in r.as_rotvec()) for name, r in rotations.items()}
-    return BodyPose(joints={k: v for k, v in joints.items() if any(v)},
-                    expression={k: v for k, v in expression.items() if v})  # type: ignore[arg-type]  # fmt: skip
+    return BodyPose(
+        joints={k: v for k, v in joints.items() if any(v)},  # type: ignore[arg-type]
+        expression={k: v for k, v in expression.items() if v},
+    )
 
 
 def params_from_controls(

@@ -122,8 +122,9 @@ def driving_from_dataset(path: str | Path, body: BodyModel, dropped: int = 0) ->
     if params is None:
         raise DrivingError(f"{path} has no body parameters (preprocess it with the body model fit)")
     if ds.meta.body_model not in (None, body.name) or params.joints.shape[1] != len(body.pose_joint_names):
-        raise DrivingError(f"{path} was fitted with body model {ds.meta.body_model!r}; "
-                           f"the avatar's is {body.name!r}")  # fmt: skip
+        raise DrivingError(
+            f"{path} was fitted with body model {ds.meta.body_model!r}; the avatar's is {body.name!r}"
+        )
     order = torch.argsort(ds.timestamps)
     ids = order.tolist()
     times = ds.timestamps[order].clone()
@@ -131,10 +132,16 @@ def driving_from_dataset(path: str | Path, body: BodyModel, dropped: int = 0) ->
         times = times[0] + torch.arange(len(ids), dtype=torch.float64) / ds.meta.fps
     frames = (ds.images(ids).numpy() * 255.0 + 0.5).astype(np.uint8)
     return DrivingSequence(
-        params=params[ids], times=times, fps=float(ds.meta.fps),
-        K=ds.K[ids].float(), viewmat=ds.viewmat[ids].float(), image_size=tuple(ds.image_size), frames=frames,
-        retarget=True, dropped=dropped,
-    )  # fmt: skip
+        params=params[ids],
+        times=times,
+        fps=float(ds.meta.fps),
+        K=ds.K[ids].float(),
+        viewmat=ds.viewmat[ids].float(),
+        image_size=tuple(ds.image_size),
+        frames=frames,
+        retarget=True,
+        dropped=dropped,
+    )
 
 
 def driving_from_video(

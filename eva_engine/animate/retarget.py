@@ -80,5 +80,6 @@ def recenter(params: BodyParams, reference: int = 0) -> BodyParams:
     """``params [T]`` moved so that frame ``reference``'s root joint sits at its rest position
     (the origin of an orbit camera's default target): the motion's displacements stay."""
     shift = params.transl[reference].clone()
-    return BodyParams(params.root_orient, params.transl - shift, params.joints, params.expression,
-                      params.shape)  # fmt: skip
+    return BodyParams(
+        params.root_orient, params.transl - shift, params.joints, params.expression, params.shape
+    )

@@ -25,8 +25,13 @@ class Framing:
 
     def camera(self, yaw: float = 0.0, pitch: float = 0.0) -> dict:
         """A ``CameraSpec`` dict for this framing seen from ``yaw``, ``pitch`` (degrees)."""
-        return {"yaw": yaw, "pitch": pitch, "target": list(self.target), "distance": self.distance,
-                "fov_y": self.fov_y}  # fmt: skip
+        return {
+            "yaw": yaw,
+            "pitch": pitch,
+            "target": list(self.target),
+            "distance": self.distance,
+            "fov_y": self.fov_y,
+        }
 
 
 def framing(avatar: Avatar, fov_y: float = 35.0, aspect: float = 1.0, margin: float = 0.25) -> Framing:

@@ -55,9 +55,13 @@ def write_ply(path: str | Path, splats: dict[str, torch.Tensor]) -> None:
     # 3DGS stores the rest coefficients channel-major: [N, K-1, 3] -> [N, 3, K-1] -> flat.
     f_rest = splats["shN"].detach().cpu().float().transpose(1, 2).reshape(n, -1).numpy()
     columns = [
-        ("x", means[:, 0]), ("y", means[:, 1]), ("z", means[:, 2]),
-        ("nx", np.zeros(n)), ("ny", np.zeros(n)), ("nz", np.zeros(n)),
-    ]  # fmt: skip
+        ("x", means[:, 0]),
+        ("y", means[:, 1]),
+        ("z", means[:, 2]),
+        ("nx", np.zeros(n)),
+        ("ny", np.zeros(n)),
+        ("nz", np.zeros(n)),
+    ]
     columns += [(f"f_dc_{i}", f_dc[:, i]) for i in range(3)]
     columns += [(f"f_rest_{i}", f_rest[:, i]) for i in range(f_rest.shape[1])]
     columns += [("opacity", splats["opacities"].detach().cpu().float().numpy())]

@@ -80,7 +80,7 @@ class Avatar(nn.Module):
                 config.mlp_depth,
                 config.mlp_out_init,
                 generator,
-            )  # fmt: skip
+            )
             if config.weight_offsets
             else None
         )
@@ -218,9 +218,18 @@ class Avatar(nn.Module):
         if background is not None:
             background = background.to(colors)
         return rasterize(
-            posed.means, posed.quats, posed.scales, posed.opacities, colors,
-            camera.viewmat, camera.K, camera.width, camera.height, background=background, config=raster,
-        )  # fmt: skip
+            posed.means,
+            posed.quats,
+            posed.scales,
+            posed.opacities,
+            colors,
+            camera.viewmat,
+            camera.K,
+            camera.width,
+            camera.height,
+            background=background,
+            config=raster,
+        )
 
     @torch.no_grad()
     def render(self, params: BodyParams, camera: Camera, background: Tensor | None = None) -> Tensor:

@@ -92,8 +92,10 @@ class RenderPose(BodyPose):
 def check_pose_ranges(body: BodyModel, pose: BodyPose) -> None:
     """``RenderInputError`` when ``pose``'s expression or shape values fall outside ``body``'s own
     ranges (e.g. Anny's expressions and phenotypes in [0, 1])."""
-    for kind, values, bounds in (("expression", pose.expression, body.expression_bounds),
-                                 ("shape", pose.shape, body.shape_bounds)):  # fmt: skip
+    for kind, values, bounds in (
+        ("expression", pose.expression, body.expression_bounds),
+        ("shape", pose.shape, body.shape_bounds),
+    ):
         if bounds is None:
             continue
         lo, hi = bounds

@@ -78,9 +78,21 @@ logger = logging.getLogger(__name__)
 ANNY_TO_WORLD = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
 
 SEGMENT_LABELS = (
-    "body", "head", "hand.L", "hand.R", "foot.L", "foot.R", "eye_front.L", "eye_front.R",
-    "eye_back.L", "eye_back.R", "eye_cavity.L", "eye_cavity.R", "mouth_cavity", "tongue",
-)  # fmt: skip
+    "body",
+    "head",
+    "hand.L",
+    "hand.R",
+    "foot.L",
+    "foot.R",
+    "eye_front.L",
+    "eye_front.R",
+    "eye_back.L",
+    "eye_back.R",
+    "eye_cavity.L",
+    "eye_cavity.R",
+    "mouth_cavity",
+    "tongue",
+)
 SEGMENT_PART = {"hand.L": "hand", "hand.R": "hand", "body": "body", "foot.L": "body", "foot.R": "body"}
 INTERIOR_LABELS = ("eye_back.L", "eye_back.R", "eye_cavity.L", "eye_cavity.R")
 
@@ -372,10 +384,21 @@ class AnnyBody(BodyModel):
         coco = AnnyCoco.coco(model)
         coco_w = coco.regression_weights.double().cpu()
         for name in (
-            "left_ear", "right_ear", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
-            "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
-            "left_heel", "right_heel",
-        ):  # fmt: skip
+            "left_ear",
+            "right_ear",
+            "left_shoulder",
+            "right_shoulder",
+            "left_elbow",
+            "right_elbow",
+            "left_hip",
+            "right_hip",
+            "left_knee",
+            "right_knee",
+            "left_ankle",
+            "right_ankle",
+            "left_heel",
+            "right_heel",
+        ):
             vt[name] = _normalised_row(coco_w[coco.labels.index(name)])
         for side in ("left", "right"):
             vt[f"{side}_foot_index"] = _normalised_row(coco_w[coco.labels.index(f"{side}_big_toe")])

@@ -253,9 +253,12 @@ class SmplxBody(BodyModel):
             h = f"{side}_hand_"
             jt[h + "wrist"] = {j[f"{side}_wrist"]: 1.0}
             for ours, theirs in (
-                ("thumb", "thumb"), ("index_finger", "index"), ("middle_finger", "middle"),
-                ("ring_finger", "ring"), ("pinky", "pinky"),
-            ):  # fmt: skip
+                ("thumb", "thumb"),
+                ("index_finger", "index"),
+                ("middle_finger", "middle"),
+                ("ring_finger", "ring"),
+                ("pinky", "pinky"),
+            ):
                 names = ("cmc", "mcp", "ip") if ours == "thumb" else ("mcp", "pip", "dip")
                 for k, n in enumerate(names, start=1):
                     jt[h + f"{ours}_{n}"] = {j[f"{side}_{theirs}{k}"]: 1.0}

@@ -22,14 +22,14 @@ def animate(
         ...,
         help="A video of anyone (preprocessed and aligned here), a JSON file of poses "
         '({"fps": 25, "poses": [BodyPose, ...]}), or a dataset folder from `eva preprocess`.',
-    ),  # fmt: skip
+    ),
     out: Path = typer.Option(..., "--out", "-o", help="The mp4 to write."),
     camera: str = typer.Option(
         "front",
         help="`driving` (the driving video's camera: the avatar where the person was), a preset "
         "(front, left, ...) or an orbit camera as JSON; an orbit without target/distance is framed on the "
         "avatar.",
-    ),  # fmt: skip
+    ),
     side_by_side: bool = typer.Option(False, "--side-by-side", help="The driving frame | the avatar."),
     fps: float | None = typer.Option(
         None, min=0.1, max=120.0, help="Output frame rate (default: the driving's); the motion is resampled."
@@ -64,9 +64,15 @@ def animate(
     console = Console(stderr=True)
     if out.suffix.lower() != ".mp4":
         raise typer.BadParameter(f"the output must be an .mp4 file, got {out.name}", param_hint="--out")
-    doc = {"camera": camera_value(camera, allow_driving=True), "side_by_side": side_by_side, "fps": fps,
-           "width": width, "height": height, "smooth_s": smooth,
-           "background": background_value(background)}  # fmt: skip
+    doc = {
+        "camera": camera_value(camera, allow_driving=True),
+        "side_by_side": side_by_side,
+        "fps": fps,
+        "width": width,
+        "height": height,
+        "smooth_s": smooth,
+        "background": background_value(background),
+    }
     try:
         config = AnimationConfig.model_validate(doc)
     except ValidationError as err:

@@ -19,7 +19,9 @@ def evaluate(
     split: str = typer.Option("test_pose", help="Split to evaluate: test_pose or test_view."),
     name: str | None = typer.Option(None, help="Row name in the table (default: the avatar folder)."),
     refine_poses: int = typer.Option(
-        0, "--refine-poses", min=0,
+        0,
+        "--refine-poses",
+        min=0,
         help="Second protocol: refine each test frame's pose for this many steps against its image, "
         "the avatar frozen, before scoring (0: the fitted poses, the main protocol).",
     ),

@@ -43,8 +43,12 @@ def camera_value(text: str | None, param: str = "--camera", allow_driving: bool 
     raise typer.BadParameter(message, param_hint=param)
 
 
-_COLOURS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0), "grey": (0.5, 0.5, 0.5),
-            "gray": (0.5, 0.5, 0.5)}  # fmt: skip
+_COLOURS = {
+    "white": (1.0, 1.0, 1.0),
+    "black": (0.0, 0.0, 0.0),
+    "grey": (0.5, 0.5, 0.5),
+    "gray": (0.5, 0.5, 0.5),
+}
 
 
 def background_value(text: str, param: str = "--background") -> tuple[float, float, float]:

@@ -23,12 +23,12 @@ def render(
         "rest",
         help="Pose JSON (a file or inline, the API's BodyPose), `frame:N` for training frame N's "
         "fitted pose and camera, or `rest`.",
-    ),  # fmt: skip
+    ),
     camera: str | None = typer.Option(
         None,
         help="A preset (front, back, left, right, front_left, front_right, above) or a camera as "
         "JSON (file or inline: orbit yaw/pitch/distance/target/fov_y, or K and viewmat).",
-    ),  # fmt: skip
+    ),
     width: int | None = typer.Option(None, min=16, max=4096, help="Pixels (default 512, or the frame's)."),
     height: int | None = typer.Option(None, min=16, max=4096, help="Pixels (default 512, or the frame's)."),
     background: str = typer.Option("white", help="white, black, grey, #rrggbb or r,g,b in [0, 1]."),
@@ -37,7 +37,7 @@ def render(
         "--framed/--origin",
         help="Aim an orbit camera that sets no target/distance at the avatar's "
         "Gaussians (--origin: the API's default, the world origin from 2.6 m).",
-    ),  # fmt: skip
+    ),
 ) -> None:
     """Render the avatar in a pose, expression and view: the same JSON as `POST /avatars/{id}/render`."""
     from PIL import Image

@@ -27,7 +27,7 @@ def synth(
         SynthPreset.wild,
         help="controlled: XHumans-like, thighs up, ground truth given, tested on other motion takes; "
         "wild: UPB-like waist-up signer, alternate frames tested.",
-    ),  # fmt: skip
+    ),
     size: SynthSize = typer.Option(
         SynthSize.tiny, help="tiny: 96 px; small: 256 px (12 training frames); bench: 512 px, 150 of them."
     ),
@@ -50,8 +50,9 @@ def synth(
     if target.exists() and not target.is_dir():
         raise typer.BadParameter(f"{target} exists and is not a folder", param_hint="--out")
     if target.exists() and not overwrite:
-        raise typer.BadParameter(f"{target} already exists (pass --overwrite to replace a dataset)",
-                                 param_hint="--out")  # fmt: skip
+        raise typer.BadParameter(
+            f"{target} already exists (pass --overwrite to replace a dataset)", param_hint="--out"
+        )
 
     from eva_engine.body import AnnyCacheError, load_body_model
     from eva_engine.render.mesh import MeshRenderError

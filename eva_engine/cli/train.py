@@ -64,17 +64,28 @@ def train(
     if method is not None:
         config = with_method(config, method)
 
-    columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-               TextColumn("loss {task.fields[loss]:.4f}"), TextColumn("{task.fields[gaussians]} GS"),
-               TimeElapsedColumn(), TimeRemainingColumn())  # fmt: skip
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TextColumn("loss {task.fields[loss]:.4f}"),
+        TextColumn("{task.fields[gaussians]} GS"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
     started = time.perf_counter()
     with Progress(*columns, console=console, transient=False) as bar:
         task = bar.add_task("setup", total=config.iterations, loss=float("nan"), gaussians=0)
 
         def report(event: ProgressEvent) -> None:
             loss = event.loss if event.loss is not None else float("nan")
-            bar.update(task, description=event.stage, completed=event.done, loss=loss,
-                       gaussians=event.num_gaussians or 0)  # fmt: skip
+            bar.update(
+                task,
+                description=event.stage,
+                completed=event.done,
+                loss=loss,
+                gaussians=event.num_gaussians or 0,
+            )
 
         try:
             result = train_avatar(ds, config, progress=report)

@@ -428,8 +428,9 @@ class DatasetWriter:
         if gt_params is not None:
             _save_params(tmp / "ground_truth" / "params.safetensors", gt_params, params_names, "ground_truth")
         if gt_keypoints is not None:
-            _save_keypoints(tmp / "ground_truth" / "keypoints.safetensors", gt_keypoints, keypoint_names,
-                            "ground_truth")  # fmt: skip
+            _save_keypoints(
+                tmp / "ground_truth" / "keypoints.safetensors", gt_keypoints, keypoint_names, "ground_truth"
+            )
         meta.num_frames = n
         meta.timestamps = list(self._times)
         meta.has_region_masks = bool(self._regions)

@@ -32,15 +32,62 @@ from eva_engine.body.params import BodyParams
 from eva_engine.data.dataset import DatasetError, DatasetMeta, DatasetWriter, ParamNames
 
 SMPLX_JOINT_NAMES = (
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
-    "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head",
-    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "jaw",
-    "left_eye_smplhf", "right_eye_smplhf", "left_index1", "left_index2", "left_index3", "left_middle1",
-    "left_middle2", "left_middle3", "left_pinky1", "left_pinky2", "left_pinky3", "left_ring1", "left_ring2",
-    "left_ring3", "left_thumb1", "left_thumb2", "left_thumb3", "right_index1", "right_index2", "right_index3",
-    "right_middle1", "right_middle2", "right_middle3", "right_pinky1", "right_pinky2", "right_pinky3",
-    "right_ring1", "right_ring2", "right_ring3", "right_thumb1", "right_thumb2", "right_thumb3",
-)  # fmt: skip
+    "pelvis",
+    "left_hip",
+    "right_hip",
+    "spine1",
+    "left_knee",
+    "right_knee",
+    "spine2",
+    "left_ankle",
+    "right_ankle",
+    "spine3",
+    "left_foot",
+    "right_foot",
+    "neck",
+    "left_collar",
+    "right_collar",
+    "head",
+    "left_shoulder",
+    "right_shoulder",
+    "left_elbow",
+    "right_elbow",
+    "left_wrist",
+    "right_wrist",
+    "jaw",
+    "left_eye_smplhf",
+    "right_eye_smplhf",
+    "left_index1",
+    "left_index2",
+    "left_index3",
+    "left_middle1",
+    "left_middle2",
+    "left_middle3",
+    "left_pinky1",
+    "left_pinky2",
+    "left_pinky3",
+    "left_ring1",
+    "left_ring2",
+    "left_ring3",
+    "left_thumb1",
+    "left_thumb2",
+    "left_thumb3",
+    "right_index1",
+    "right_index2",
+    "right_index3",
+    "right_middle1",
+    "right_middle2",
+    "right_middle3",
+    "right_pinky1",
+    "right_pinky2",
+    "right_pinky3",
+    "right_ring1",
+    "right_ring2",
+    "right_ring3",
+    "right_thumb1",
+    "right_thumb2",
+    "right_thumb3",
+)
 """SMPL-X's 55 kinematic joints (the ``smplx`` package's order); the root is ``pelvis``."""
 
 _FRAME = re.compile(r"color_(\d+)\.png$")
@@ -83,8 +130,18 @@ def _load_smplx(path: Path) -> dict[str, np.ndarray]:
         raise DatasetError(f"refusing to load {path}: {err}") from err
     except Exception as err:
         raise DatasetError(f"cannot read SMPL-X parameters {path}: {err}") from err
-    keys = ("betas", "global_orient", "body_pose", "left_hand_pose", "right_hand_pose", "jaw_pose",
-            "leye_pose", "reye_pose", "expression", "transl")  # fmt: skip
+    keys = (
+        "betas",
+        "global_orient",
+        "body_pose",
+        "left_hand_pose",
+        "right_hand_pose",
+        "jaw_pose",
+        "leye_pose",
+        "reye_pose",
+        "expression",
+        "transl",
+    )
     if not isinstance(d, dict) or any(k not in d for k in keys):
         raise DatasetError(f"{path} lacks SMPL-X keys (need {list(keys)})")
     return {k: np.asarray(d[k], dtype=np.float32).reshape(-1) for k in keys}
@@ -96,13 +153,23 @@ def _params(frames: list[dict[str, np.ndarray]]) -> BodyParams:
 
     n = len(frames)
     joints = torch.cat(
-        [stack("body_pose").view(n, 21, 3), stack("jaw_pose").view(n, 1, 3), stack("leye_pose").view(n, 1, 3),
-         stack("reye_pose").view(n, 1, 3), stack("left_hand_pose").view(n, 15, 3),
-         stack("right_hand_pose").view(n, 15, 3)],
+        [
+            stack("body_pose").view(n, 21, 3),
+            stack("jaw_pose").view(n, 1, 3),
+            stack("leye_pose").view(n, 1, 3),
+            stack("reye_pose").view(n, 1, 3),
+            stack("left_hand_pose").view(n, 15, 3),
+            stack("right_hand_pose").view(n, 15, 3),
+        ],
         dim=1,
-    )  # fmt: skip
-    return BodyParams(root_orient=stack("global_orient"), transl=stack("transl"), joints=joints,
-                      expression=stack("expression"), shape=stack("betas"))  # fmt: skip
+    )
+    return BodyParams(
+        root_orient=stack("global_orient"),
+        transl=stack("transl"),
+        joints=joints,
+        expression=stack("expression"),
+        shape=stack("betas"),
+    )
 
 
 def _read(path: Path, flags: int) -> np.ndarray:
@@ -189,9 +256,13 @@ def read_xhumans(
                 view[:3] = extrinsic[k - 1][:3]
                 if writer is None:
                     meta = DatasetMeta(
-                        source="xhumans", fps=opts.fps, image_size=(h, w), name=f"xhumans-{root.name}",
-                        body_model="smplx", camera_source="ground_truth",
-                    )  # fmt: skip
+                        source="xhumans",
+                        fps=opts.fps,
+                        image_size=(h, w),
+                        name=f"xhumans-{root.name}",
+                        body_model="smplx",
+                        camera_source="ground_truth",
+                    )
                     writer = DatasetWriter(out, meta, overwrite=overwrite)
                     regions = RegionMaskRenderer(model, (h, w)) if model is not None else None
                 K_t, view_t = torch.from_numpy(K).float(), torch.from_numpy(view).float()
@@ -213,9 +284,13 @@ def read_xhumans(
             [f"beta_{i}" for i in range(params.shape.shape[1])],
         )
         return writer.finish(
-            split_ids, params=params, params_names=names, params_source="ground_truth", gt_params=params,
+            split_ids,
+            params=params,
+            params_names=names,
+            params_source="ground_truth",
+            gt_params=params,
             extra={"subject": root.name, "gender": gender, "source_frames": source_frames},
-        )  # fmt: skip
+        )
     finally:
         if writer is not None:
             writer.discard()

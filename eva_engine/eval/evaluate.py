@@ -208,8 +208,12 @@ def evaluate_avatar(
         found = [r[region] for r in per_frame.values() if region in r]
         if not found:
             continue
-        n_crops = sum(1 for r in per_frame.values() for name, reg in REGION_OF_MASK.items()
-                      if reg == region and name in r)  # fmt: skip
+        n_crops = sum(
+            1
+            for r in per_frame.values()
+            for name, reg in REGION_OF_MASK.items()
+            if reg == region and name in r
+        )
         regions[region] = RegionMetrics(
             **_mean(found),
             frames=len(found),
@@ -236,8 +240,14 @@ def evaluate_avatar(
     )
 
 
-def refined_params(avatar: Avatar, dataset: DatasetLike, indices: list[int], params: BodyParams,
-                   background: Tensor, refinement: PoseRefinement) -> BodyParams:  # fmt: skip
+def refined_params(
+    avatar: Avatar,
+    dataset: DatasetLike,
+    indices: list[int],
+    params: BodyParams,
+    background: Tensor,
+    refinement: PoseRefinement,
+) -> BodyParams:
     """``params`` (all frames) with the rows ``indices`` refined against their images, the avatar
     frozen (``PoseRefinement``); the other rows unchanged."""
     from eva_engine.train.losses import composite_target
@@ -252,9 +262,15 @@ def refined_params(avatar: Avatar, dataset: DatasetLike, indices: list[int], par
     config = PoseCorrectionConfig(enabled=True, start_iter=0, lr=refinement.lr)
     rows = params[torch.tensor(indices)].map(lambda t: t.to(device))
     fixed, _ = refine_poses(
-        avatar, targets.to(device), frames.masks.to(device), frames.cameras, rows, background.to(device),
-        config, refinement.steps,
-    )  # fmt: skip
+        avatar,
+        targets.to(device),
+        frames.masks.to(device),
+        frames.cameras,
+        rows,
+        background.to(device),
+        config,
+        refinement.steps,
+    )
     out = params.map(lambda t: t.detach().clone())
     for k, v in fixed.tensors().items():
         getattr(out, k)[torch.tensor(indices)] = v.to(getattr(out, k))

@@ -29,8 +29,9 @@ class Camera:
 
     def __post_init__(self) -> None:
         if tuple(self.K.shape) != (3, 3) or tuple(self.viewmat.shape) != (4, 4):
-            raise ValueError(f"K must be [3, 3] and viewmat [4, 4], got {tuple(self.K.shape)}, "
-                             f"{tuple(self.viewmat.shape)}")  # fmt: skip
+            raise ValueError(
+                f"K must be [3, 3] and viewmat [4, 4], got {tuple(self.K.shape)}, {tuple(self.viewmat.shape)}"
+            )
         if int(self.width) < 1 or int(self.height) < 1:
             raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
         self.width, self.height = int(self.width), int(self.height)

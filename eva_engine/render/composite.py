@@ -370,9 +370,19 @@ class _CompositeImage(torch.autograd.Function):
         means2d, conics, opacities, colors, depths, background, t_final, count = ctx.saved_tensors
         # g: [N, 7 + D] = dL/d(means2d x, y | conic a, b, c | opacity | colours | depth) per Gaussian.
         g, g_bg = ctx.ops.composite_image_backward(
-            means2d, conics, opacities, colors, depths, background, *ctx.tiles,
-            t_final, count, grad_image, grad_depth, grad_alpha,
-        )  # fmt: skip
+            means2d,
+            conics,
+            opacities,
+            colors,
+            depths,
+            background,
+            *ctx.tiles,
+            t_final,
+            count,
+            grad_image,
+            grad_depth,
+            grad_alpha,
+        )
         d = colors.shape[1]
         return g[:, :2], g[:, 2:5], g[:, 5], g[:, 6 : 6 + d], g[:, 6 + d], g_bg, None, None, None, None
 

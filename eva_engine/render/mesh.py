@@ -229,9 +229,13 @@ class MeshRenderer:
             self._texture = None
             self._vao = ctx.vertex_array(
                 self._prog,
-                [(self._pos, "3f", "in_pos"), (self._nrm, "3f", "in_normal"),
-                 (self._col, "3f", "in_color"), (self._uv, "2f", "in_uv")],
-            )  # fmt: skip
+                [
+                    (self._pos, "3f", "in_pos"),
+                    (self._nrm, "3f", "in_normal"),
+                    (self._col, "3f", "in_color"),
+                    (self._uv, "2f", "in_uv"),
+                ],
+            )
             light = np.asarray(c.light, dtype=np.float64)
             self._light = light / np.linalg.norm(light)
             self._prog["light"].value = tuple(self._light)

@@ -62,6 +62,8 @@ def normalize_quats(quats: Tensor) -> Tensor:
 def quat_to_rotmat(quats: Tensor) -> Tensor:
     """[N, 4] (w, x, y, z), any norm -> [N, 3, 3] rotation matrices (see ``normalize_quats``)."""
     w, x, y, z = normalize_quats(quats).unbind(-1)
+    # The nine entries laid out as the 3x3 matrix they form.
+    # fmt: off
     return torch.stack(
         [
             1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
@@ -69,7 +71,8 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
             2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
         ],
         dim=-1,
-    ).reshape(*quats.shape[:-1], 3, 3)  # fmt: skip
+    ).reshape(*quats.shape[:-1], 3, 3)
+    # fmt: on
 
 
 def project_gaussians(

@@ -129,9 +129,18 @@ def rasterize(
     )
     if cfg.backend == "tiled":
         image, depth, alpha = composite_image(
-            means2d, proj.conics, opacities, colors, proj.depths, bins, width, height, background,
-            cfg.composite, kernel,
-        )  # fmt: skip
+            means2d,
+            proj.conics,
+            opacities,
+            colors,
+            proj.depths,
+            bins,
+            width,
+            height,
+            background,
+            cfg.composite,
+            kernel,
+        )
     else:
         # Depth is composited as one more feature channel, with no background term.
         feats = torch.cat([colors, proj.depths[:, None]], dim=-1)

@@ -79,9 +79,15 @@ def bin_gaussians(
         if exact and resolve_kernel(kernel, means2d) == "cpp":
             dt = means2d.dtype
             gauss_ids, tile_ids, tile_start, tile_count = load_kernels().bin_tiles(
-                means2d.detach(), conics.detach().to(dt), opacities.detach().to(dt), radii.to(torch.int32),
-                depths.detach().to(dt), width, height, tile_size,
-            )  # fmt: skip
+                means2d.detach(),
+                conics.detach().to(dt),
+                opacities.detach().to(dt),
+                radii.to(torch.int32),
+                depths.detach().to(dt),
+                width,
+                height,
+                tile_size,
+            )
             return TileBins(tile_size, tiles_x, tiles_y, gauss_ids, tile_ids, tile_start, tile_count)
         visible = torch.nonzero((radii > 0).all(dim=-1)).squeeze(-1)
         # Front-to-back order first; the stable sort by tile below keeps it within each tile.
@@ -105,9 +111,16 @@ def bin_gaussians(
         ty = y0 + local // span
         if exact and owner.numel():
             keep = _reaches_tile(
-                means2d.detach()[order], conics.detach()[order], opacities.detach()[order],
-                owner, tx, ty, tile_size, width, height,
-            )  # fmt: skip
+                means2d.detach()[order],
+                conics.detach()[order],
+                opacities.detach()[order],
+                owner,
+                tx,
+                ty,
+                tile_size,
+                width,
+                height,
+            )
             keep = torch.nonzero(keep).squeeze(-1)
             owner, tx, ty = owner[keep], tx[keep], ty[keep]
         tile = ty * tiles_x + tx

@@ -102,6 +102,7 @@ def camera_from_spec(spec: CameraSpec | None, width: int, height: int) -> Camera
     spec = spec or CameraSpec()
     if spec.K is not None and spec.viewmat is not None:
         return Camera(torch.tensor(spec.K), torch.tensor(spec.viewmat), width, height)
-    view = orbit_camera(spec.yaw or 0.0, spec.pitch or 0.0, spec.distance or DEFAULT_DISTANCE,
-                        spec.target or (0.0, 0.0, 0.0))  # fmt: skip
+    view = orbit_camera(
+        spec.yaw or 0.0, spec.pitch or 0.0, spec.distance or DEFAULT_DISTANCE, spec.target or (0.0, 0.0, 0.0)
+    )
     return Camera(intrinsics(width, height, spec.fov_y or DEFAULT_FOV_Y), view, width, height)

@@ -90,19 +90,22 @@ class Size:
 
 
 PRESETS: dict[str, Preset] = {
-    "controlled": Preset("controlled", (0.0, 0.22, 0.0), 2.0, 40.0, body_turn=0.5, give_ground_truth=True,
-                         split="takes"),
-    "wild": Preset("wild", (0.0, 0.42, 0.0), 2.45, 30.0, body_turn=0.15, give_ground_truth=False,
-                   split="interleaved"),
-}  # fmt: skip
+    "controlled": Preset(
+        "controlled", (0.0, 0.22, 0.0), 2.0, 40.0, body_turn=0.5, give_ground_truth=True, split="takes"
+    ),
+    "wild": Preset(
+        "wild", (0.0, 0.42, 0.0), 2.45, 30.0, body_turn=0.15, give_ground_truth=False, split="interleaved"
+    ),
+}
 SIZES: dict[str, Size] = {
     "tiny": Size("tiny", 96, 12, 3, supersample=3, texture_size=512),
     # Large enough for a real detector (MediaPipe needs ~15 px palms), small enough for tests.
     "small": Size("small", 256, 12, 3, supersample=2, texture_size=1024, test_frames=4),
     # XHumans' protocol: 20 frames of each test take, sampled every 5th frame.
-    "bench": Size("bench", 512, 150, 30, supersample=2, texture_size=2048, test_takes=2, test_frames=20,
-                  test_stride=5),
-}  # fmt: skip
+    "bench": Size(
+        "bench", 512, 150, 30, supersample=2, texture_size=2048, test_takes=2, test_frames=20, test_stride=5
+    ),
+}
 MOTION_SECONDS = 6.0
 TRAIN_FACE_ACTIONS = tuple(a for a in FACE_ACTIONS if a not in HELD_OUT_FACE_ACTIONS)
 
@@ -164,8 +167,14 @@ def cameras(preset: Preset, size: Size) -> tuple[torch.Tensor, torch.Tensor, tor
 
 def random_shape(model, rng: np.random.Generator) -> torch.Tensor:
     """An adult Anny phenotype [1, S] (gender, age, muscle, weight, height, proportions)."""
-    ranges = {"gender": (0.0, 1.0), "age": (0.45, 0.75), "muscle": (0.3, 0.7), "weight": (0.3, 0.7),
-              "height": (0.3, 0.7), "proportions": (0.4, 0.6)}  # fmt: skip
+    ranges = {
+        "gender": (0.0, 1.0),
+        "age": (0.45, 0.75),
+        "muscle": (0.3, 0.7),
+        "weight": (0.3, 0.7),
+        "height": (0.3, 0.7),
+        "proportions": (0.4, 0.6),
+    }
     values = [rng.uniform(*ranges.get(name, (0.45, 0.55))) for name in model.shape_names]
     return torch.tensor([values], dtype=model.dtype)
 
@@ -235,31 +244,54 @@ def generate(
         inside = (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h) & (depth > 0)
         keypoints = torch.cat([uv, inside[..., None].to(uv.dtype)], dim=-1).float()
         regions = face_regions(model)
-        config = MeshRenderConfig(width=w, height=h, supersample=s.supersample, background=(1.0, 1.0, 1.0),
-                                  light=p.light, light_frame="world")  # fmt: skip
+        config = MeshRenderConfig(
+            width=w,
+            height=h,
+            supersample=s.supersample,
+            background=(1.0, 1.0, 1.0),
+            light=p.light,
+            light_frame="world",
+        )
         with MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer:
             apply_look(renderer, model, params[0], look, s.texture_size, seed=seed)
             total = len(plan.frames)
             for i, (_, t) in enumerate(plan.frames):
                 r = renderer.render(posed.vertices[i], views[i], K)
-                writer.add_frame(r.rgb.numpy(), r.alpha.numpy(), K=K, viewmat=views[i], time=float(t),
-                                 regions=coverage_by_region(r, regions))  # fmt: skip
+                writer.add_frame(
+                    r.rgb.numpy(),
+                    r.alpha.numpy(),
+                    K=K,
+                    viewmat=views[i],
+                    time=float(t),
+                    regions=coverage_by_region(r, regions),
+                )
                 if progress is not None:
                     progress(ProgressEvent("render", i + 1, total, f"rendering frame {i + 1}/{total}"))
         give = p.give_ground_truth
         pose_of_frame = list(range(n_seq)) + plan.views
         return writer.finish(
             plan.splits,
-            params=params if give else None, params_names=ParamNames.of(model), params_source="ground_truth",
-            keypoints=keypoints if give else None, keypoint_names=list(model.keypoint_names),
-            keypoints_source="ground_truth", gt_params=params, gt_keypoints=keypoints,
+            params=params if give else None,
+            params_names=ParamNames.of(model),
+            params_source="ground_truth",
+            keypoints=keypoints if give else None,
+            keypoint_names=list(model.keypoint_names),
+            keypoints_source="ground_truth",
+            gt_params=params,
+            gt_keypoints=keypoints,
             extra={
-                "generator": "eva_engine.synth.benchmark", "preset": preset, "size": size, "seed": seed,
-                "split_style": p.split, "take_of_frame": [k for k, _ in plan.frames],
-                "pose_of_frame": pose_of_frame, "look": dataclasses.asdict(look),
-                "view_angle_deg": p.view_angle_deg, "motion": [motions[k] for k in sorted(motions)],
+                "generator": "eva_engine.synth.benchmark",
+                "preset": preset,
+                "size": size,
+                "seed": seed,
+                "split_style": p.split,
+                "take_of_frame": [k for k, _ in plan.frames],
+                "pose_of_frame": pose_of_frame,
+                "look": dataclasses.asdict(look),
+                "view_angle_deg": p.view_angle_deg,
+                "motion": [motions[k] for k in sorted(motions)],
                 "held_out_face_actions": list(HELD_OUT_FACE_ACTIONS) if p.split == "takes" else [],
                 "renderer": "moderngl/llvmpipe textured mesh, Lambert + Blinn-Phong, world light",
                 "supersample": s.supersample,
             },
-        )  # fmt: skip
+        )

@@ -30,8 +30,19 @@ HANDSHAPES = {  # per-finger curl (thumb .. pinky), 0 = straight, 1 = fully bent
     "claw": (0.4, 0.55, 0.55, 0.55, 0.55),
     "y": (0.0, 1.0, 1.0, 1.0, 0.0),
 }
-FACE_ACTIONS = ("jawOpen", "mouthSmileLeft", "mouthSmileRight", "browInnerUp", "mouthPucker", "eyeWideLeft",
-                "eyeWideRight", "mouthFunnel", "browDownLeft", "browDownRight", "cheekPuff")  # fmt: skip
+FACE_ACTIONS = (
+    "jawOpen",
+    "mouthSmileLeft",
+    "mouthSmileRight",
+    "browInnerUp",
+    "mouthPucker",
+    "eyeWideLeft",
+    "eyeWideRight",
+    "mouthFunnel",
+    "browDownLeft",
+    "browDownRight",
+    "cheekPuff",
+)
 HELD_OUT_FACE_ACTIONS = ("mouthPucker", "mouthFunnel", "browDownLeft", "browDownRight", "cheekPuff")
 """Facial actions a benchmark can keep out of its training take, so test takes show new expressions."""
 

@@ -29,8 +29,18 @@ TROUSER_COLORS = ((0.28, 0.21, 0.15), (0.14, 0.18, 0.30), (0.13, 0.13, 0.13))
 HAIR_COLORS = ((0.06, 0.05, 0.05), (0.24, 0.15, 0.08), (0.55, 0.43, 0.26))
 PRINT_INKS = ((0.95, 0.93, 0.85), (0.98, 0.80, 0.15), (0.90, 0.25, 0.20))
 # Highlight strength (texture alpha) per material.
-GLOSS = {"skin": 0.10, "lips": 0.25, "eye": 0.8, "nail": 0.5, "hair": 0.2, "shirt": 0.04, "print": 0.2,
-         "trousers": 0.03, "shoes": 0.35, "mouth": 0.3}  # fmt: skip
+GLOSS = {
+    "skin": 0.10,
+    "lips": 0.25,
+    "eye": 0.8,
+    "nail": 0.5,
+    "hair": 0.2,
+    "shirt": 0.04,
+    "print": 0.2,
+    "trousers": 0.03,
+    "shoes": 0.35,
+    "mouth": 0.3,
+}
 IRIS_COLORS = ((0.30, 0.17, 0.07), (0.22, 0.38, 0.58), (0.28, 0.42, 0.22))
 # Multiplicative tint per finger (thumb .. pinky): distinct but still skin.
 FINGER_TINTS = (
@@ -63,8 +73,15 @@ class Look:
 
         skin = pick(SKIN_TONES)
         lips = tuple(float(x) for x in np.clip(np.array(skin) * (0.95, 0.55, 0.55) + (0.10, 0.0, 0.0), 0, 1))
-        return cls(skin=skin, shirt=pick(SHIRT_COLORS), trousers=pick(TROUSER_COLORS), hair=pick(HAIR_COLORS),
-                   iris=pick(IRIS_COLORS), lips=lips, print_ink=pick(PRINT_INKS))  # fmt: skip
+        return cls(
+            skin=skin,
+            shirt=pick(SHIRT_COLORS),
+            trousers=pick(TROUSER_COLORS),
+            hair=pick(HAIR_COLORS),
+            iris=pick(IRIS_COLORS),
+            lips=lips,
+            print_ink=pick(PRINT_INKS),
+        )
 
 
 def _hash_noise(p: np.ndarray, scale: float, seed: int) -> np.ndarray:

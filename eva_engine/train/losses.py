@@ -85,8 +85,9 @@ class AvatarLoss(nn.Module):
     ) -> None:
         super().__init__()
         if config.photometric not in PHOTOMETRIC_LOSSES:
-            raise ValueError(f"unknown photometric loss {config.photometric!r}; "
-                             f"choose one of {sorted(PHOTOMETRIC_LOSSES)}")  # fmt: skip
+            raise ValueError(
+                f"unknown photometric loss {config.photometric!r}; choose one of {sorted(PHOTOMETRIC_LOSSES)}"
+            )
         self.config = config
         self.photometric = PHOTOMETRIC_LOSSES[config.photometric](generator=generator)
         self.lpips = lpips if lpips is not None or config.lambda_lpips == 0 else LPIPS()

@@ -72,8 +72,9 @@ class PoseCorrection(nn.Module):
     prior(t): the prior's value for frame t (a scalar, differentiable).
     """
 
-    def __init__(self, num_frames: int, joint_part_ids: Tensor, expression_dim: int,
-                 config: PoseCorrectionConfig) -> None:  # fmt: skip
+    def __init__(
+        self, num_frames: int, joint_part_ids: Tensor, expression_dim: int, config: PoseCorrectionConfig
+    ) -> None:
         super().__init__()
         self.config = config
         self.register_buffer("joint_part_ids", joint_part_ids.to(torch.int64).clone())
@@ -171,9 +172,9 @@ def refine_poses(
     loss = loss or AvatarLoss(LossConfig(lambda_ssim=0.0, lambda_lpips=0.0))
     device = images.device
     n = params.batch_size
-    correction = PoseCorrection(
-        n, avatar.body.joint_part_ids[1:], params.expression.shape[1], config
-    ).to(device)
+    correction = PoseCorrection(n, avatar.body.joint_part_ids[1:], params.expression.shape[1], config).to(
+        device
+    )
     opt = torch.optim.Adam(correction.parameters(), lr=config.lr)
     frozen = [p for p in avatar.parameters() if p.requires_grad]
     for p in frozen:

@@ -38,8 +38,15 @@ class TrainingError(RuntimeError):
     """The data cannot be trained on (no body parameters, no training frames, ...)."""
 
 
-def _train_event(stage: str, done: int, total: int, loss: float | None, num_gaussians: int,
-                elapsed: float, eta: float | None) -> ProgressEvent:  # fmt: skip
+def _train_event(
+    stage: str,
+    done: int,
+    total: int,
+    loss: float | None,
+    num_gaussians: int,
+    elapsed: float,
+    eta: float | None,
+) -> ProgressEvent:
     """A training progress report: stage "setup", "train" or "done", iteration ``done`` (1-based)
     of ``total``, the current loss, the Gaussian count, elapsed and remaining seconds."""
     message = f"iteration {done}/{total}, {num_gaussians} Gaussians"
@@ -243,8 +250,12 @@ def train_avatar(
     strategy.check_sanity(avatar.gaussians, optimizers)
     state = strategy.initialize_state()
     parts_before = part_counts(avatar.gaussians.part_ids)
-    logger.info("setup %.1fs: %d frames, %d Gaussians", time.perf_counter() - t_setup, len(train_ids),
-                len(avatar.gaussians))  # fmt: skip
+    logger.info(
+        "setup %.1fs: %d frames, %d Gaussians",
+        time.perf_counter() - t_setup,
+        len(train_ids),
+        len(avatar.gaussians),
+    )
 
     frame_order = torch.Generator().manual_seed(config.seed)
     order: list[int] = []
@@ -323,6 +334,13 @@ def train_avatar(
     per_part = {"before": parts_before, "after": part_counts(avatar.gaussians.part_ids)}
     trained = (correction.corrected(params) if correction is not None else params).to("cpu")
     return TrainResult(
-        avatar, losses, train_seconds, timings, refinements, per_part, train_ids, trained,
+        avatar,
+        losses,
+        train_seconds,
+        timings,
+        refinements,
+        per_part,
+        train_ids,
+        trained,
         correction.magnitudes() if correction is not None else {},
-    )  # fmt: skip
+    )

@@ -64,8 +64,13 @@ def demo(
         raise typer.BadParameter(message, param_hint="--animation")
     options = {"preset": preset} | ({"iterations": str(iterations)} if iterations else {})
     options |= {"fit_scale": str(fit_scale)} if fit_scale else {}
-    columns = (TextColumn("{task.description:>10}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
-               TextColumn("{task.fields[eta]}"), TimeElapsedColumn())  # fmt: skip
+    columns = (
+        TextColumn("{task.description:>10}"),
+        BarColumn(),
+        TextColumn("{task.percentage:>3.0f}%"),
+        TextColumn("{task.fields[eta]}"),
+        TimeElapsedColumn(),
+    )
     with Progress(*columns, console=console) as bar:
         task = bar.add_task("starting", total=1.0, eta="")
 
@@ -87,5 +92,7 @@ def demo(
     phases = " · ".join(f"{name} {sec:.0f} s" for name, sec in result.phases.items())
     console.print(f"time per phase: {phases}")
     service = workdir / "service"
-    console.print(f"See the avatar in the web page: [bold]eva serve --data-dir {service}[/], then open "
-                  "[bold]http://127.0.0.1:8000/[/]")  # fmt: skip
+    console.print(
+        f"See the avatar in the web page: [bold]eva serve --data-dir {service}[/], then open "
+        "[bold]http://127.0.0.1:8000/[/]"
+    )

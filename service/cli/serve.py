@@ -34,8 +34,9 @@ def serve(
 
     try:
         jobs = JobsConfig.from_env(data_dir=data_dir, queue_url=queue_url)
-        settings = ServiceSettings.from_env(jobs, host=host, port=port, api_key=api_key,
-                                            max_upload_mb=max_upload_mb)  # fmt: skip
+        settings = ServiceSettings.from_env(
+            jobs, host=host, port=port, api_key=api_key, max_upload_mb=max_upload_mb
+        )
     except ValueError as err:
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(2) from err

@@ -38,8 +38,13 @@ def worker(
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
-        config = JobsConfig.from_env(data_dir=data_dir, queue_url=queue_url, threads=threads,
-                                     stale_after_s=stale_after, job_memory_mb=memory_mb or None)  # fmt: skip
+        config = JobsConfig.from_env(
+            data_dir=data_dir,
+            queue_url=queue_url,
+            threads=threads,
+            stale_after_s=stale_after,
+            job_memory_mb=memory_mb or None,
+        )
         if memory_mb == 0:
             config = config.model_copy(update={"job_memory_mb": None})
     except ValueError as err:

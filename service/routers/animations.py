@@ -61,34 +61,44 @@ def _info(job: JobRecord, ctx: ServiceContext) -> AnimationInfo:
     response_model=AnimationCreated,
     summary="Make the avatar perform a driving video (or JSON poses): queue an animation job",
     description="Upload `video` (anyone, any body proportions: it is preprocessed, aligned and "
-    "retargeted onto the avatar) or `poses` (a JSON file `{\"fps\": 25, \"poses\": [BodyPose, ...]}`, "
+    'retargeted onto the avatar) or `poses` (a JSON file `{"fps": 25, "poses": [BodyPose, ...]}`, '
     "applied as they are). Follow `GET /animations/{id}` (or the job) until `succeeded`, then download "
     "`video_url`. A video in which nobody is found fails its job with that reason.",
     responses={
-        **NOT_FOUND, **AVATAR_NOT_READY,
-        422: {"description": "No upload, not an mp4/mov/mkv/webm/avi video, too long or too large, bad "
-                             "poses or bad options"},
+        **NOT_FOUND,
+        **AVATAR_NOT_READY,
+        422: {
+            "description": "No upload, not an mp4/mov/mkv/webm/avi video, too long or too large, bad "
+            "poses or bad options"
+        },
         **UPLOAD,
     },
-)  # fmt: skip
+)
 async def create_animation(
     form: Annotated[AnimationForm, Form()],
     video: UploadFile | None = File(None, description="A driving video of one person (mp4, webm, ...)."),
     poses: UploadFile | None = File(None, description='Or a JSON pose sequence {"fps", "poses": [...]}.'),
     avatar: JobRecord = Depends(ready_avatar),
     ctx: ServiceContext = Depends(context),
-) -> AnimationCreated:  # fmt: skip
+) -> AnimationCreated:
     options = AnimationOptions(**form.model_dump(), avatar_id=avatar.avatar_id)
     upload = _one_upload(video, poses)
     if poses is not None and (options.camera == "driving" or options.side_by_side):
         raise HTTPException(422, "camera 'driving' and side_by_side need a driving video, not poses")
     # File copies, the probe's child process, parsing poses and SQLite block: off the event loop.
-    return await run_in_threadpool(_create, ctx, avatar, options, upload.file, upload.filename,
-                                   poses is not None)  # fmt: skip
+    return await run_in_threadpool(
+        _create, ctx, avatar, options, upload.file, upload.filename, poses is not None
+    )
 
 
-def _create(ctx: ServiceContext, avatar: JobRecord, options: AnimationOptions, source: BinaryIO,
-            filename: str | None, is_poses: bool) -> AnimationCreated:  # fmt: skip
+def _create(
+    ctx: ServiceContext,
+    avatar: JobRecord,
+    options: AnimationOptions,
+    source: BinaryIO,
+    filename: str | None,
+    is_poses: bool,
+) -> AnimationCreated:
     queue, settings = ctx.queue, ctx.settings
     check_job_quota(ctx)
     animation_id = new_id()
@@ -104,21 +114,33 @@ def _create(ctx: ServiceContext, avatar: JobRecord, options: AnimationOptions, s
         if is_poses:
             frames, fps, size = _check_poses(path, avatar, ctx)
         else:
-            info = check_video(path, options, settings.jobs, settings.max_video_seconds,
-                               settings.probe_timeout_s, settings.probe_memory_mb)  # fmt: skip
+            info = check_video(
+                path,
+                options,
+                settings.jobs,
+                settings.max_video_seconds,
+                settings.probe_timeout_s,
+                settings.probe_memory_mb,
+            )
             scale = min(1.0, options.max_size / max(info.width, info.height))  # as preprocessing resizes
             size = (max(1, round(info.height * scale)), max(1, round(info.width * scale)))
             fps = info.fps or 25.0
             frames = min(options.max_frames, info.frame_count() or options.max_frames)
         _check_render_size(options, frames, fps, size, ctx)
         name = Path(filename or "upload").name[:200]
-        queue.store.create(options.model_dump(mode="json"), filename=name, job_id=job_id,
-                           avatar_id=animation_id, kind="animation")  # fmt: skip
+        queue.store.create(
+            options.model_dump(mode="json"),
+            filename=name,
+            job_id=job_id,
+            avatar_id=animation_id,
+            kind="animation",
+        )
     return AnimationCreated(animation_id=animation_id, job_id=job_id)
 
 
-def _check_render_size(options: AnimationOptions, frames: int, fps: float, size: tuple[int, int] | None,
-                       ctx: ServiceContext) -> None:  # fmt: skip
+def _check_render_size(
+    options: AnimationOptions, frames: int, fps: float, size: tuple[int, int] | None, ctx: ServiceContext
+) -> None:
     """422 when one rendered frame is over the render limits (as for ``POST .../render``), or all
     of them over the job's pixel budget (they are held until encoded)."""
     settings = ctx.settings
@@ -138,8 +160,11 @@ def _check_render_size(options: AnimationOptions, frames: int, fps: float, size:
 
 def _one_upload(video: UploadFile | None, poses: UploadFile | None) -> UploadFile:
     if video is None and poses is None:
-        raise HTTPException(422, "no driving motion: upload a video (form field 'video') or a JSON pose "
-                                 "sequence (form field 'poses')")  # fmt: skip
+        raise HTTPException(
+            422,
+            "no driving motion: upload a video (form field 'video') or a JSON pose "
+            "sequence (form field 'poses')",
+        )
     if video is not None and poses is not None:
         raise HTTPException(422, "upload a video or poses, not both")
     return video if video is not None else poses  # type: ignore[return-value]
@@ -163,8 +188,12 @@ def _check_poses(path: Path, avatar: JobRecord, ctx: ServiceContext) -> tuple[in
     return len(driving), driving.fps, None
 
 
-@router.get("/animations/{animation_id}", response_model=AnimationInfo, responses=NOT_FOUND,
-            summary="An animation's state and progress; its video's address once done")  # fmt: skip
+@router.get(
+    "/animations/{animation_id}",
+    response_model=AnimationInfo,
+    responses=NOT_FOUND,
+    summary="An animation's state and progress; its video's address once done",
+)
 def get_animation(job: JobRecord = Depends(animation_record), ctx: ServiceContext = Depends(context)):
     return _info(job, ctx)
 
@@ -173,9 +202,12 @@ def get_animation(job: JobRecord = Depends(animation_record), ctx: ServiceContex
     "/animations/{animation_id}/video",
     response_class=FileResponse,
     summary="The animation as an mp4 (H.264)",
-    responses={200: {"content": {"video/mp4": {}}}, **NOT_FOUND,
-               **error(409, "The animation's job has not succeeded")},
-)  # fmt: skip
+    responses={
+        200: {"content": {"video/mp4": {}}},
+        **NOT_FOUND,
+        **error(409, "The animation's job has not succeeded"),
+    },
+)
 def animation_video(job: JobRecord = Depends(animation_record), ctx: ServiceContext = Depends(context)):
     file = ctx.queue.storage.animation_dir(job.avatar_id) / VIDEO_NAME
     if job.state != "succeeded" or not file.is_file():
@@ -198,8 +230,12 @@ def delete_animation(job: JobRecord = Depends(animation_record), ctx: ServiceCon
     return Response(status_code=204)
 
 
-@router.get("/avatars/{avatar_id}/animations", response_model=AnimationList, responses=NOT_FOUND,
-            summary="The animations of an avatar, oldest first")  # fmt: skip
+@router.get(
+    "/avatars/{avatar_id}/animations",
+    response_model=AnimationList,
+    responses=NOT_FOUND,
+    summary="The animations of an avatar, oldest first",
+)
 def list_animations(avatar: JobRecord = Depends(avatar_record), ctx: ServiceContext = Depends(context)):
     jobs = ctx.queue.store.list(kind="animation")
     jobs = [j for j in jobs if j.options.get("avatar_id") == avatar.avatar_id]
@@ -214,7 +250,7 @@ def list_animations(avatar: JobRecord = Depends(avatar_record), ctx: ServiceCont
     description="Loading the avatar and posing its body cost like a render: this shares the render "
     "slots, and past them answers 503 with `Retry-After`.",
     dependencies=[Depends(render_admission)],  # first: a refusal costs no lookup
-)  # fmt: skip
+)
 async def pose_controls(
     aspect: float = Query(1.0, gt=0.1, le=10.0, description="Width / height of the picture to frame."),
     avatar: JobRecord = Depends(ready_avatar),

@@ -34,11 +34,13 @@ NOT_FOUND = error(404, "Unknown or malformed avatar id")
     response_model=AvatarCreated,
     summary="Upload a video of one person; queue the job that learns their avatar",
     responses={
-        422: {"description": "Not an mp4/mov/mkv/webm/avi video, no decodable frame, too long or too large, "
-                             "or bad options"},
+        422: {
+            "description": "Not an mp4/mov/mkv/webm/avi video, no decodable frame, too long or too large, "
+            "or bad options"
+        },
         **UPLOAD,
     },
-)  # fmt: skip
+)
 async def create_avatar(
     video: Annotated[UploadFile, File(description="A video of one person (mp4, mov, mkv, webm or avi).")],
     options: Annotated[AvatarForm, Form()],
@@ -58,8 +60,14 @@ def _create(
         path = work / f"input{safe_suffix(filename)}"
         if save_upload(source, path, settings.max_upload_bytes) == 0:
             raise HTTPException(422, "the uploaded video is empty (0 bytes)")
-        check_video(path, options, settings.jobs, settings.max_video_seconds, settings.probe_timeout_s,
-                    settings.probe_memory_mb)  # fmt: skip
+        check_video(
+            path,
+            options,
+            settings.jobs,
+            settings.max_video_seconds,
+            settings.probe_timeout_s,
+            settings.probe_memory_mb,
+        )
         name = Path(filename or "video").name[:200]
         queue.store.create(options.model_dump(), filename=name, job_id=job_id, avatar_id=avatar_id)
     return AvatarCreated(avatar_id=avatar_id, job_id=job_id)
@@ -67,17 +75,30 @@ def _create(
 
 def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
     status = {"queued": "pending", "running": "pending", "succeeded": "ready"}.get(job.state, job.state)
-    info = AvatarInfo(avatar_id=job.avatar_id, job_id=job.id, status=status,  # type: ignore[arg-type]
-                      created_at=job.created_at, source_video=job.filename, error=job.error,
-                      preset=job.options.get("preset"), body_model=job.options.get("body_model"))  # fmt: skip
+    info = AvatarInfo(
+        avatar_id=job.avatar_id,
+        job_id=job.id,
+        status=status,  # type: ignore[arg-type]
+        created_at=job.created_at,
+        source_video=job.filename,
+        error=job.error,
+        preset=job.options.get("preset"),
+        body_model=job.options.get("body_model"),
+    )
     if status == "ready" and ctx.queue.storage.avatar_exists(job.avatar_id):
         meta = read_avatar_meta(ctx.queue.storage.avatar_dir(job.avatar_id))
-        info = info.model_copy(update={
-            "body_model": meta.body_model, "num_gaussians": meta.num_gaussians, "iterations": meta.iterations,
-            "train_seconds": meta.train_seconds, "final_loss": meta.final_loss, "metrics": meta.metrics,
-            "num_frames": meta.frames.count if meta.frames else None,
-            "frame_size": meta.frames.image_size if meta.frames else None,
-        })  # fmt: skip
+        info = info.model_copy(
+            update={
+                "body_model": meta.body_model,
+                "num_gaussians": meta.num_gaussians,
+                "iterations": meta.iterations,
+                "train_seconds": meta.train_seconds,
+                "final_loss": meta.final_loss,
+                "metrics": meta.metrics,
+                "num_frames": meta.frames.count if meta.frames else None,
+                "frame_size": meta.frames.image_size if meta.frames else None,
+            }
+        )
     return info
 
 
@@ -117,11 +138,13 @@ def delete_avatar(
     "with `Retry-After`.",
     responses={
         200: {"content": {"image/png": {}, "image/jpeg": {}}, "description": "The rendered image"},
-        **NOT_FOUND, **AVATAR_NOT_READY, **BUSY,
+        **NOT_FOUND,
+        **AVATAR_NOT_READY,
+        **BUSY,
         422: {"description": "Unknown names, values out of range, wrong lengths, size over the limit"},
     },
     dependencies=[Depends(render_admission)],  # first: a refusal costs no validation or lookup
-)  # fmt: skip
+)
 async def render_avatar(
     req: RenderRequest | None = None,
     job: JobRecord = Depends(ready_avatar),
@@ -152,9 +175,11 @@ def _render(
     summary="Download the avatar: the 3D Gaussians (PLY) or the posed body mesh (GLB)",
     responses={
         200: {"content": {"application/octet-stream": {}, "model/gltf-binary": {}}},
-        **NOT_FOUND, **AVATAR_NOT_READY, **BUSY,
+        **NOT_FOUND,
+        **AVATAR_NOT_READY,
+        **BUSY,
     },
-)  # fmt: skip
+)
 async def export_avatar(
     format: Literal["ply", "glb"] = Query("ply", description="ply: 3DGS splats (rest pose); glb: mesh"),
     frame: int | None = Query(
@@ -169,8 +194,9 @@ async def export_avatar(
             raise HTTPException(422, "'frame' applies to format=glb only (the PLY is the rest pose)")
         from eva_engine.avatar.io import PLY_NAME
 
-        return FileResponse(folder / PLY_NAME, media_type="application/octet-stream",
-                            filename=f"avatar-{job.avatar_id}.ply")  # fmt: skip
+        return FileResponse(
+            folder / PLY_NAME, media_type="application/octet-stream", filename=f"avatar-{job.avatar_id}.ply"
+        )
     async with ctx.renders.slot():  # posing the mesh costs like a render
         data = await run_in_threadpool(_glb, ctx, job.avatar_id, folder, frame)
     disposition = f'attachment; filename="avatar-{job.avatar_id}.glb"'

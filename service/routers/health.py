@@ -13,5 +13,9 @@ router = APIRouter(tags=["health"])
 async def healthz(ctx: ServiceContext = Depends(context)) -> Health:
     counts = await ctx.job_counts.get(ctx.queue)  # one grouped query a second at most, in a thread
     renders = {"running": ctx.renders.running, "waiting": ctx.renders.queued}
-    return Health(version=eva_engine.__version__, queue="redis" if ctx.queue.config.uses_redis else "sqlite",
-                  jobs=counts, renders=renders)  # fmt: skip
+    return Health(
+        version=eva_engine.__version__,
+        queue="redis" if ctx.queue.config.uses_redis else "sqlite",
+        jobs=counts,
+        renders=renders,
+    )
