@@ -62,7 +62,13 @@ def run_one(ds, method: str, preset_name: str, seed: int, metrics, split: str) -
 
     steps = checkpoints_for(config.iterations)
     result = train_avatar(ds, config, checkpoint=evaluate, checkpoint_steps=tuple(steps))
-    return {"method": method, "seed": seed, "train_seconds": result.train_seconds, "points": points}
+    return {
+        "method": method,
+        "seed": seed,
+        "train_seconds": result.train_seconds,
+        "pose_correction": config.pose_correction.enabled,
+        "points": points,
+    }
 
 
 def curves(runs: list[dict]) -> dict:
@@ -96,6 +102,7 @@ def markdown(doc: dict) -> str:
         f"{', '.join(map(str, cfg['seeds']))}, {cfg['threads']} threads; LPIPS-VGG ×1000 on every "
         f"{cfg.get('eval_every', 1)}-th novel-pose frame (held out: no method trains on it), mean ± std "
         "over seeds; seconds are training wall-seconds, evaluation excluded",
+        *([f"- note: {doc['note']}"] if doc.get("note") else []),
         "",
         f"![LPIPS-VGG against training seconds]({doc['figure']})",
         "",
@@ -155,6 +162,7 @@ def main() -> None:
     ap.add_argument("--name", default="time_to_quality", help="result file stem")
     ap.add_argument("--merge", nargs="+", metavar="NAME", help="only combine the runs of result files")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--note", help="recorded with the results and printed under the settings")
     args = ap.parse_args()
     path = args.out / f"{args.name}.json"
     if args.merge:
@@ -163,6 +171,7 @@ def main() -> None:
         doc["runs"] = [r for d in docs for r in d["runs"]]
         doc["config"] = {**docs[0]["config"], "seeds": sorted({r["seed"] for r in doc["runs"]})}
         doc["machine"] = " / ".join(dict.fromkeys(d["machine"] for d in docs))
+        doc["note"] = args.note or docs[0].get("note")
         write(doc, args.out, args.name)
         print(markdown(doc))
         return
@@ -181,6 +190,7 @@ def main() -> None:
         command="python bench/time_to_quality.py " + " ".join(sys.argv[1:]),
         machine=describe(),
         config=config,
+        note=args.note,
     )
     metrics = ImageMetrics()
     for seed in args.seeds:

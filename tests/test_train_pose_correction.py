@@ -99,3 +99,19 @@ def test_correction_starts_at_the_fit_and_its_prior_holds_it(anny_model):
         p = corr.apply(params[2], 2)
         (p.root_orient.sum() + corr.prior(2)).backward()
         assert torch.isfinite(corr.root[2].grad).all()
+
+
+def test_ground_truth_parameters_are_not_corrected(anny_model):
+    """Nothing to correct in exact parameters: the trainer leaves them, even when asked."""
+    ds, _ = teacher_scene(anny_model, n_frames=4, size=48)
+    ds.meta.params_source = "ground_truth"
+    cfg = preset("tiny", iterations=4, pose_correction=PoseCorrectionConfig(enabled=True, start_iter=0))
+    result = train_avatar(ds, cfg, body=anny_model)
+    assert result.pose_correction == {}
+    assert torch.equal(result.train_params.joints, ds.params.joints[result.train_indices].float())
+
+
+def test_presets_do_not_correct_poses():
+    """Test frames are scored with uncorrected poses; an avatar trained on corrected ones does
+    worse on them (bench/results/time_to_quality_pose_correction.md), so it is opt-in."""
+    assert not any(preset(name).pose_correction.enabled for name in ("tiny", "fast", "default"))

@@ -105,23 +105,28 @@ def preset(name: str, **overrides) -> TrainConfig:
     top-level ``TrainConfig`` fields.
 
     - ``default``: the paper's schedule (2,000 iterations, densify 400..1,000 every 100), all
-      surface vertices as seeds, per-frame pose correction from iteration 400.
+      surface vertices as seeds.
     - ``fast``: 600 iterations, densify 120..300 every 30, at most 6,000 seeds, 64-wide MLPs,
-      learning rates for the shorter schedule (``OptimConfig.faster``), pose correction from 120.
+      learning rates for the shorter schedule (``OptimConfig.faster``).
+
+    Per-frame pose correction is off in every preset (its schedule is set, ``enabled=False``):
+    test frames are rendered with uncorrected poses, and an avatar trained on corrected ones
+    scores worse on them (``bench/results/time_to_quality_pose_correction.md`` against
+    ``time_to_quality.md``).
     - ``tiny``: for tests: 100 iterations, densify 30..70 every 20, 1,500 seeds, 32-wide MLPs,
       SH degree 1, learning rates x10 (colours), no pose correction: seconds at ~64 px.
     """
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {list(PRESETS)}")
     if name == "default":
-        cfg = TrainConfig(pose_correction=PoseCorrectionConfig(enabled=True, start_iter=400))
+        cfg = TrainConfig(pose_correction=PoseCorrectionConfig(enabled=False, start_iter=400))
     elif name == "fast":
         cfg = TrainConfig(
             iterations=600,
             avatar=AvatarConfig(init_max_gaussians=6000, mlp_width=64),
             optim=OptimConfig().faster(2000 / 600),
             strategy=DefaultStrategy(refine_start_iter=120, refine_stop_iter=300, refine_every=30),
-            pose_correction=PoseCorrectionConfig(enabled=True, start_iter=120, lr=4e-3),
+            pose_correction=PoseCorrectionConfig(enabled=False, start_iter=120, lr=4e-3),
             sh_degree_interval=300,
         )
     elif name == "tiny":

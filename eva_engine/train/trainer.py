@@ -241,7 +241,10 @@ def train_avatar(
     optimizers = make_optimizers(avatar, config)
     extra = make_extra_optimizers(avatar, config, loss_fn)
     correction, correction_opt = None, None
-    if config.pose_correction.enabled:
+    ground_truth = getattr(dataset.meta, "params_source", None) == "ground_truth"
+    if config.pose_correction.enabled and ground_truth:
+        logger.info("pose correction off: the dataset's body parameters are ground truth")
+    if config.pose_correction.enabled and not ground_truth:
         correction = PoseCorrection(
             len(train_ids), body.joint_part_ids[1:], params.expression.shape[1], config.pose_correction
         ).to(device)
