@@ -121,17 +121,20 @@ def test_checkpoints_see_the_avatar_and_their_time_is_not_training_time(scene, a
     metrics = ImageMetrics(lpips_alex=lpips)
 
     def hook(step, avatar, seconds):
-        seen.append((step, len(avatar.gaussians), seconds))
+        entered = time.perf_counter()
         if step == 3:
             evaluate_avatar(avatar, ds, metrics=metrics)
         time.sleep(0.4)
+        seen.append((step, len(avatar.gaussians), seconds, entered, time.perf_counter()))
 
     started = time.perf_counter()
     hooked = train_avatar(ds, cfg, body=anny_model, checkpoint=hook, checkpoint_steps=(3, 6))
     wall = time.perf_counter() - started
     plain = train_avatar(ds, cfg, body=anny_model)
-    assert [s for s, _, _ in seen] == [3, 6] and all(n > 0 for _, n, _ in seen)
-    assert 0 < seen[0][2] < seen[1][2] < seen[0][2] + 0.4  # the first hook's sleep is not counted
+    assert [s[0] for s in seen] == [3, 6] and all(s[1] > 0 for s in seen)
+    # Training seconds between the hooks: the wall time between them, the first hook's excluded.
+    (_, _, at3, _, left3), (_, _, at6, entered6, _) = seen
+    assert 0 < at3 < at6 <= at3 + (entered6 - left3) + 1e-3
     assert hooked.losses == plain.losses
     assert hooked.train_seconds < wall - 0.8
 
