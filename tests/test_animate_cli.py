@@ -11,17 +11,17 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import service_helpers as helpers
 import torch
+from helpers import service as svc
+from helpers.scenes import front_camera, random_params, teacher_avatar
 from PIL import Image
-from scenes import front_camera, random_params, teacher_avatar
 from typer.testing import CliRunner
 
 from eva_engine.avatar import AvatarFrames, read_avatar_meta, save_avatar
 from eva_engine.cli import app
 from eva_engine.data import read_video, write_video
 
-other_signer_video = helpers.other_signer_video  # a fixture
+other_signer_video = svc.other_signer_video  # a fixture
 RAISED = {
     "joints": {"upperarm01.L": [0.0, 0.0, 1.2], "lowerarm01.L": [0.0, -1.0, 0.0]},
     "expression": {"jawOpen": 0.6},

@@ -4,7 +4,7 @@ where that action acts (jawOpen below the eyes, browInnerUp above them)."""
 from __future__ import annotations
 
 import torch
-from scenes import teacher_avatar
+from helpers.scenes import teacher_avatar
 
 from eva_engine.avatar import Camera
 from eva_engine.render import look_at

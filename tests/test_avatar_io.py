@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 import torch
+from helpers.scenes import front_camera, random_params
 from plyfile import PlyData
 from pydantic import ValidationError
-from scenes import front_camera, random_params
 
 from eva_engine.avatar import (
     Avatar,

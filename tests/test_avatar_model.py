@@ -7,7 +7,7 @@ import math
 
 import pytest
 import torch
-from scenes import front_camera, random_params
+from helpers.scenes import front_camera, random_params
 
 from eva_engine.avatar import (
     Avatar,

@@ -7,7 +7,7 @@ import dataclasses
 
 import pytest
 import torch
-from scenes import teacher_scene
+from helpers.scenes import teacher_scene
 
 from eva_engine.data import DatasetLike, ResampledDataset, resample_frame
 from eva_engine.train import preset, train_avatar

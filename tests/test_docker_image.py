@@ -157,7 +157,7 @@ def test_the_health_check_knows_the_worker_role(tmp_path):
 
 @pytest.mark.slow
 def test_a_worker_keeps_its_health_file_fresh(tmp_path):
-    from service_helpers import EVA, start_process, stop, wait_for
+    from helpers.service import EVA, start_process, stop, wait_for
 
     alive = tmp_path / "alive"
     worker = start_process(

@@ -7,7 +7,7 @@ import dataclasses
 
 import pytest
 import torch
-from scenes import SceneDataset, teacher_scene
+from helpers.scenes import SceneDataset, teacher_scene
 
 from eva_engine.avatar import Avatar, AvatarConfig, Camera
 from eva_engine.eval import METRICS, EvalResult, ImageMetrics, RegionMetrics, evaluate_avatar, metrics_table

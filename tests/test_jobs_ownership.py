@@ -15,8 +15,8 @@ import threading
 import time
 
 import pytest
-import service_helpers as helpers
-from service_helpers import FAST_OPTIONS, gradient_video, wait_for
+from helpers import service as svc
+from helpers.service import FAST_OPTIONS, gradient_video, wait_for
 
 from eva_engine.progress import ProgressEvent
 from jobs import JobLost, JobOptions, JobQueue, JobRun, JobsConfig, JobStore, JobStoreError, sweep
@@ -25,7 +25,7 @@ from jobs.pipeline import Reporter
 from jobs.queue import RUN_TASK
 from jobs.runner import JobRunner, _pid_namespace, _start_time
 
-signer_video = helpers.signer_video  # a fixture
+signer_video = svc.signer_video  # a fixture
 HOST = socket.gethostname()
 OPTIONS = JobOptions.model_validate(FAST_OPTIONS)
 

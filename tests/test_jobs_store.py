@@ -11,7 +11,7 @@ import threading
 import time
 
 import pytest
-from service_helpers import no_person_video, wait_for
+from helpers.service import no_person_video, wait_for
 
 from jobs import InvalidIdError, JobOptions, JobQueue, JobsConfig, JobStore, Storage
 

@@ -12,9 +12,9 @@ import subprocess
 import time
 
 import pytest
-import service_helpers as helpers
 from fastapi.testclient import TestClient
-from service_helpers import (
+from helpers import service as svc
+from helpers.service import (
     EVA,
     FAST_OPTIONS,
     free_port,
@@ -32,7 +32,7 @@ from service.app import create_app
 from service.settings import ServiceSettings
 
 pytestmark = pytest.mark.slow
-signer_video = helpers.signer_video  # a fixture
+signer_video = svc.signer_video  # a fixture
 
 
 def api(data_dir, queue_url=None) -> TestClient:

@@ -1,9 +1,9 @@
-"""The teacher scene the avatar tests train on (``scenes.py``) is a fair scene."""
+"""The teacher scene the avatar tests train on (``helpers/scenes.py``) is a fair scene."""
 
 from __future__ import annotations
 
 import torch
-from scenes import teacher_scene
+from helpers.scenes import teacher_scene
 
 
 def test_teacher_scene_is_a_fair_scene(anny_model):

@@ -15,10 +15,10 @@ import json
 
 import numpy as np
 import pytest
-import service_helpers as helpers
 from fastapi.testclient import TestClient
-from scenes import teacher_avatar
-from service_helpers import no_person_video, run_job_here
+from helpers import service as svc
+from helpers.scenes import teacher_avatar
+from helpers.service import no_person_video, run_job_here
 
 from eva_engine.avatar import TrainingRecord, save_avatar
 from eva_engine.data import read_video
@@ -27,7 +27,7 @@ from jobs.animation import AnimationOptions
 from service.app import create_app
 from service.settings import ServiceSettings
 
-signer_video = helpers.signer_video  # a fixture
+signer_video = svc.signer_video  # a fixture
 RAISED = {"joints": {"upperarm01.L": [0.0, 0.0, 1.2]}, "expression": {"jawOpen": 0.6}}
 
 
@@ -119,7 +119,7 @@ def test_animate_a_video(service, signer_video):
     created = res.json()
     assert run_job(queue, created["job_id"]) == "succeeded", client.get(created["job_url"]).json()
     info = client.get(created["animation_url"]).json()
-    assert info["frames"] == helpers.SIGNER_FRAMES and (info["width"], info["height"]) == (512, 256)
+    assert info["frames"] == svc.SIGNER_FRAMES and (info["width"], info["height"]) == (512, 256)
     assert info["driving_frames_without_person"] == 0 and info["source"] == "signer.mp4"
 
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import re
 
 import pytest
-import service_helpers as helpers
 from fastapi.testclient import TestClient
-from service_helpers import FAST_OPTIONS, no_person_video
+from helpers import service as svc
+from helpers.service import FAST_OPTIONS, no_person_video
 
 from eva_engine.recipes import METHODS, PRESETS
 from jobs import JobsConfig
@@ -16,7 +16,7 @@ from jobs.options import MAX_FRAMES, JobOptions
 from service.app import create_app
 from service.settings import ServiceSettings
 
-signer_video = helpers.signer_video  # a fixture
+signer_video = svc.signer_video  # a fixture
 
 
 def make_client(tmp_path, **overrides) -> TestClient:

@@ -13,9 +13,8 @@ from types import SimpleNamespace
 import httpx
 import numpy as np
 import pytest
-import service_helpers as helpers
-from PIL import Image
-from service_helpers import (
+from helpers import service as svc
+from helpers.service import (
     EVA,
     FAST_OPTIONS,
     free_port,
@@ -25,8 +24,9 @@ from service_helpers import (
     stop,
     wait_for,
 )
+from PIL import Image
 
-signer_video = helpers.signer_video  # a fixture
+signer_video = svc.signer_video  # a fixture
 
 pytestmark = pytest.mark.slow
 

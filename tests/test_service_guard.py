@@ -14,9 +14,9 @@ import time
 
 import httpx
 import pytest
-import service_helpers as helpers
 from fastapi.testclient import TestClient
-from service_helpers import free_port, log_tail, rss_mb, start_service, stop
+from helpers import service as svc
+from helpers.service import free_port, log_tail, rss_mb, start_service, stop
 from typer.testing import CliRunner
 
 from jobs import JobsConfig
@@ -25,7 +25,7 @@ from service.app import create_app
 from service.settings import ServiceSettings
 
 KEY = "k3y-for-tests-0123456789"
-signer_video = helpers.signer_video  # a fixture
+signer_video = svc.signer_video  # a fixture
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ import threading
 import httpx
 import pytest
 from fastapi.testclient import TestClient
-from service_helpers import publish_seeded_avatar
+from helpers.service import publish_seeded_avatar
 
 from jobs import JobQueue, JobsConfig
 from service import rendering as rendering_module

@@ -12,17 +12,17 @@ import subprocess
 import sys
 
 import pytest
-import service_helpers as helpers
 from fastapi.testclient import TestClient
-from service_helpers import FAST_OPTIONS, free_port, gradient_video
+from helpers import service as svc
+from helpers.service import FAST_OPTIONS, free_port, gradient_video
 
 from jobs import JobsConfig
 from service.app import create_app
 from service.routers import avatars as avatars_router
 from service.settings import ServiceSettings
 
-signer_video = helpers.signer_video  # fixtures
-huge_frame_video = helpers.huge_frame_video
+signer_video = svc.signer_video  # fixtures
+huge_frame_video = svc.huge_frame_video
 
 
 def make_client(tmp_path, jobs: dict | None = None, **overrides) -> TestClient:

@@ -9,7 +9,7 @@ import math
 
 import pytest
 import torch
-from scenes import teacher_scene
+from helpers.scenes import teacher_scene
 
 from eva_engine.avatar import CanonicalGaussians
 from eva_engine.render import RenderOutput

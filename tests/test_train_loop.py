@@ -7,7 +7,7 @@ import dataclasses
 
 import pytest
 import torch
-from scenes import teacher_scene
+from helpers.scenes import teacher_scene
 
 from eva_engine.eval import ImageMetrics, evaluate_avatar, metrics_table
 from eva_engine.metrics import LPIPS, psnr

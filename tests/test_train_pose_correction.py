@@ -5,7 +5,7 @@ its gradients stay finite."""
 from __future__ import annotations
 
 import torch
-from scenes import front_camera, teacher_scene
+from helpers.scenes import front_camera, teacher_scene
 
 from eva_engine.train import LossConfig, PoseCorrection, PoseCorrectionConfig, preset, train_avatar
 from eva_engine.train.pose_correction import refine_poses

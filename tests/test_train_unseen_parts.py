@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 import torch
-from scenes import SceneDataset, front_camera, teacher_scene
+from helpers.scenes import SceneDataset, front_camera, teacher_scene
 
 from eva_engine.train import LossConfig, preset, train_avatar, with_method
 

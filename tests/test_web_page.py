@@ -17,12 +17,12 @@ from types import SimpleNamespace
 import httpx
 import numpy as np
 import pytest
-import service_helpers as helpers
+from helpers import service as svc
+from helpers.service import EVA, free_port, log_tail, start_process, start_worker, stop, wait_for
 from PIL import Image
-from service_helpers import EVA, free_port, log_tail, start_process, start_worker, stop, wait_for
 
-signer_video = helpers.signer_video  # fixtures
-other_signer_video = helpers.other_signer_video
+signer_video = svc.signer_video  # fixtures
+other_signer_video = svc.other_signer_video
 
 pytestmark = pytest.mark.slow
 OUT = Path(__file__).resolve().parent.parent / "out"
@@ -123,7 +123,7 @@ def avatar(site, signer_video):
     d.find_element(*_by("#video-input")).send_keys(str(signer_video))
     Select(d.find_element(*_by("#preset"))).select_by_value("tiny")
     d.find_element(*_by("#new-avatar summary")).click()
-    fast = helpers.FAST_OPTIONS
+    fast = svc.FAST_OPTIONS
     for field, value in (
         ("iterations", fast["iterations"]),
         ("image-scale", fast["image_scale"]),
