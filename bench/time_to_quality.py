@@ -132,7 +132,8 @@ def plot(doc: dict, path: Path) -> None:
             err = [1000 * r[region]["std"] for r in rows]
             ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label=method)
         ax.set_title(f"{region}")
-        ax.set_xlabel("training seconds (2 CPU cores)")
+        threads = doc["config"]["threads"]
+        ax.set_xlabel(f"training seconds ({threads} torch thread(s), 2-core machine)")
         ax.set_ylabel("LPIPS-VGG ×1000 (lower is better)")
         ax.grid(alpha=0.3)
     axes[0].legend()
