@@ -24,7 +24,7 @@ def train(
     image_scale: float | None = typer.Option(None, min=0.05, max=4.0, help="Resample frames by this factor."),
     device: str = typer.Option("cpu", help="cpu or cuda."),
     threads: int | None = typer.Option(None, min=1, help="Torch CPU threads."),
-    seed: int = typer.Option(0, help="Random seed (runs are deterministic given it)."),
+    seed: int = typer.Option(0, help="Random seed (runs on one thread are bit-identical given it)."),
 ) -> None:
     """Train an avatar on the dataset's training frames (EVA: 2,000 iterations)."""
     import torch

@@ -69,8 +69,9 @@ class TrainConfig:
     sh_degree_interval: raise the active SH degree every this many steps (3DGS: 1,000).
     background: render/target background [3]; None: the dataset's (meta.background) or white.
     image_scale: resample frames (and intrinsics) by this factor before training.
-    seed: the initial weights, the seed vertices and the frame order (runs are deterministic given
-    it; the density-control strategy has its own ``seed``).
+    seed: the initial weights, the seed vertices and the frame order (the density-control strategy
+    has its own ``seed``). Runs on one CPU thread are bit-identical given it; with more threads,
+    oneDNN's convolution backward may sum in another order and the last bits differ.
     device: "cpu" or "cuda" (an error if CUDA is asked for and absent). Torch's CPU threads are the
     process's: its entry point sets them (``torch.set_num_threads``), not a training run.
     """
