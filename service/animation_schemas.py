@@ -13,7 +13,7 @@ from eva_engine.animate.controls import PoseControl
 from eva_engine.render.view import CameraSpec
 from jobs.animation import AnimationOptions, AnimationRequest
 from jobs.store import JobRecord
-from service.schemas import JobCreated, JobState, utc_time
+from service.schemas import JobCreated, JobState, job_progress, utc_time
 
 
 class AnimationForm(AnimationRequest):
@@ -91,12 +91,7 @@ class AnimationInfo(BaseModel):
             animation_id=job.avatar_id,
             avatar_id=job.options["avatar_id"],
             job_id=job.id,
-            state=job.state,  # type: ignore[arg-type]
-            stage=job.stage,  # type: ignore[arg-type]
-            progress=round(job.progress, 4),
-            eta_seconds=job.eta_s,
-            message=job.message,
-            error=job.error,
+            **job_progress(job),
             source=job.filename,
             options=AnimationOptions.model_validate(job.options),
             created_at=utc_time(job.created_at),

@@ -70,6 +70,18 @@ class AvatarCreated(JobCreated):
         return f"/avatars/{self.avatar_id}"
 
 
+def job_progress(job: JobRecord) -> dict[str, Any]:
+    """The fields every view of a job shares: state, stage, progress, ETA, message and error."""
+    return {
+        "state": job.state,
+        "stage": job.stage,
+        "progress": round(job.progress, 4),
+        "eta_seconds": job.eta_s,
+        "message": job.message,
+        "error": job.error,
+    }
+
+
 class JobInfo(BaseModel):
     """A job's state; ``progress`` runs 0..1 over all stages, ``eta_seconds`` while training (or
     rendering). ``kind``: ``avatar`` (makes ``avatar_id`` from a video: stages preprocess, align,
@@ -130,12 +142,7 @@ class JobInfo(BaseModel):
         return cls(
             job_id=job.id,
             **ids,
-            state=job.state,  # type: ignore[arg-type]
-            stage=job.stage,  # type: ignore[arg-type]
-            progress=round(job.progress, 4),
-            eta_seconds=job.eta_s,
-            message=job.message,
-            error=job.error,
+            **job_progress(job),
             attempts=job.attempts,
             cancel_requested=job.cancel_requested,
             filename=job.filename,

@@ -11,7 +11,6 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
-from jobs.config import JobsConfig
 from jobs.media import VideoInfo, VideoRejected, check_frame_budget, probe_in_subprocess
 from jobs.options import JobOptions
 from jobs.store import new_id
@@ -19,6 +18,7 @@ from jobs.store import new_id
 if TYPE_CHECKING:
     from jobs.animation import AnimationOptions
     from jobs.queue import JobQueue
+    from service.settings import ServiceSettings
 
 CHUNK = 1024 * 1024
 _SUFFIX = re.compile(r"^\.[a-z0-9]{1,5}$")
@@ -50,22 +50,17 @@ def save_upload(source: BinaryIO, dest: Path, max_bytes: int) -> int:
     return size
 
 
-def check_video(
-    path: Path,
-    options: JobOptions | AnimationOptions,
-    jobs: JobsConfig,
-    max_seconds: float,
-    timeout_s: float,
-    memory_mb: int,
-) -> VideoInfo:
-    """The upload's headers, probed in a child process: a safe container, frames of at most
-    ``jobs.max_video_side``, at most ``max_seconds`` long, one decodable frame, and decoded
-    frames (``options.max_frames`` of at most ``options.max_size``: an avatar's video or an
-    animation's driving video) within ``jobs.max_frame_pixels``. Raises ``VideoRejected`` with
-    the reason."""
-    info = probe_in_subprocess(path, jobs.max_video_side, timeout_s, memory_mb)
-    if info.duration_s is not None and info.duration_s > max_seconds:
-        raise VideoRejected(f"the video is {info.duration_s:.1f} s long; the limit is {max_seconds:.0f} s")
+def check_video(path: Path, options: JobOptions | AnimationOptions, settings: ServiceSettings) -> VideoInfo:
+    """The upload's headers, probed in a child process (``settings.probe_timeout_s``,
+    ``settings.probe_memory_mb``): a safe container, frames of at most ``jobs.max_video_side``, at
+    most ``settings.max_video_seconds`` long, one decodable frame, and decoded frames
+    (``options.max_frames`` of at most ``options.max_size``: an avatar's video or an animation's
+    driving video) within ``jobs.max_frame_pixels``. Raises ``VideoRejected`` with the reason."""
+    jobs = settings.jobs
+    info = probe_in_subprocess(path, jobs.max_video_side, settings.probe_timeout_s, settings.probe_memory_mb)
+    if info.duration_s is not None and info.duration_s > settings.max_video_seconds:
+        limit = settings.max_video_seconds
+        raise VideoRejected(f"the video is {info.duration_s:.1f} s long; the limit is {limit:.0f} s")
     check_frame_budget(info, options.max_frames, options.max_size, jobs.max_frame_pixels)
     return info
 

@@ -114,14 +114,7 @@ def _create(
         if is_poses:
             frames, fps, size = _check_poses(path, avatar, ctx)
         else:
-            info = check_video(
-                path,
-                options,
-                settings.jobs,
-                settings.max_video_seconds,
-                settings.probe_timeout_s,
-                settings.probe_memory_mb,
-            )
+            info = check_video(path, options, settings)
             scale = min(1.0, options.max_size / max(info.width, info.height))  # as preprocessing resizes
             size = (max(1, round(info.height * scale)), max(1, round(info.width * scale)))
             fps = info.fps or 25.0

@@ -60,14 +60,7 @@ def _create(
         path = work / f"input{safe_suffix(filename)}"
         if save_upload(source, path, settings.max_upload_bytes) == 0:
             raise HTTPException(422, "the uploaded video is empty (0 bytes)")
-        check_video(
-            path,
-            options,
-            settings.jobs,
-            settings.max_video_seconds,
-            settings.probe_timeout_s,
-            settings.probe_memory_mb,
-        )
+        check_video(path, options, settings)
         name = Path(filename or "video").name[:200]
         queue.store.create(options.model_dump(), filename=name, job_id=job_id, avatar_id=avatar_id)
     return AvatarCreated(avatar_id=avatar_id, job_id=job_id)
