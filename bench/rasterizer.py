@@ -348,9 +348,9 @@ def _markdown(report: dict) -> str:
         f"{m['python']}; torch threads {m['torch_threads']}, OMP_WAIT_POLICY "
         f"{report.get('omp_wait_policy') or 'unset (libgomp default: spin)'}",
         f"- load average (1, 5, 15 min) at start {report['load_average_at_start']}, at end "
-        f"{report['load_average_at_end']}; per round {report['load_average_per_round']}. Other work "
-        "shared the machine: wall times are inflated and noisy, CPU times (all threads) less so, and "
-        "the variants ran interleaved round by round so the ratios compare like with like",
+        f"{report['load_average_at_end']}; per round {report['load_average_per_round']}. "
+        + _load_remark(report["load_average_at_start"][0])
+        + "; the variants ran interleaved round by round so the ratios compare like with like",
         f"- variants: `before` = commit {before[:12]} (main before the compiled kernels, its default "
         'tiled torch rasterizer); `torch` = this commit with `RasterConfig(kernel="torch")` (the '
         "fallback); `cpp` = this commit with the compiled C++ kernels (the default where they build)",
@@ -403,6 +403,14 @@ def _markdown(report: dict) -> str:
     if report.get("notes"):
         lines += ["", "## Notes", ""] + [f"- {t}" for t in report["notes"]]
     return "\n".join(lines) + "\n"
+
+
+def _load_remark(load_at_start: float) -> str:
+    """What the 1-minute load at the start says about the wall times (the benchmark itself keeps
+    up to ``threads`` cores busy, so only a start above one core's worth means other work)."""
+    if load_at_start < 1.0:
+        return "The machine was otherwise idle at the start (1-minute load below 1)"
+    return "Other work shared the machine: wall times are inflated and noisy, CPU times (all threads) less so"
 
 
 def main() -> None:
