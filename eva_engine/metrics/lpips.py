@@ -228,6 +228,7 @@ class LPIPS(nn.Module):
             self.lins.append(lin)
         self.requires_grad_(False)
         self.eval()
+        self.to(memory_format=torch.channels_last)  # oneDNN's faster layout (``features``)
 
     @property
     def net(self) -> str:
@@ -245,6 +246,7 @@ class LPIPS(nn.Module):
         """Trunk taps of scaled input. x: ``[B, 3, H, W]`` in [-1, 1] -> 5 x ``[B, C_i, H_i, W_i]``."""
         # Constants made in x's dtype, so a float64 module scales exactly like the reference.
         x = (x - x.new_tensor(_SHIFT).view(1, 3, 1, 1)) / x.new_tensor(_SCALE).view(1, 3, 1, 1)
+        x = x.contiguous(memory_format=torch.channels_last)
         kernel, stride = self.spec.pool
         taps = []
         for i, conv in enumerate(self.convs):
