@@ -254,6 +254,31 @@ def test_no_open_api_on_a_network_address(tmp_path):
     assert result.exit_code == 2 and "without an API key" in result.output
 
 
+def test_serve_lets_idle_openmp_threads_sleep_unless_told_otherwise(tmp_path, monkeypatch):
+    """``eva serve`` sets OMP_WAIT_POLICY=PASSIVE before the server (and torch) loads; a value in
+    the environment wins."""
+    import os
+
+    from service import server
+    from service.cli import app
+
+    seen = []
+
+    def record(settings, log_level):
+        seen.append(os.environ["OMP_WAIT_POLICY"])
+
+    monkeypatch.setattr(server, "serve", record)
+    monkeypatch.setenv("OMP_WAIT_POLICY", "")  # monkeypatch restores the variable as it was
+    for given, expected in ((None, "PASSIVE"), ("ACTIVE", "ACTIVE")):
+        if given is None:
+            monkeypatch.delenv("OMP_WAIT_POLICY")
+        else:
+            monkeypatch.setenv("OMP_WAIT_POLICY", given)
+        result = CliRunner().invoke(app, ["serve", "--data-dir", str(tmp_path)])
+        assert result.exit_code == 0, result.output
+        assert seen.pop() == expected
+
+
 def test_the_container_health_check_reaches_the_api(server):
     from service import healthcheck
 
