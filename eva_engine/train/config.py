@@ -109,13 +109,13 @@ def preset(name: str, **overrides) -> TrainConfig:
       surface vertices as seeds.
     - ``fast``: 600 iterations, densify 120..300 every 30, at most 6,000 seeds, 64-wide MLPs,
       learning rates for the shorter schedule (``OptimConfig.faster``).
+    - ``tiny``: for tests: 100 iterations, densify 30..70 every 20, 1,500 seeds, 32-wide MLPs,
+      SH degree 1, learning rates x10 (colours), no pose correction: seconds at ~64 px.
 
     Per-frame pose correction is off in every preset (its schedule is set, ``enabled=False``):
     test frames are rendered with uncorrected poses, and an avatar trained on corrected ones
     scores worse on them (``bench/results/time_to_quality_pose_correction.md`` against
     ``time_to_quality.md``).
-    - ``tiny``: for tests: 100 iterations, densify 30..70 every 20, 1,500 seeds, 32-wide MLPs,
-      SH degree 1, learning rates x10 (colours), no pose correction: seconds at ~64 px.
     """
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {list(PRESETS)}")

@@ -244,7 +244,7 @@ def train_avatar(
     ground_truth = getattr(dataset.meta, "params_source", None) == "ground_truth"
     if config.pose_correction.enabled and ground_truth:
         logger.info("pose correction off: the dataset's body parameters are ground truth")
-    if config.pose_correction.enabled and not ground_truth:
+    elif config.pose_correction.enabled:
         correction = PoseCorrection(
             len(train_ids), body.joint_part_ids[1:], params.expression.shape[1], config.pose_correction
         ).to(device)
