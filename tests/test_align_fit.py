@@ -17,7 +17,7 @@ from eva_engine.align.fit import (
     reprojection_error,
     solve_translation,
 )
-from eva_engine.body import KEYPOINT_GROUPS
+from eva_engine.body import KEYPOINT_GROUPS, PART_NAMES
 from eva_engine.geometry import project_points, to_camera
 from eva_engine.render import intrinsics, orbit_camera
 
@@ -77,6 +77,21 @@ def test_fit_from_perturbed_parameters_recovers_them(anny_model, clip):
     for first, last in result.stage_losses.values():
         assert last <= first + 1e-7
     assert result.params.expression.min() >= 0 and result.params.expression.max() <= 1
+
+
+def test_rotation_aligned_hand_error_ignores_only_the_hands_orientation(anny_model, clip):
+    """A hand turned about its wrist has hand MPJPE but no rotation-aligned error; bent fingers
+    keep theirs."""
+    hand = anny_model.joint_part_ids[1:].cpu() == PART_NAMES.index("hand")
+    wrists = [i - 1 for i, name in enumerate(anny_model.joint_names) if name in ("wrist.L", "wrist.R")]
+    turned = clip.map(lambda t: t.clone())
+    turned.joints[:, wrists] += torch.tensor([0.0, 0.6, 0.3])
+    err = mpjpe(anny_model, turned, clip)
+    assert err["hands"] > 10.0 and err["hands_rotation_aligned"] < 0.1, err
+    bent = clip.map(lambda t: t.clone())
+    bent.joints[:, hand & ~torch.isin(torch.arange(hand.numel()), torch.tensor(wrists))] += 0.3
+    err = mpjpe(anny_model, bent, clip)
+    assert err["hands_rotation_aligned"] > 5.0, err
 
 
 def test_expression_is_fitted_to_the_face_points(anny_model, clip):

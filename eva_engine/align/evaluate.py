@@ -54,7 +54,9 @@ def mpjpe(
     """Root-relative mean per-joint position error in mm: ``body`` (MediaPipe's body joints,
     hip-centred) and ``hands`` (both hands' 21 points, each wrist-centred). With ``visible``
     ([F, K] bool, the keypoints inside the image), ``body_in_view`` averages only the body
-    joints in view: a waist-up video says nothing about the legs."""
+    joints in view: a waist-up video says nothing about the legs. ``hands_rotation_aligned``: the
+    hands' error after each fitted hand is turned about its wrist onto the truth (Kabsch), i.e.
+    the fingers' articulation without the hand's orientation."""
     with torch.no_grad():
         a, _ = model.posed_keypoints(params)
         b, _ = model.posed_keypoints(truth)
@@ -71,14 +73,27 @@ def mpjpe(
             return torch.cat(parts, dim=1)
 
         body_err = (body(a) - body(b)).norm(dim=-1)
+        ha, hb = hands(a), hands(b)
         out = {
             "body": float(body_err.mean() * 1000),
-            "hands": float((hands(a) - hands(b)).norm(dim=-1).mean() * 1000),
+            "hands": float((ha - hb).norm(dim=-1).mean() * 1000),
+            "hands_rotation_aligned": float(_rotation_aligned(ha, hb).mean() * 1000),
         }
         if visible is not None:
             seen = visible[:, list(POSE_BODY)].to(body_err.device)
             out["body_in_view"] = float(body_err[seen].mean() * 1000) if bool(seen.any()) else float("nan")
         return out
+
+
+def _rotation_aligned(a: Tensor, b: Tensor) -> Tensor:
+    """Distances [F, 42] between each wrist-centred hand of ``a`` turned onto ``b`` by its best
+    rotation (Kabsch, no reflection) and ``b``. a, b: [F, 42, 3], both hands, 21 points each."""
+    x, y = a.unflatten(1, (2, 21)), b.unflatten(1, (2, 21))  # [F, 2, 21, 3]
+    u, _, vt = torch.linalg.svd(x.transpose(-1, -2) @ y)
+    d = torch.linalg.det(u @ vt).sign()
+    fix = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=-1))
+    turned = x @ (u @ fix @ vt)
+    return (turned - y).norm(dim=-1).flatten(1)
 
 
 def expression_error(model: BodyModel, params: BodyParams, truth: BodyParams, moved: float = 0.002) -> float:
