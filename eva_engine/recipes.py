@@ -24,26 +24,31 @@ PRESETS: dict[str, str] = {
 class Method:
     """What a method switches on a preset's config (``eva_engine.train.with_method``).
 
-    cadc: context-aware density control (EVA §3.3; else 3DGS's ``DefaultStrategy``), its history
-    ``per_gaussian`` (the paper's) or ``part_mean`` (the official code's thresholds). confidence:
-    the confidence-aware loss (§3.4; else plain L1). objective: ``full`` (mask, SSIM and LPIPS
-    terms, eq. 11) or ``3dgs`` (3DGS's 0.8 L1 + 0.2 D-SSIM, and the mask term; no LPIPS).
+    density: ``3dgs`` (3DGS's ``DefaultStrategy``), ``cadc`` (EVA's context-aware density
+    control, §3.3) or ``kl`` (GauHuman's KL-guided clone, split and merge). history: CADC's
+    thresholds, ``per_gaussian`` (the paper's) or ``part_mean`` (the official code's).
+    confidence: the confidence-aware loss (§3.4; else plain L1). objective: ``full`` (mask, SSIM
+    and LPIPS terms, eq. 11), ``gauhuman`` (the same terms with GauHuman's LPIPS weight, 0.01) or
+    ``3dgs`` (3DGS's 0.8 L1 + 0.2 D-SSIM, and the mask term; no LPIPS).
     """
 
     summary: str
-    cadc: bool
+    density: Literal["3dgs", "cadc", "kl"]
     confidence: bool
     history: Literal["per_gaussian", "part_mean"] = "per_gaussian"
-    objective: Literal["full", "3dgs"] = "full"
+    objective: Literal["full", "gauhuman", "3dgs"] = "full"
 
 
 METHODS: dict[str, Method] = {
-    "3dgs+body": Method("baseline", cadc=False, confidence=False, objective="3dgs"),
-    "eva": Method("the paper's", cadc=True, confidence=True),
-    "eva-no-cadc": Method("eva without CADC", cadc=False, confidence=True),
-    "eva-no-cl": Method("eva without CL", cadc=True, confidence=False),
-    "eva-no-cadc-no-cl": Method("eva without CADC and CL", cadc=False, confidence=False),
-    "eva-part-mean": Method("eva, per-part-mean thresholds", cadc=True, confidence=True, history="part_mean"),
+    "3dgs+body": Method("baseline", density="3dgs", confidence=False, objective="3dgs"),
+    "gauhuman+body": Method("GauHuman's baseline", density="kl", confidence=False, objective="gauhuman"),
+    "eva": Method("the paper's", density="cadc", confidence=True),
+    "eva-no-cadc": Method("eva without CADC", density="3dgs", confidence=True),
+    "eva-no-cl": Method("eva without CL", density="cadc", confidence=False),
+    "eva-no-cadc-no-cl": Method("eva without CADC and CL", density="3dgs", confidence=False),
+    "eva-part-mean": Method(
+        "eva, per-part-mean thresholds", density="cadc", confidence=True, history="part_mean"
+    ),
 }
 """Method name -> its switches (Tables 1 and 2 of the paper: ``eva_engine.train.methods``)."""
 

@@ -10,9 +10,9 @@ import math
 import pytest
 import torch
 from helpers.scenes import teacher_scene
+from helpers.strategies import render_with_grad
 
 from eva_engine.avatar import CanonicalGaussians
-from eva_engine.render import RenderOutput
 from eva_engine.train import (
     METHODS,
     AvatarLoss,
@@ -22,7 +22,7 @@ from eva_engine.train import (
     train_avatar,
     with_method,
 )
-from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy
+from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy, KLStrategy
 
 R = 5
 BODY, HAND, FACE = 0, 1, 2
@@ -43,18 +43,6 @@ def gaussians(parts: list[int], log_scale: float = -6.0, seed: int = 0) -> Canon
     }
     p = torch.tensor(parts)
     return CanonicalGaussians(splats, p, torch.arange(n), template, p)
-
-
-def render_with_grad(grad: torch.Tensor, visible: torch.Tensor | None = None) -> RenderOutput:
-    """A render whose screen-space gradient is ``grad [N]`` (x only; a 2x2 image makes the NDC
-    scaling 1)."""
-    n = grad.shape[0]
-    means2d = torch.zeros(n, 2, requires_grad=True)
-    means2d.grad = torch.stack([grad, torch.zeros_like(grad)], dim=-1)
-    radii = torch.ones(n, dtype=torch.int32) if visible is None else visible.to(torch.int32)
-    return RenderOutput(
-        torch.zeros(2, 2, 3), torch.zeros(2, 2, 1), torch.zeros(2, 2, 1), means2d, radii, torch.ones(n), 0
-    )
 
 
 def drive(strategy, gs, history: list[torch.Tensor], visible=None) -> dict:
@@ -267,5 +255,5 @@ def test_tiny_end_to_end_run_with_each_method(method, tiny_scene, anny_model):
     assert all(math.isfinite(v) for v in result.losses)
     assert gs.part_ids.shape == gs.vertex_ids.shape == (len(gs),)
     assert set(gs.part_ids.unique().tolist()) <= {BODY, HAND, FACE}
-    cadc = method in ("eva", "eva-no-cl", "eva-part-mean")
-    assert type(config.strategy) is (ContextAwareStrategy if cadc else DefaultStrategy)
+    kinds = {"3dgs": DefaultStrategy, "cadc": ContextAwareStrategy, "kl": KLStrategy}
+    assert type(config.strategy) is kinds[METHODS[method].density]

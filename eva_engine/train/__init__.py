@@ -19,7 +19,7 @@ from eva_engine.train.losses import (
 )
 from eva_engine.train.methods import with_method
 from eva_engine.train.pose_correction import PoseCorrection, PoseCorrectionConfig
-from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy, Strategy
+from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy, KLStrategy, Strategy
 from eva_engine.train.trainer import (
     STAGES,
     TrainingError,
@@ -40,6 +40,7 @@ __all__ = [
     "ConfidenceNet",
     "ContextAwareStrategy",
     "DefaultStrategy",
+    "KLStrategy",
     "L1Loss",
     "LossConfig",
     "OptimConfig",

@@ -1,2 +1,3 @@
 """Shared test helpers: ``scenes`` (rendered Anny scenes, in-memory datasets) and ``service``
-(running the API and worker in tests)."""
+(running the API and worker in tests), ``strategies`` (a render carrying a chosen screen-space
+gradient, for density-control tests)."""

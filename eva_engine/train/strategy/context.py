@@ -40,7 +40,6 @@ Gaussian whose gradient keeps rising gets a lower threshold and densifies sooner
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -81,12 +80,6 @@ class ContextAwareStrategy(DefaultStrategy):
             value = getattr(self, name)
             if value is not None and len(value) != len(PART_NAMES):
                 raise ValueError(f"{name} needs one value per part {PART_NAMES}, got {value}")
-
-    @classmethod
-    def from_default(cls, base: DefaultStrategy, **overrides) -> ContextAwareStrategy:
-        """The context-aware version of ``base``: same schedule and 3DGS settings."""
-        fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(DefaultStrategy)}
-        return cls(**{**fields, **overrides})
 
     def initialize_state(self) -> dict:
         state = super().initialize_state()

@@ -26,7 +26,9 @@ sums and sets per-part thresholds.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import Self
 
 import torch
 from torch import Tensor
@@ -70,6 +72,13 @@ class DefaultStrategy(Strategy):
     max_gaussians: int | None = None
     prune_unseen_parts: bool = True
     seed: int = 0
+
+    @classmethod
+    def from_default(cls, base: DefaultStrategy, **overrides) -> Self:
+        """This strategy with ``base``'s schedule and 3DGS settings (a subclass's own fields at
+        their defaults unless in ``overrides``)."""
+        fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(DefaultStrategy)}
+        return cls(**{**fields, **overrides})
 
     def initialize_state(self) -> dict:
         return {
@@ -164,7 +173,15 @@ class DefaultStrategy(Strategy):
             is_split = torch.cat([is_split, is_split.new_zeros(n_clone)])
         if n_split:
             ops.split(gaussians, optimizers, state, is_split, generator=state["generator"])
+        n_prune = self.prune(gaussians, optimizers, state)
+        gaussians.refresh_vertex_ids()
+        self.end_window(state)
+        return {"cloned": n_clone, "split": n_split, "pruned": n_prune, "gaussians": len(gaussians)}
 
+    @torch.no_grad()
+    def prune(self, gaussians: CanonicalGaussians, optimizers: Optimizers, state: dict) -> int:
+        """Remove Gaussians below ``prune_opa`` opacity, above ``prune_scale3d`` or too far from
+        the template (``prune_distance_thresholds``), never all of them; returns how many."""
         dist_max, same_part = self.prune_distance_thresholds(gaussians)
         dist = gaussians.template_distance(same_part=same_part)
         prune = (
@@ -176,9 +193,7 @@ class DefaultStrategy(Strategy):
         n_prune = int(prune.sum())
         if n_prune:
             ops.remove(gaussians, optimizers, state, prune)
-        gaussians.refresh_vertex_ids()
-        self.end_window(state)
-        return {"cloned": n_clone, "split": n_split, "pruned": n_prune, "gaussians": len(gaussians)}
+        return n_prune
 
     @torch.no_grad()
     def finalize(self, gaussians: CanonicalGaussians, optimizers: Optimizers, state: dict) -> dict:

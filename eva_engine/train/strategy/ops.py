@@ -8,6 +8,7 @@ and every per-Gaussian tensor of the strategy ``state`` (new rows zero).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -73,11 +74,14 @@ def split(
     n_split: int = 2,
     scale_divisor: float = 1.6,
     generator: torch.Generator | None = None,
+    keep_parents: bool = False,
 ) -> None:
     """Replace each Gaussian in ``mask [N]`` by ``n_split`` children sampled from it (3DGS):
-    centres drawn from the parent's Gaussian, scales divided by 0.8 n_split (1.6 for 2)."""
+    centres drawn from the parent's Gaussian, scales divided by 0.8 n_split (1.6 for 2).
+    ``keep_parents``: the parents stay too (GauHuman's clone is ``n_split=1, scale_divisor=1``
+    with the parent kept: a copy displaced by a sample of the parent, not an exact copy)."""
     sel = torch.nonzero(mask).squeeze(1)
-    keep = torch.nonzero(~mask).squeeze(1)
+    keep = torch.arange(len(mask), device=mask.device) if keep_parents else torch.nonzero(~mask).squeeze(1)
     splats = gaussians.splats
     scales = torch.exp(splats["scales"].detach()[sel])  # [M, 3]
     rot = quat_to_rotmat(splats["quats"].detach()[sel])  # [M, 3, 3]
@@ -98,6 +102,38 @@ def split(
 
     def zeros(x: Tensor) -> Tensor:
         return torch.cat([x[keep], x.new_zeros((n_split * len(sel), *x.shape[1:]))])
+
+    _update(gaussians, optimizers, state, param_fn, lambda _, v: zeros(v), rows, zeros)
+
+
+def merge(gaussians: CanonicalGaussians, optimizers: Optimizers, state: dict, pairs: Tensor) -> None:
+    """Replace each pair ``pairs [M, 2]`` (row indices, every Gaussian in at most one pair) by one
+    Gaussian (GauHuman's KL merge): the centre, colours and opacity logit are the pair's means;
+    the scales are the first one's divided by 0.8 and its rotation is kept. Per-Gaussian buffers
+    come from the first of the pair; new rows of optimizer and strategy state are zero."""
+    n = len(gaussians)
+    first, second = pairs[:, 0], pairs[:, 1]
+    merged = torch.zeros(n, dtype=torch.bool, device=pairs.device)
+    merged[first] = True
+    merged[second] = True
+    if int(merged.sum()) != 2 * len(pairs):
+        raise ValueError("merge pairs must not share a Gaussian")
+    keep = torch.nonzero(~merged).squeeze(1)
+
+    def param_fn(name: str, p: Tensor) -> Tensor:
+        if name == "scales":
+            children = p[first] - math.log(0.8)
+        elif name == "quats":
+            children = p[first]
+        else:
+            children = 0.5 * (p[first] + p[second])
+        return torch.cat([p[keep], children])
+
+    def rows(x: Tensor) -> Tensor:
+        return torch.cat([x[keep], x[first]])
+
+    def zeros(x: Tensor) -> Tensor:
+        return torch.cat([x[keep], x.new_zeros((len(pairs), *x.shape[1:]))])
 
     _update(gaussians, optimizers, state, param_fn, lambda _, v: zeros(v), rows, zeros)
 
