@@ -1,7 +1,7 @@
 """The paper's Tables 1 and 2 on the synthetic ``controlled`` benchmark (the XHumans setting):
-3DGS + body and GauHuman + body against EVA, and EVA without CADC, without CL and without both
-(``ROWS``), each row the mean ± std over several seeds, LPIPS-VGG (held out: no method trains on
-it) as the headline.
+3DGS + body, GART + body and GauHuman + body against EVA, and EVA without CADC, without CL and
+without both (``ROWS``), each row the mean ± std over several seeds, LPIPS-VGG (held out: no
+method trains on it) as the headline.
 
     .venv/bin/python bench/paper_tables.py                  # the committed tables (3 seeds; hours on 2 cores)
     .venv/bin/python bench/paper_tables.py --size tiny --preset tiny --seeds 0 1 --name smoke
@@ -40,8 +40,8 @@ from machine import describe
 from stats import compare_paired, fmt, mean_std
 
 RESULTS = Path(__file__).resolve().parent / "results"
-ROWS = ("3dgs+body", "gauhuman+body", "eva-no-cadc-no-cl", "eva-no-cadc", "eva-no-cl", "eva")
-TABLE1 = ("3dgs+body", "gauhuman+body", "eva-no-cadc-no-cl", "eva")
+ROWS = ("3dgs+body", "gart+body", "gauhuman+body", "eva-no-cadc-no-cl", "eva-no-cadc", "eva-no-cl", "eva")
+TABLE1 = ("3dgs+body", "gart+body", "gauhuman+body", "eva-no-cadc-no-cl", "eva")
 TABLE2 = ("eva-no-cadc", "eva-no-cl", "eva-no-cadc-no-cl", "eva")
 REGIONS = ("full", "hand", "face")
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
@@ -50,7 +50,9 @@ LOWER_IS_BETTER = {"psnr": False, "ssim": False, "lpips_vgg": True, "lpips_alex"
 TRAINED_ON = {"3dgs+body": "none (L1 + D-SSIM)"}
 COMPARISONS = (
     ("eva", "3dgs+body", "EVA against the baseline (Table 1)"),
+    ("eva", "gart+body", "EVA against GART + body (Table 1)"),
     ("eva", "gauhuman+body", "EVA against GauHuman + body (Table 1)"),
+    ("gart+body", "3dgs+body", "GART's skinning field, latent bones and objective against 3DGS + body"),
     ("gauhuman+body", "3dgs+body", "GauHuman's KL density control and objective against 3DGS's"),
     (
         "gauhuman+body",
@@ -107,11 +109,19 @@ def run_one(ds, config, metrics, label: str) -> dict:
 def _results_config(train_config: dict) -> dict:
     """A method's train config without the entries that never change a result, so that runs made
     before such an entry existed compare equal: the LPIPS cache size (memory), the thread count
-    (compared at the top level, where it has moved) and per-frame pose correction when off."""
+    (compared at the top level, where it has moved), per-frame pose correction when off,
+    regularisers when all their weights are 0, and the skinning-field settings of mesh skinning."""
     out = {k: v for k, v in train_config.items() if k != "threads"}
     out["loss"] = {k: v for k, v in out.get("loss", {}).items() if k != "lpips_cache_mb"}
     if not (out.get("pose_correction") or {}).get("enabled", False):
         out.pop("pose_correction", None)
+    if not any(v for k, v in (out.get("regularizers") or {}).items() if k.startswith("lambda_")):
+        out.pop("regularizers", None)
+    avatar = dict(out.get("avatar", {}))
+    if avatar.get("skinning", "mesh") == "mesh" and not avatar.get("latent_bones"):
+        for key in ("skinning", "field_resolution", "latent_bones"):
+            avatar.pop(key, None)
+    out["avatar"] = avatar
     return out
 
 

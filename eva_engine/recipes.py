@@ -25,22 +25,29 @@ class Method:
     """What a method switches on a preset's config (``eva_engine.train.with_method``).
 
     density: ``3dgs`` (3DGS's ``DefaultStrategy``), ``cadc`` (EVA's context-aware density
-    control, §3.3) or ``kl`` (GauHuman's KL-guided clone, split and merge). history: CADC's
-    thresholds, ``per_gaussian`` (the paper's) or ``part_mean`` (the official code's).
-    confidence: the confidence-aware loss (§3.4; else plain L1). objective: ``full`` (mask, SSIM
-    and LPIPS terms, eq. 11), ``gauhuman`` (the same terms with GauHuman's LPIPS weight, 0.01) or
-    ``3dgs`` (3DGS's 0.8 L1 + 0.2 D-SSIM, and the mask term; no LPIPS).
+    control, §3.3), ``kl`` (GauHuman's KL-guided clone, split and merge) or ``gart`` (3DGS's with
+    GART's thresholds, opacity pruning only). history: CADC's thresholds, ``per_gaussian`` (the
+    paper's) or ``part_mean`` (the official code's). confidence: the confidence-aware loss (§3.4;
+    else plain L1). objective: ``full`` (mask, SSIM and LPIPS terms, eq. 11), ``gauhuman`` (the
+    same terms with GauHuman's LPIPS weight, 0.01), ``gart`` (L1 + 0.1 D-SSIM, and GART's
+    regularisers) or ``3dgs`` (3DGS's 0.8 L1 + 0.2 D-SSIM, and the mask term; no LPIPS).
+    skinning: ``mesh`` (the template's weights with the weight-offset MLP, and the pose refiner)
+    or ``field`` (GART's learnable weight field and latent bones, no pose refiner).
     """
 
     summary: str
-    density: Literal["3dgs", "cadc", "kl"]
+    density: Literal["3dgs", "cadc", "kl", "gart"]
     confidence: bool
     history: Literal["per_gaussian", "part_mean"] = "per_gaussian"
-    objective: Literal["full", "gauhuman", "3dgs"] = "full"
+    objective: Literal["full", "gauhuman", "gart", "3dgs"] = "full"
+    skinning: Literal["mesh", "field"] = "mesh"
 
 
 METHODS: dict[str, Method] = {
     "3dgs+body": Method("baseline", density="3dgs", confidence=False, objective="3dgs"),
+    "gart+body": Method(
+        "GART's baseline", density="gart", confidence=False, objective="gart", skinning="field"
+    ),
     "gauhuman+body": Method("GauHuman's baseline", density="kl", confidence=False, objective="gauhuman"),
     "eva": Method("the paper's", density="cadc", confidence=True),
     "eva-no-cadc": Method("eva without CADC", density="3dgs", confidence=True),

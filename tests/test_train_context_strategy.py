@@ -255,5 +255,5 @@ def test_tiny_end_to_end_run_with_each_method(method, tiny_scene, anny_model):
     assert all(math.isfinite(v) for v in result.losses)
     assert gs.part_ids.shape == gs.vertex_ids.shape == (len(gs),)
     assert set(gs.part_ids.unique().tolist()) <= {BODY, HAND, FACE}
-    kinds = {"3dgs": DefaultStrategy, "cadc": ContextAwareStrategy, "kl": KLStrategy}
+    kinds = {"3dgs": DefaultStrategy, "gart": DefaultStrategy, "cadc": ContextAwareStrategy, "kl": KLStrategy}
     assert type(config.strategy) is kinds[METHODS[method].density]

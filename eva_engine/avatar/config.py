@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
+SKINNING_KINDS = ("mesh", "field")
+
 
 @dataclass(frozen=True)
 class AvatarConfig:
@@ -20,6 +22,11 @@ class AvatarConfig:
     mlp_out_init: half-range of the uniform init of both MLPs' last layers (bias 0), so they
         start as (almost exactly) the identity: EVA's official code uses 1e-5.
     lbs_eps: epsilon in w = softmax(log(w_body + eps) + w') (paper: 1e-8).
+    skinning: "mesh" (EVA, GauHuman: the nearest template vertex's weights, with the weight-offset
+        MLP if ``weight_offsets``) or "field" (GART: a learnable voxel field of weights,
+        ``avatar/skinning_field.py``; ``weight_offsets`` must then be off).
+    field_resolution: the field's grid side in x and y (GART: 64; z has a quarter of it).
+    latent_bones: GART's extra bones driven by the pose (field skinning only; GART: 4).
     """
 
     sh_degree: int = 3
@@ -32,6 +39,9 @@ class AvatarConfig:
     mlp_depth: int = 2
     mlp_out_init: float = 1e-5
     lbs_eps: float = 1e-8
+    skinning: str = "mesh"
+    field_resolution: int = 64
+    latent_bones: int = 0
 
     def __post_init__(self) -> None:
         if not 0 <= self.sh_degree <= 3:
@@ -42,6 +52,12 @@ class AvatarConfig:
             raise ValueError("init_max_gaussians must be positive or None")
         if self.mlp_depth < 1 or self.mlp_width < 1 or self.pe_frequencies < 0:
             raise ValueError("mlp_depth, mlp_width must be >= 1 and pe_frequencies >= 0")
+        if self.skinning not in SKINNING_KINDS:
+            raise ValueError(f"skinning must be one of {SKINNING_KINDS}, got {self.skinning!r}")
+        if self.skinning == "field" and self.weight_offsets:
+            raise ValueError("field skinning learns its own weights: turn weight_offsets off")
+        if self.latent_bones < 0 or (self.latent_bones and self.skinning != "field"):
+            raise ValueError("latent_bones must be >= 0, and > 0 only with field skinning")
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -206,9 +206,8 @@ def save_avatar(
     g = avatar.gaussians
     write_ply(root / PLY_NAME, dict(g.splats.items()))
     tensors = {"shape": avatar.shape, "part_ids": g.part_ids, "vertex_ids": g.vertex_ids}
-    for prefix, module in (("weight_offsets", avatar.weight_offsets), ("pose_refiner", avatar.pose_refiner)):
-        if module is not None:
-            tensors.update({f"{prefix}.{k}": v for k, v in module.state_dict().items()})
+    for prefix, module in avatar.networks().items():
+        tensors.update({f"{prefix}.{k}": v for k, v in module.state_dict().items()})
     tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
     metadata = {
         "format": FORMAT,
@@ -319,10 +318,9 @@ def _load_model(root: Path, meta: AvatarMeta, body: BodyModel | None, device: to
     ids = tensors["part_ids"], tensors["vertex_ids"]
     gaussians = CanonicalGaussians(splats, *ids, template, body.part_ids)
     avatar = Avatar(body, gaussians, shape, config)
-    for prefix, module in (("weight_offsets", avatar.weight_offsets), ("pose_refiner", avatar.pose_refiner)):
-        if module is not None:
-            state = {k[len(prefix) + 1 :]: v for k, v in tensors.items() if k.startswith(prefix + ".")}
-            module.load_state_dict(state)
+    for prefix, module in avatar.networks().items():
+        state = {k[len(prefix) + 1 :]: v for k, v in tensors.items() if k.startswith(prefix + ".")}
+        module.load_state_dict(state)
     sh = meta.active_sh_degree
     avatar.active_sh_degree = sh if sh is not None else gaussians.sh_degree
     return avatar.to(device)

@@ -9,7 +9,9 @@ subject's ``shape`` and no expression. Posing a frame (``pose``):
 3. expression (and any shape blendshape) offsets: each Gaussian moves with its nearest template
    vertex, ``canonical(params)[v] - template[v]`` (Anny's jaw and eyelids move through
    blendshapes, not bones);
-4. skinning with w = softmax(log(w_body[v] + eps) + f_w(gamma(p_c))) (``skin_gaussians``);
+4. skinning with w = softmax(log(w_body[v] + eps) + f_w(gamma(p_c))) (``skin_gaussians``), or
+   with GART's learnable weight field and latent bones (``AvatarConfig.skinning == "field"``,
+   ``avatar/skinning_field.py``);
 5. colours from SH evaluated for the view direction rotated back into canonical space.
 """
 
@@ -24,6 +26,7 @@ from eva_engine.avatar.config import AvatarConfig
 from eva_engine.avatar.gaussians import CanonicalGaussians
 from eva_engine.avatar.networks import LBSWeightOffsets, PoseRefiner, blend_skinning_weights
 from eva_engine.avatar.skinning import skin_gaussians
+from eva_engine.avatar.skinning_field import LatentBones, SkinningField
 from eva_engine.body.model import BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.render import RasterConfig, RenderOutput, eval_sh, rasterize
@@ -90,6 +93,21 @@ class Avatar(nn.Module):
             if config.pose_refine
             else None
         )
+        self.skinning_field = (
+            SkinningField(
+                gaussians.template_vertices,
+                body.skinning_weights,
+                config.field_resolution,
+                config.latent_bones,
+            ).to(gaussians.template_vertices.device)
+            if config.skinning == "field"
+            else None
+        )
+        self.latent_bones = (
+            LatentBones(3 * len(parts), config.latent_bones, generator=generator)
+            if config.latent_bones
+            else None
+        )
         self.active_sh_degree = gaussians.sh_degree
         self._weights_cache: tuple[list[Tensor], list[int], Tensor] | None = None
 
@@ -120,9 +138,18 @@ class Avatar(nn.Module):
         generator = generator if generator is not None else torch.Generator().manual_seed(seed)
         return cls(body, gaussians, shape, config, generator)
 
+    def networks(self) -> dict[str, nn.Module]:
+        """The learnable parts besides the Gaussians, by name (what ``save_avatar`` stores)."""
+        named = {
+            "weight_offsets": self.weight_offsets,
+            "pose_refiner": self.pose_refiner,
+            "skinning_field": self.skinning_field,
+            "latent_bones": self.latent_bones,
+        }
+        return {name: m for name, m in named.items() if m is not None}
+
     def mlp_parameters(self) -> list[nn.Parameter]:
-        mods = [m for m in (self.weight_offsets, self.pose_refiner) if m is not None]
-        return [p for m in mods for p in m.parameters()]
+        return [p for m in self.networks().values() for p in m.parameters()]
 
     # -- posing ------------------------------------------------------------------------------
     def subject_params(self, params: BodyParams) -> BodyParams:
@@ -149,13 +176,15 @@ class Avatar(nn.Module):
         )
 
     def skinning_weights(self) -> Tensor:
-        """[N, J] per-Gaussian LBS weights (body-model weights of the nearest vertex + offsets).
-        Without autograd (rendering a trained avatar) they are computed once and reused until a
-        tensor they depend on changes (a new tensor or an in-place update)."""
+        """[N, J] per-Gaussian LBS weights (body-model weights of the nearest vertex + offsets),
+        or [N, J + K] read from the skinning field (K latent bones). Without autograd (rendering a
+        trained avatar) they are computed once and reused until a tensor they depend on changes
+        (a new tensor or an in-place update)."""
         g = self.gaussians
         inputs = [g.means, g.vertex_ids, self.body.skinning_weights]
-        if self.weight_offsets is not None:
-            inputs += list(self.weight_offsets.parameters())
+        for module in (self.weight_offsets, self.skinning_field):
+            if module is not None:
+                inputs += list(module.parameters())
         versions = [t._version for t in inputs]
         cached = self._weights_cache
         if (
@@ -166,9 +195,12 @@ class Avatar(nn.Module):
             and cached[1] == versions
         ):
             return cached[2]
-        base = self.body.skinning_weights[g.vertex_ids]
-        offsets = self.weight_offsets(g.means) if self.weight_offsets is not None else None
-        weights = blend_skinning_weights(base, offsets, self.config.lbs_eps)
+        if self.skinning_field is not None:
+            weights = self.skinning_field(g.means)
+        else:
+            base = self.body.skinning_weights[g.vertex_ids]
+            offsets = self.weight_offsets(g.means) if self.weight_offsets is not None else None
+            weights = blend_skinning_weights(base, offsets, self.config.lbs_eps)
         self._weights_cache = (inputs, versions, weights) if not torch.is_grad_enabled() else None
         return weights
 
@@ -179,6 +211,8 @@ class Avatar(nn.Module):
         g = self.gaussians
         refined = self.refine_pose(params)
         transforms = self.body(refined).transforms[0]  # [J, 4, 4]
+        if self.latent_bones is not None:  # children of the root: [J + K, 4, 4]
+            transforms = torch.cat([transforms, transforms[0] @ self.latent_bones(refined.joints)])
         rest = self.body.canonical(refined)[0]  # [V, 3] with this frame's expression
         offsets = (rest - g.template_vertices)[g.vertex_ids]
         weights = self.skinning_weights()

@@ -14,6 +14,7 @@ from eva_engine.avatar.config import AvatarConfig
 from eva_engine.recipes import PRESETS
 from eva_engine.train.losses import LossConfig
 from eva_engine.train.pose_correction import PoseCorrectionConfig
+from eva_engine.train.regularizers import RegularizerConfig
 from eva_engine.train.strategy import DefaultStrategy, Strategy
 
 
@@ -66,6 +67,7 @@ class TrainConfig:
     """Everything one training run needs besides the data.
 
     iterations: optimisation steps, one training frame each (EVA: 2,000).
+    regularizers: weights of the avatar's own regularisers (GART's; all 0 by default).
     sh_degree_interval: raise the active SH degree every this many steps (3DGS: 1,000).
     background: render/target background [3]; None: the dataset's (meta.background) or white.
     image_scale: resample frames (and intrinsics) by this factor before training.
@@ -82,6 +84,7 @@ class TrainConfig:
     loss: LossConfig = field(default_factory=LossConfig)
     strategy: Strategy = field(default_factory=DefaultStrategy)
     pose_correction: PoseCorrectionConfig = field(default_factory=PoseCorrectionConfig)
+    regularizers: RegularizerConfig = field(default_factory=RegularizerConfig)
     sh_degree_interval: int = 1000
     background: tuple[float, float, float] | None = None
     image_scale: float = 1.0
@@ -110,7 +113,8 @@ def preset(name: str, **overrides) -> TrainConfig:
     - ``fast``: 600 iterations, densify 120..300 every 30, at most 6,000 seeds, 64-wide MLPs,
       learning rates for the shorter schedule (``OptimConfig.faster``).
     - ``tiny``: for tests: 100 iterations, densify 30..70 every 20, 1,500 seeds, 32-wide MLPs,
-      SH degree 1, learning rates x10 (colours), no pose correction: seconds at ~64 px.
+      a 32-wide skinning field (GART's skinning), SH degree 1, learning rates x10 (colours), no
+      pose correction: seconds at ~64 px.
 
     Per-frame pose correction is off in every preset (its schedule is set, ``enabled=False``):
     test frames are rendered with uncorrected poses, and an avatar trained on corrected ones
@@ -133,7 +137,9 @@ def preset(name: str, **overrides) -> TrainConfig:
     elif name == "tiny":
         cfg = TrainConfig(
             iterations=100,
-            avatar=AvatarConfig(sh_degree=1, init_max_gaussians=1500, mlp_width=32, pe_frequencies=4),
+            avatar=AvatarConfig(
+                sh_degree=1, init_max_gaussians=1500, mlp_width=32, pe_frequencies=4, field_resolution=32
+            ),
             optim=OptimConfig().faster(10.0),
             strategy=DefaultStrategy(refine_start_iter=30, refine_stop_iter=70, refine_every=20),
             sh_degree_interval=50,

@@ -12,6 +12,12 @@
   method here, so that LPIPS-VGG stays a metric no method trained on. Its pose refiner and LBS
   weight offsets are the ones EVA took from it (the same modules, on by default); schedule,
   learning rates and initialisation on the template are shared with the other rows.
+- ``gart+body``: GART (Lei et al., CVPR 2024) on the articulated body: its learnable skinning
+  field (a voxel grid of LBS weights, initialised from the body model's) and 4 latent bones
+  driven by the pose (``avatar/skinning_field.py``) in place of the weight-offset MLP and the pose
+  refiner; 3DGS's density control with GART's thresholds and opacity-only pruning; its objective,
+  L1 + 0.1 D-SSIM (no mask or LPIPS term) plus its regularisers (``regularizers.py``); its
+  initial opacity 0.99. Schedule and learning rates are the preset's (``docs/baselines.md``).
 - ``eva``: context-aware density control (``ContextAwareStrategy``, per-Gaussian history) and the
   confidence-aware loss, with the full objective (mask, SSIM, LPIPS; paper eq. 11).
 - ``eva-no-cadc`` / ``eva-no-cl``: Table 2's ablations (``DefaultStrategy`` / plain L1).
@@ -29,22 +35,53 @@ from __future__ import annotations
 
 import dataclasses
 
+from eva_engine.avatar.config import AvatarConfig
 from eva_engine.recipes import METHODS
 from eva_engine.train.config import TrainConfig
+from eva_engine.train.regularizers import RegularizerConfig
 from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy, KLStrategy
+
+# GART's PeopleSnapshot profile (profiles/people/people_1m.yaml): its densification thresholds
+# (MAX_GRAD, PERCENT_DENSE x its extent 0.5), opacity-only pruning (1 m: no size or template
+# limit), its initial opacity and its regularisers.
+GART_STRATEGY = {
+    "grow_grad2d": 1e-4,
+    "grow_scale3d": 0.005,
+    "prune_opa": 0.1,
+    "prune_scale3d": 1.0,
+    "prune_template_dist": 1.0,
+}
+GART_REGULARIZERS = RegularizerConfig(
+    knn=3,
+    lambda_knn_std=1e-3,
+    lambda_field_tv=0.3,
+    lambda_latent_tv=0.5,
+    lambda_field_norm=0.3,
+    lambda_latent_norm=0.3,
+    lambda_small_scale=0.05,
+)
+GART_LATENT_BONES = 4
 
 
 def with_method(config: TrainConfig, method: str) -> TrainConfig:
-    """``config`` (its schedule, seeds, learning rates) switched to ``method`` (module docstring).
-    The config's strategy must be a ``DefaultStrategy`` (its schedule is kept)."""
+    """``config`` (its schedule, seeds, learning rates, model sizes) switched to ``method``
+    (module docstring): the method sets the density control and its thresholds, the objective,
+    the skinning and the regularisers. The config's strategy must be a ``DefaultStrategy`` (its
+    schedule is kept)."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of {list(METHODS)}")
     switches = METHODS[method]
     base = config.strategy
     if not isinstance(base, DefaultStrategy):
         raise TypeError(f"with_method needs a DefaultStrategy-based config, got {type(base).__name__}")
-    if type(base) is not DefaultStrategy:  # back to the baseline fields only
-        base = DefaultStrategy(**{f.name: getattr(base, f.name) for f in dataclasses.fields(DefaultStrategy)})
+    # Back to the baseline: its schedule fields, the method's thresholds.
+    thresholds = (
+        GART_STRATEGY
+        if switches.density == "gart"
+        else {k: getattr(DefaultStrategy, k) for k in GART_STRATEGY}
+    )
+    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(DefaultStrategy)}
+    base = DefaultStrategy(**{**fields, **thresholds})
     strategy = base
     if switches.density == "cadc":
         strategy = ContextAwareStrategy.from_default(base, history=switches.history)
@@ -55,4 +92,16 @@ def with_method(config: TrainConfig, method: str) -> TrainConfig:
         loss = dataclasses.replace(loss, lambda_photometric=0.8, lambda_ssim=0.2, lambda_lpips=0.0)
     elif switches.objective == "gauhuman":
         loss = dataclasses.replace(loss, lambda_ssim=0.01, lambda_lpips=0.01)
-    return dataclasses.replace(config, strategy=strategy, loss=loss)
+    elif switches.objective == "gart":
+        loss = dataclasses.replace(loss, lambda_ssim=0.1, lambda_lpips=0.0, lambda_mask=0.0)
+    field = switches.skinning == "field"
+    avatar = dataclasses.replace(
+        config.avatar,
+        skinning=switches.skinning,
+        weight_offsets=not field,
+        pose_refine=not field,
+        latent_bones=GART_LATENT_BONES if field else 0,
+        init_opacity=0.99 if field else AvatarConfig.init_opacity,
+    )
+    regularizers = GART_REGULARIZERS if switches.objective == "gart" else RegularizerConfig()
+    return dataclasses.replace(config, strategy=strategy, loss=loss, avatar=avatar, regularizers=regularizers)

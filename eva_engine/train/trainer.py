@@ -28,6 +28,7 @@ from eva_engine.progress import Progress, ProgressEvent
 from eva_engine.train.config import TrainConfig
 from eva_engine.train.losses import AvatarLoss, composite_target
 from eva_engine.train.pose_correction import PoseCorrection
+from eva_engine.train.regularizers import regularization
 
 logger = logging.getLogger(__name__)
 
@@ -295,6 +296,8 @@ def train_avatar(
         t = tick("rasterize", t)
         terms = loss_fn(render, targets[i], masks[i], key=i)
         total = (terms["total"] + correction.prior(i)) if correcting else terms["total"]
+        if config.regularizers.active:
+            total = total + regularization(avatar, config.regularizers)
         t = tick("losses", t)
         total.backward()
         t = tick("backward", t)
