@@ -128,7 +128,7 @@ def _results_config(train_config: dict) -> dict:
 def same_settings(a: dict, b: dict) -> bool:
     """Two result configs of one benchmark setting: equal but for the seeds, the data-derived
     entries and the set of methods (a method both ran must have run with the same config, up to
-    ``RESULT_NEUTRAL`` entries)."""
+    the entries ``_results_config`` drops)."""
     keys = ("size", "preset", "iterations", "refine", "threads", "pixel_norm")
     if any(a.get(k) != b.get(k) for k in keys):
         return False

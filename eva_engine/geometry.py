@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor
 
 MIN_DEPTH = 0.05
@@ -55,3 +56,12 @@ def vertex_normals(vertices: np.ndarray | Tensor, faces: np.ndarray | Tensor) ->
     out = np.tile(np.array([0.0, 0.0, 1.0]), (len(v), 1))
     out[ok] = n[ok] / length[ok]
     return out.astype(np.float32)
+
+
+def knn_indices(points: Tensor, k: int) -> Tensor:
+    """[N, k] indices of each of ``points [N, 3]``'s k nearest points (itself among them, first
+    unless it coincides with another point); exact (a k-d tree), no gradient."""
+    x = points.detach().cpu().double().numpy()
+    k = min(k, len(x))
+    _, idx = cKDTree(x).query(x, k=k)
+    return torch.from_numpy(np.asarray(idx).reshape(len(x), k)).to(points.device)

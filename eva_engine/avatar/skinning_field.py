@@ -118,10 +118,8 @@ class SkinningField(nn.Module):
 
     def total_variation(self) -> tuple[Tensor, Tensor]:
         """(TV of the correction grid, TV of the latent-bone channels; 0 without them)."""
-        zero = self.correction.new_zeros(())
-        return _total_variation(self.correction), _total_variation(
-            self.latent
-        ) if self.latent is not None else zero
+        latent = _total_variation(self.latent) if self.latent is not None else self.correction.new_zeros(())
+        return _total_variation(self.correction), latent
 
     def magnitude(self) -> tuple[Tensor, Tensor]:
         """Mean over voxels of the norm over channels: (correction, latent-bone channels)."""

@@ -13,14 +13,13 @@ default (EVA, GauHuman and 3DGS use none); ``gart+body`` sets GART's PeopleSnaps
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
-import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from eva_engine.avatar import Avatar
+from eva_engine.geometry import knn_indices
 
 
 @dataclass(frozen=True)
@@ -38,25 +37,7 @@ class RegularizerConfig:
 
     @property
     def active(self) -> bool:
-        return any(
-            w > 0
-            for w in (
-                self.lambda_knn_std,
-                self.lambda_field_tv,
-                self.lambda_latent_tv,
-                self.lambda_field_norm,
-                self.lambda_latent_norm,
-                self.lambda_small_scale,
-            )
-        )
-
-
-def knn_indices(points: Tensor, k: int) -> Tensor:
-    """[N, k] indices of each point's k nearest points, itself first (exact, no gradient)."""
-    x = points.detach().cpu().double().numpy()
-    k = min(k, len(x))
-    _, idx = cKDTree(x).query(x, k=k)
-    return torch.from_numpy(np.asarray(idx).reshape(len(x), k)).to(points.device)
+        return any(getattr(self, f.name) > 0 for f in fields(self) if f.name.startswith("lambda_"))
 
 
 def knn_std(avatar: Avatar, k: int) -> Tensor:

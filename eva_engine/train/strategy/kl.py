@@ -32,13 +32,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 import eva_engine.train.strategy.ops as ops
 from eva_engine.avatar.gaussians import CanonicalGaussians
+from eva_engine.geometry import knn_indices
 from eva_engine.render import quat_to_rotmat
 from eva_engine.train.strategy.default import DefaultStrategy
 from eva_engine.train.strategy.ops import Optimizers
@@ -64,12 +63,10 @@ def kl_divergence(
 
 def nearest_neighbours(points: Tensor) -> Tensor:
     """[N] index of each point's nearest other point (points [N, 3], N >= 2); exact."""
-    x = points.detach().cpu().double().numpy()
-    _, idx = cKDTree(x).query(x, k=2)
-    own = np.arange(len(x))
+    idx = knn_indices(points, 2)
     # With coincident points the tree may return the twin first and the point itself second.
-    nn = np.where(idx[:, 0] == own, idx[:, 1], idx[:, 0])
-    return torch.from_numpy(nn).to(device=points.device, dtype=torch.int64)
+    own = torch.arange(len(points), device=idx.device)
+    return torch.where(idx[:, 0] == own, idx[:, 1], idx[:, 0])
 
 
 def neighbour_kl(gaussians: CanonicalGaussians) -> tuple[Tensor, Tensor]:
