@@ -226,7 +226,7 @@ def _extract(ref: str, into: Path) -> str:
 
 def _build_kernels() -> str | None:
     """Build (or load) this tree's compiled kernels once, outside the timed runs; None if ok."""
-    code = "from eva_engine.render import native; native.load_kernels(); print(native.unavailable_reason())"
+    code = "from eva_engine.render.native import RASTER; RASTER.load(); print(RASTER.unavailable_reason())"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     reason = out.stdout.strip().splitlines()[-1] if out.stdout.strip() else out.stderr[-500:]

@@ -3,7 +3,7 @@
 # renderer (moderngl), redis-server for the
 # queue's Redis mode tests, Chromium with its WebDriver for the web page's browser test (a
 # browser downloaded at test time does not work offline), and g++ with ninja, which build the
-# rasterizer's C++ kernels (eva_engine/render/native.py; without them the slower torch kernels
+# C++ kernels of the rasterizer and the skinning (eva_engine/native.py; without them the slower torch kernels
 # run). Installs only what is missing.
 set -euo pipefail
 pkgs=(libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri redis-server chromium chromium-driver g++ ninja-build)

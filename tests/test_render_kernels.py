@@ -16,7 +16,8 @@ import pytest
 import torch
 from test_render import PARAMS, cast, random_scene, render_with_grads, single, stacked
 
-from eva_engine.render import RasterConfig, bin_gaussians, native, project_gaussians, rasterize
+from eva_engine import native as native_lib
+from eva_engine.render import RasterConfig, bin_gaussians, eval_sh, native, project_gaussians, rasterize
 
 HAVE_COMPILER = shutil.which("c++") is not None and shutil.which("ninja") is not None
 
@@ -24,11 +25,11 @@ HAVE_COMPILER = shutil.which("c++") is not None and shutil.which("ninja") is not
 @pytest.fixture(scope="module")
 def compiled():
     """The compiled kernels; a machine with a compiler must be able to build them."""
-    if native.load_kernels() is None:
+    if native.RASTER.load() is None:
         if HAVE_COMPILER:
-            pytest.fail(f"the C++ kernels did not build: {native.unavailable_reason()}")
+            pytest.fail(f"the C++ kernels did not build: {native.RASTER.unavailable_reason()}")
         pytest.skip("no C++ compiler and ninja on this machine: the torch kernels run")
-    return native.load_kernels()
+    return native.RASTER.load()
 
 
 def assert_same(scene, tol64=(1e-10, 1e-8), rel32=2e-5, config=None):
@@ -214,17 +215,17 @@ def test_compiled_binning_keeps_every_visible_pair(compiled, dtype):
 def test_kernel_choice(compiled, monkeypatch):
     like = torch.zeros(1, dtype=torch.float32)
     monkeypatch.delenv(native.KERNEL_ENV, raising=False)
-    assert native.resolve_kernel("auto", like) == "cpp"
-    assert native.resolve_kernel("torch", like) == "torch"
-    assert native.resolve_kernel("auto", like.half()) == "torch"  # dtypes the C++ does not take
+    assert native.RASTER.resolve("auto", like) == "cpp"
+    assert native.RASTER.resolve("torch", like) == "torch"
+    assert native.RASTER.resolve("auto", like.half()) == "torch"  # dtypes the C++ does not take
     with pytest.raises(native.KernelUnavailableError):
-        native.resolve_kernel("cpp", like.half())
+        native.RASTER.resolve("cpp", like.half())
     monkeypatch.setenv(native.KERNEL_ENV, "torch")
-    assert native.resolve_kernel("auto", like) == "torch"
-    assert native.resolve_kernel("cpp", like) == "cpp"  # an explicit argument wins
+    assert native.RASTER.resolve("auto", like) == "torch"
+    assert native.RASTER.resolve("cpp", like) == "cpp"  # an explicit argument wins
     monkeypatch.setenv(native.KERNEL_ENV, "fast")
     with pytest.raises(ValueError, match=native.KERNEL_ENV):
-        native.resolve_kernel("auto", like)
+        native.RASTER.resolve("auto", like)
     with pytest.raises(ValueError, match="kernel"):
         RasterConfig(kernel="cuda")
 
@@ -232,7 +233,7 @@ def test_kernel_choice(compiled, monkeypatch):
 def test_env_var_forces_the_torch_kernels_in_a_fresh_process():
     code = (
         "import torch; from eva_engine.render import native; "
-        "print(native.resolve_kernel('auto', torch.zeros(1)), native._loaded)"
+        "print(native.RASTER.resolve('auto', torch.zeros(1)), native.RASTER.state)"
     )
     env = {**__import__("os").environ, native.KERNEL_ENV: "torch"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
@@ -244,9 +245,47 @@ def test_failed_build_is_remembered(tmp_path):
     source = tmp_path / "broken.cpp"
     source.write_text("#error deliberately broken\n")
     with pytest.raises(Exception, match="Error building"):
-        native.build_library(source, tmp_path / "ext")
-    marker = tmp_path / "ext" / f"{native.library_name(source)}.failed"
+        native_lib.build_library(source, tmp_path / "ext")
+    marker = tmp_path / "ext" / f"{native_lib.library_name(source, 'eva_native')}.failed"
     assert marker.is_file()
     with pytest.raises(RuntimeError, match="earlier build failed"):
-        native.build_library(source, tmp_path / "ext")  # at once, no second compile
-    assert native.build_library(source, tmp_path / "other", build=False) is None
+        native_lib.build_library(source, tmp_path / "ext")  # at once, no second compile
+    assert native_lib.build_library(source, tmp_path / "other", build=False) is None
+
+
+# ----------------------------------------------------------------------------- SH colours
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_sh_colours_match_the_torch_kernel(compiled, degree, dtype):
+    gen = torch.Generator().manual_seed(degree)
+    n = 300
+    coeffs = (2.0 * torch.randn(n, 16, 3, generator=gen, dtype=dtype)).requires_grad_(True)
+    dirs = torch.randn(n, 3, generator=gen, dtype=dtype)
+    dirs[0] = 0.0  # a zero direction
+    dirs[1] *= 1e-12  # a tiny one (squares stay normal floats: the torch kernel squares them)
+    dirs[2] *= 1e15  # a huge one
+    dirs.requires_grad_(True)
+    weights = torch.randn(n, 3, generator=gen, dtype=dtype)
+    out = {}
+    for kernel in ("cpp", "torch"):
+        rgb = eval_sh(degree, coeffs, dirs, kernel=kernel)
+        grads = torch.autograd.grad((rgb * weights).sum(), [coeffs, dirs], allow_unused=True)
+        # Degree 0 does not depend on the direction: no gradient (torch) or zeros (compiled).
+        out[kernel] = (
+            rgb,
+            *(torch.zeros_like(x) if g is None else g for g, x in zip(grads, [coeffs, dirs], strict=True)),
+        )
+    assert (out["torch"][0] == 0).any()  # some colours clamped at 0: their gradient is cut
+    tol = {"atol": 1e-12, "rtol": 1e-10} if dtype == torch.float64 else {"atol": 1e-5, "rtol": 1e-5}
+    for a, b in zip(out["cpp"], out["torch"], strict=True):
+        assert torch.isfinite(a).all()
+        torch.testing.assert_close(a, b, **tol)
+
+
+def test_sh_colours_gradcheck(compiled):
+    gen = torch.Generator().manual_seed(0)
+    coeffs = torch.randn(5, 16, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    dirs = torch.randn(5, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda c, d: eval_sh(3, c, d, kernel="cpp"), (coeffs, dirs))

@@ -7,13 +7,30 @@ For Gaussian i with weights w_i [J] and rest->posed joint transforms G_k = [R_k 
 The blended 3x3 part of LBS is not a rotation (it shrinks where weights mix distant rotations),
 so the covariance is rotated by its Gram-Schmidt orthonormalisation (smooth, finite gradients
 even for a degenerate blend) and the quaternions are composed with it: q^f = q(R_i) q^c.
+
+``skin_gaussians`` runs a compiled C++ kernel (``csrc/skinning.cpp``: the same steps in one pass
+per Gaussian, with a hand-written backward) where it builds, and these torch steps elsewhere;
+``EVA_SKINNING_KERNEL`` (auto | cpp | torch) or the ``kernel`` argument picks (``eva_engine.native``).
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import roma
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from eva_engine.native import Kernel, NativeLibrary
+
+ORTHONORMALIZE_EPS = 1e-8
+SKINNING = NativeLibrary(
+    "eva_skinning",
+    Path(__file__).resolve().parent / "csrc" / "skinning.cpp",
+    "EVA_SKINNING_KERNEL",
+    "skinning",
+)
 
 
 def blend_transforms(weights: Tensor, transforms: Tensor) -> Tensor:
@@ -22,7 +39,7 @@ def blend_transforms(weights: Tensor, transforms: Tensor) -> Tensor:
     return (weights @ transforms[:, :3, :].reshape(j, 12)).view(-1, 3, 4)
 
 
-def orthonormalize(m: Tensor, eps: float = 1e-8) -> Tensor:
+def orthonormalize(m: Tensor, eps: float = ORTHONORMALIZE_EPS) -> Tensor:
     """[N, 3, 3] -> [N, 3, 3] rotations by Gram-Schmidt on the first two columns (eps keeps a
     degenerate column finite)."""
     a1, a2 = m[..., :, 0], m[..., :, 1]
@@ -54,7 +71,7 @@ def rotmat_to_quat_wxyz(r: Tensor) -> Tensor:
 
 
 def skin_gaussians(
-    means: Tensor, quats: Tensor, weights: Tensor, transforms: Tensor
+    means: Tensor, quats: Tensor, weights: Tensor, transforms: Tensor, kernel: Kernel = "auto"
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Pose canonical Gaussians.
 
@@ -62,8 +79,34 @@ def skin_gaussians(
     zero, which the rasterizer reads as identity); weights: [N, J]; transforms: [J, 4, 4].
     Returns posed means [N, 3], posed quats [N, 4] and the per-Gaussian rotations [N, 3, 3]
     (canonical -> posed; e.g. to bring view directions into canonical space for SH colours).
+    kernel: "auto" | "cpp" | "torch" (module docstring); differentiable either way.
     """
+    if (
+        SKINNING.resolve(kernel, means) == "cpp"
+        and quats.dtype == weights.dtype == means.dtype
+        and transforms.device == means.device
+    ):
+        return _SkinCompiled.apply(means, quats, weights, transforms, SKINNING.load())
     a = blend_transforms(weights, transforms)
     posed = (a[:, :, :3] @ means.unsqueeze(-1)).squeeze(-1) + a[:, :, 3]
     rot = orthonormalize(a[:, :, :3])
     return posed, quat_multiply(rotmat_to_quat_wxyz(rot), quats), rot
+
+
+class _SkinCompiled(torch.autograd.Function):
+    """``skin_gaussians`` in the compiled kernel: the same outputs, gradients by hand."""
+
+    @staticmethod
+    def forward(ctx, means, quats, weights, transforms, ops):
+        ctx.save_for_backward(means, quats, weights, transforms)
+        ctx.ops = ops
+        return ops.skin_forward(means, quats, weights, transforms, ORTHONORMALIZE_EPS)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_means, grad_quats, grad_rots):
+        means, quats, weights, transforms = ctx.saved_tensors
+        grads = ctx.ops.skin_backward(
+            means, quats, weights, transforms, ORTHONORMALIZE_EPS, grad_means, grad_quats, grad_rots
+        )
+        return (*(g if need else None for g, need in zip(grads, ctx.needs_input_grad, strict=False)), None)

@@ -20,8 +20,8 @@ def setup(
     cache_dir: Path = typer.Option(None, help="Anny cache folder (default: <data dir>/cache/anny)."),
 ) -> None:
     """Build the Anny body-model cache (once, ~1 min) and its face-mesh correspondence (MediaPipe
-    on rendered faces, ~30 s), build the rasterizer's C++ kernels (~20 s), and check the offline
-    LPIPS weights."""
+    on rendered faces, ~30 s), build the C++ kernels of the rasterizer and the skinning (~30 s),
+    and check the offline LPIPS weights."""
     from eva_engine.body import load_body_model, prepare_anny_cache
     from eva_engine.metrics import LPIPSWeightsError, prepare_lpips
 
@@ -47,19 +47,21 @@ def setup(
             f"[green]ok[/] face-mesh correspondence: {int(corr.valid.sum())} of {len(corr.valid)} landmarks "
             f"({time.perf_counter() - started:.0f} s)"
         )
-    from eva_engine.render import native
+    from eva_engine.avatar.skinning import SKINNING
+    from eva_engine.render.native import RASTER
 
-    started = time.perf_counter()
-    with console.status("rasterizer C++ kernels (compiled once per machine)..."):
-        ops = native.load_kernels(force=force)
-    if ops is None:
-        # Not fatal: the torch kernels give the same images, only slower.
-        console.print(
-            f"[yellow]warning[/] rasterizer C++ kernels unavailable, torch kernels in use: "
-            f"{native.unavailable_reason()}"
-        )
-    else:
-        console.print(f"[green]ok[/] rasterizer C++ kernels ({time.perf_counter() - started:.0f} s)")
+    for library in (RASTER, SKINNING):
+        started = time.perf_counter()
+        with console.status(f"{library.what} C++ kernels (compiled once per machine)..."):
+            ops = library.load(force=force)
+        if ops is None:
+            # Not fatal: the torch kernels give the same results, only slower.
+            console.print(
+                f"[yellow]warning[/] {library.what} C++ kernels unavailable, torch kernels in use: "
+                f"{library.unavailable_reason()}"
+            )
+        else:
+            console.print(f"[green]ok[/] {library.what} C++ kernels ({time.perf_counter() - started:.0f} s)")
     try:
         weights = prepare_lpips()
     except LPIPSWeightsError as err:

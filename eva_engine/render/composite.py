@@ -34,7 +34,7 @@ import torch.nn.functional as F_nn
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from eva_engine.render.native import Kernel, load_kernels, resolve_kernel
+from eva_engine.render.native import RASTER, Kernel
 from eva_engine.render.tiles import TileBins
 
 ALPHA_MAX = 0.999
@@ -409,10 +409,10 @@ def composite_image(
     (see ``eva_engine.render.native``): the compiled kernels write this layout directly; the
     torch kernels run ``composite`` on colours and depth as one feature block, then untile.
     """
-    if resolve_kernel(kernel, means2d) == "cpp":
+    if RASTER.resolve(kernel, means2d) == "cpp":
         bg = colors.new_zeros(colors.shape[1]) if background is None else background.to(colors)
         return _CompositeImage.apply(
-            means2d, conics, opacities, colors, depths, bg, bins, width, height, load_kernels()
+            means2d, conics, opacities, colors, depths, bg, bins, width, height, RASTER.load()
         )
     feats = torch.cat([colors, depths[:, None]], dim=-1)  # depth: one more channel, no background
     acc, t_final = composite(means2d, conics, opacities, feats, bins, cfg)

@@ -14,7 +14,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from eva_engine.geometry import to_camera
-from eva_engine.render.native import Kernel, load_kernels, resolve_kernel
+from eva_engine.render.native import RASTER, Kernel
 
 # A Gaussian's 2D extent along each screen axis is ceil(RADIUS_SIGMAS * sigma_axis) pixels. 3.33
 # sigma is where o * exp(-d^2 / 2) drops below 1/255 even at o = 1, so nothing visible is cut.
@@ -103,9 +103,9 @@ def project_gaussians(
     camera_grad = (torch.is_tensor(viewmat) and viewmat.requires_grad) or (
         torch.is_tensor(K) and K.requires_grad
     )
-    if not camera_grad and resolve_kernel(kernel, means) == "cpp":
+    if not camera_grad and RASTER.resolve(kernel, means) == "cpp":
         means2d, conics, depths, radii = _ProjectCompiled.apply(
-            means, quats, scales, viewmat, K, width, height, near_plane, far_plane, eps2d, load_kernels()
+            means, quats, scales, viewmat, K, width, height, near_plane, far_plane, eps2d, RASTER.load()
         )
         return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii)
     dtype = means.dtype

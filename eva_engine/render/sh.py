@@ -1,11 +1,17 @@
-"""Real spherical harmonics colours, degree 0-3, with the 3DGS constants and conventions."""
+"""Real spherical harmonics colours, degree 0-3, with the 3DGS constants and conventions.
+
+``eval_sh`` runs the rasterizer's compiled kernel (``csrc/raster.cpp``, the same polynomials
+with a hand-written backward) where it loads, else these torch steps (``native``).
+"""
 
 from __future__ import annotations
 
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 from eva_engine.geometry import camera_center
+from eva_engine.render.native import RASTER, Kernel
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -63,18 +69,29 @@ def sh_basis(degree: int, dirs: Tensor) -> Tensor:
     return torch.stack(out, dim=-1)
 
 
-def eval_sh(degree: int, sh_coeffs: Tensor, dirs: Tensor) -> Tensor:
+def eval_sh(degree: int, sh_coeffs: Tensor, dirs: Tensor, kernel: Kernel = "auto") -> Tensor:
     """View-dependent colour as 3DGS renders it: max(sum_k Y_k(dir) c_k + 0.5, 0).
 
     sh_coeffs: [N, K, 3] with K >= (degree + 1)^2 (extra coefficients are ignored);
     dirs: [N, 3] viewing directions (camera -> Gaussian), any length (normalised here; a zero
     direction only affects degree >= 1 terms, which it zeroes). Returns [N, 3].
     The +0.5 offset makes an all-zero coefficient set mid-grey (``rgb_to_sh`` inverts the DC
-    term); the clamp keeps colours non-negative, as in 3DGS.
+    term); the clamp keeps colours non-negative, as in 3DGS. kernel: "auto" | "cpp" | "torch"
+    (``eva_engine.render.native``).
     """
     k = num_sh_bases(degree)
+    if not 0 <= degree <= MAX_SH_DEGREE:
+        raise ValueError(f"SH degree must be in 0..{MAX_SH_DEGREE}, got {degree}")
     if sh_coeffs.shape[-2] < k:
         raise ValueError(f"SH degree {degree} needs {k} coefficients, got {sh_coeffs.shape[-2]}")
+    if (
+        sh_coeffs.dim() == 3
+        and dirs.dim() == 2
+        and sh_coeffs.dtype == dirs.dtype
+        and dirs.device == sh_coeffs.device
+        and RASTER.resolve(kernel, dirs) == "cpp"
+    ):
+        return _SHCompiled.apply(degree, sh_coeffs, dirs, RASTER.load())
     norm = dirs.norm(dim=-1, keepdim=True)
     unit = dirs / torch.where(norm > 0, norm, torch.ones_like(norm))
     basis = sh_basis(degree, unit)
@@ -90,3 +107,20 @@ def rgb_to_sh(rgb: Tensor) -> Tensor:
 def view_dirs(means: Tensor, viewmat: Tensor) -> Tensor:
     """[N, 3] world means -> [N, 3] unnormalised directions from the camera centre to them."""
     return means - camera_center(viewmat).to(means)
+
+
+class _SHCompiled(torch.autograd.Function):
+    """``eval_sh`` in the compiled kernel: the same colours, gradients by hand."""
+
+    @staticmethod
+    def forward(ctx, degree, sh_coeffs, dirs, ops):
+        ctx.save_for_backward(sh_coeffs, dirs)
+        ctx.degree, ctx.ops = degree, ops
+        return ops.sh_forward(degree, sh_coeffs, dirs)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_rgb):
+        sh_coeffs, dirs = ctx.saved_tensors
+        g_coeffs, g_dirs = ctx.ops.sh_backward(ctx.degree, sh_coeffs, dirs, grad_rgb)
+        return None, g_coeffs, g_dirs, None

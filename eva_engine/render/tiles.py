@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from eva_engine.render.native import Kernel, load_kernels, resolve_kernel
+from eva_engine.render.native import RASTER, Kernel
 
 
 @dataclass
@@ -76,9 +76,9 @@ def bin_gaussians(
     num_tiles = tiles_x * tiles_y
     exact = conics is not None and opacities is not None
     with torch.no_grad():
-        if exact and resolve_kernel(kernel, means2d) == "cpp":
+        if exact and RASTER.resolve(kernel, means2d) == "cpp":
             dt = means2d.dtype
-            gauss_ids, tile_ids, tile_start, tile_count = load_kernels().bin_tiles(
+            gauss_ids, tile_ids, tile_start, tile_count = RASTER.load().bin_tiles(
                 means2d.detach(),
                 conics.detach().to(dt),
                 opacities.detach().to(dt),

@@ -1,5 +1,5 @@
-// Compiled CPU kernels of eva_engine.render: EWA projection, tile binning and tile compositing,
-// each forward with a hand-written backward (binning has none). Built on first use by eva_engine/render/native.py; the pure-torch
+// Compiled CPU kernels of eva_engine.render: EWA projection, tile binning, tile compositing and
+// SH colours, each forward with a hand-written backward (binning has none). Built on first use by eva_engine/render/native.py; the pure-torch
 // kernels in tiles.py and composite.py follow the same rules and stay the fallback.
 //
 // Rules (3DGS / gsplat "classic", as in composite.py): alpha = min(0.999, o exp(power)) with
@@ -876,6 +876,164 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> project_backward(
   return {g_means, g_quats, g_scales};
 }
 
+// ------------------------------------------------------------------------------ SH colours
+//
+// eval_sh of sh.py: rgb = max(sum_k Y_k(u) c_k + 0.5, 0) with u = dir / |dir| (a zero direction
+// stays zero), one Gaussian per iteration in double. Y_k and their derivatives are the
+// polynomials in (x, y, z) = u that sh.py differentiates with autograd.
+
+constexpr double kC0 = 0.28209479177387814, kC1 = 0.4886025119029199;
+constexpr double kC2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+                           0.5462742152960396};
+constexpr double kC3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+                           -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
+
+// Y [16] (the first (degree + 1)^2 used) and, if dY is given, dY/d(x, y, z) [16][3].
+inline void sh_basis_one(int degree, double x, double y, double z, double* Y, double (*dY)[3]) {
+  Y[0] = kC0;
+  if (dY) dY[0][0] = dY[0][1] = dY[0][2] = 0;
+  if (degree >= 1) {
+    Y[1] = -kC1 * y, Y[2] = kC1 * z, Y[3] = -kC1 * x;
+    if (dY) {
+      dY[1][0] = 0, dY[1][1] = -kC1, dY[1][2] = 0;
+      dY[2][0] = 0, dY[2][1] = 0, dY[2][2] = kC1;
+      dY[3][0] = -kC1, dY[3][1] = 0, dY[3][2] = 0;
+    }
+  }
+  const double xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+  if (degree >= 2) {
+    Y[4] = kC2[0] * xy, Y[5] = kC2[1] * yz, Y[6] = kC2[2] * (2 * zz - xx - yy), Y[7] = kC2[3] * xz,
+    Y[8] = kC2[4] * (xx - yy);
+    if (dY) {
+      dY[4][0] = kC2[0] * y, dY[4][1] = kC2[0] * x, dY[4][2] = 0;
+      dY[5][0] = 0, dY[5][1] = kC2[1] * z, dY[5][2] = kC2[1] * y;
+      dY[6][0] = -2 * kC2[2] * x, dY[6][1] = -2 * kC2[2] * y, dY[6][2] = 4 * kC2[2] * z;
+      dY[7][0] = kC2[3] * z, dY[7][1] = 0, dY[7][2] = kC2[3] * x;
+      dY[8][0] = 2 * kC2[4] * x, dY[8][1] = -2 * kC2[4] * y, dY[8][2] = 0;
+    }
+  }
+  if (degree >= 3) {
+    Y[9] = kC3[0] * y * (3 * xx - yy);
+    Y[10] = kC3[1] * xy * z;
+    Y[11] = kC3[2] * y * (4 * zz - xx - yy);
+    Y[12] = kC3[3] * z * (2 * zz - 3 * xx - 3 * yy);
+    Y[13] = kC3[4] * x * (4 * zz - xx - yy);
+    Y[14] = kC3[5] * z * (xx - yy);
+    Y[15] = kC3[6] * x * (xx - 3 * yy);
+    if (dY) {
+      dY[9][0] = 6 * kC3[0] * xy, dY[9][1] = kC3[0] * (3 * xx - 3 * yy), dY[9][2] = 0;
+      dY[10][0] = kC3[1] * yz, dY[10][1] = kC3[1] * xz, dY[10][2] = kC3[1] * xy;
+      dY[11][0] = -2 * kC3[2] * xy, dY[11][1] = kC3[2] * (4 * zz - xx - 3 * yy), dY[11][2] = 8 * kC3[2] * yz;
+      dY[12][0] = -6 * kC3[3] * xz, dY[12][1] = -6 * kC3[3] * yz, dY[12][2] = kC3[3] * (6 * zz - 3 * xx - 3 * yy);
+      dY[13][0] = kC3[4] * (4 * zz - 3 * xx - yy), dY[13][1] = -2 * kC3[4] * xy, dY[13][2] = 8 * kC3[4] * xz;
+      dY[14][0] = 2 * kC3[5] * xz, dY[14][1] = -2 * kC3[5] * yz, dY[14][2] = kC3[5] * (xx - yy);
+      dY[15][0] = kC3[6] * (3 * xx - 3 * yy), dY[15][1] = -6 * kC3[6] * xy, dY[15][2] = 0;
+    }
+  }
+}
+
+template <typename scalar_t>
+inline void unit_dir(const scalar_t* d, double u[3], double& n) {
+  const double x = d[0], y = d[1], z = d[2];
+  n = std::sqrt(x * x + y * y + z * z);
+  const double inv = n > 0 ? 1.0 / n : 1.0;
+  u[0] = x * inv, u[1] = y * inv, u[2] = z * inv;
+}
+
+template <typename scalar_t>
+void sh_forward_kernel(int degree, const scalar_t* coeffs, int64_t K, const scalar_t* dirs, int64_t N,
+                       scalar_t* rgb) {
+  const int B = (degree + 1) * (degree + 1);
+#pragma omp parallel for schedule(static) num_threads(num_threads())
+  for (int64_t g = 0; g < N; ++g) {
+    double u[3], n, Y[16];
+    unit_dir(dirs + 3 * g, u, n);
+    sh_basis_one(degree, u[0], u[1], u[2], Y, nullptr);
+    const scalar_t* c = coeffs + g * K * 3;
+    for (int ch = 0; ch < 3; ++ch) {
+      double v = 0.5;
+      for (int k = 0; k < B; ++k) v += Y[k] * c[3 * k + ch];
+      rgb[3 * g + ch] = static_cast<scalar_t>(std::max(v, 0.0));
+    }
+  }
+}
+
+template <typename scalar_t>
+void sh_backward_kernel(int degree, const scalar_t* coeffs, int64_t K, const scalar_t* dirs, int64_t N,
+                        const scalar_t* g_rgb, scalar_t* g_coeffs, scalar_t* g_dirs) {
+  const int B = (degree + 1) * (degree + 1);
+#pragma omp parallel for schedule(static) num_threads(num_threads())
+  for (int64_t g = 0; g < N; ++g) {
+    double u[3], n, Y[16], dY[16][3];
+    unit_dir(dirs + 3 * g, u, n);
+    sh_basis_one(degree, u[0], u[1], u[2], Y, dY);
+    const scalar_t* c = coeffs + g * K * 3;
+    scalar_t* gc = g_coeffs + g * K * 3;
+    double gv[3];
+    for (int ch = 0; ch < 3; ++ch) {
+      double v = 0.5;
+      for (int k = 0; k < B; ++k) v += Y[k] * c[3 * k + ch];
+      gv[ch] = v >= 0.0 ? double(g_rgb[3 * g + ch]) : 0.0;  // clamp_min passes ties, as torch
+    }
+    double gu[3] = {0, 0, 0};
+    for (int k = 0; k < K; ++k)
+      for (int ch = 0; ch < 3; ++ch) {
+        gc[3 * k + ch] = static_cast<scalar_t>(k < B ? Y[k] * gv[ch] : 0.0);
+        if (k < B) {
+          const double w = c[3 * k + ch] * gv[ch];
+          gu[0] += w * dY[k][0], gu[1] += w * dY[k][1], gu[2] += w * dY[k][2];
+        }
+      }
+    // u = d / |d| (d / 1 for a zero direction)
+    if (n > 0) {
+      const double dot = u[0] * gu[0] + u[1] * gu[1] + u[2] * gu[2];
+      for (int r = 0; r < 3; ++r) g_dirs[3 * g + r] = static_cast<scalar_t>((gu[r] - u[r] * dot) / n);
+    } else {
+      for (int r = 0; r < 3; ++r) g_dirs[3 * g + r] = static_cast<scalar_t>(gu[r]);
+    }
+  }
+}
+
+void check_sh(int64_t degree, const at::Tensor& coeffs, const at::Tensor& dirs) {
+  TORCH_CHECK(coeffs.device().is_cpu(), "eva_raster kernels run on the CPU");
+  TORCH_CHECK(degree >= 0 && degree <= 3, "SH degree must be in 0..3");
+  const int64_t n = dirs.size(0);
+  TORCH_CHECK(dirs.dim() == 2 && dirs.size(1) == 3 && coeffs.dim() == 3 && coeffs.size(0) == n &&
+                  coeffs.size(2) == 3 && coeffs.size(1) >= (degree + 1) * (degree + 1),
+              "coeffs [N, K >= (degree + 1)^2, 3] and dirs [N, 3]");
+  TORCH_CHECK(coeffs.scalar_type() == dirs.scalar_type(), "coeffs and dirs must share one dtype");
+}
+
+// Returns rgb [N, 3].
+at::Tensor sh_forward(int64_t degree, const at::Tensor& coeffs, const at::Tensor& dirs) {
+  check_sh(degree, coeffs, dirs);
+  const auto c = coeffs.contiguous(), d = dirs.contiguous();
+  const int64_t N = d.size(0), K = c.size(1);
+  auto rgb = at::empty({N, 3}, d.options());
+  AT_DISPATCH_FLOATING_TYPES(d.scalar_type(), "eva_raster_sh_forward", [&] {
+    sh_forward_kernel<scalar_t>(static_cast<int>(degree), c.data_ptr<scalar_t>(), K, d.data_ptr<scalar_t>(), N,
+                                rgb.data_ptr<scalar_t>());
+  });
+  return rgb;
+}
+
+// Returns dL/dcoeffs [N, K, 3] (0 beyond the degree's coefficients) and dL/ddirs [N, 3].
+std::tuple<at::Tensor, at::Tensor> sh_backward(int64_t degree, const at::Tensor& coeffs, const at::Tensor& dirs,
+                                               const at::Tensor& grad_rgb) {
+  check_sh(degree, coeffs, dirs);
+  const auto c = coeffs.contiguous(), d = dirs.contiguous();
+  const auto g = grad_rgb.contiguous().to(d.scalar_type());
+  const int64_t N = d.size(0), K = c.size(1);
+  TORCH_CHECK(g.numel() == 3 * N, "grad_rgb must be [N, 3]");
+  auto g_coeffs = at::empty({N, K, 3}, d.options());
+  auto g_dirs = at::empty({N, 3}, d.options());
+  AT_DISPATCH_FLOATING_TYPES(d.scalar_type(), "eva_raster_sh_backward", [&] {
+    sh_backward_kernel<scalar_t>(static_cast<int>(degree), c.data_ptr<scalar_t>(), K, d.data_ptr<scalar_t>(), N,
+                                 g.data_ptr<scalar_t>(), g_coeffs.data_ptr<scalar_t>(), g_dirs.data_ptr<scalar_t>());
+  });
+  return {g_coeffs, g_dirs};
+}
+
 }  // namespace
 
 TORCH_LIBRARY(eva_raster, m) {
@@ -884,4 +1042,6 @@ TORCH_LIBRARY(eva_raster, m) {
   m.def("bin_tiles", &bin_tiles);
   m.def("project_forward", &project_forward);
   m.def("project_backward", &project_backward);
+  m.def("sh_forward", &sh_forward);
+  m.def("sh_backward", &sh_backward);
 }
