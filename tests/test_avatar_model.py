@@ -19,6 +19,7 @@ from eva_engine.avatar import (
     quat_multiply,
     skin_gaussians,
 )
+from eva_engine.avatar.networks import make_mlp, relu_mlp
 
 SMALL = dict(init_max_gaussians=600, mlp_width=16, pe_frequencies=2, sh_degree=1)
 
@@ -108,6 +109,31 @@ def test_skinning_rotates_quaternions_with_a_rigid_transform():
     # Hamilton product conventions: i * j = k.
     i, j = torch.tensor([0.0, 1, 0, 0]), torch.tensor([0.0, 0, 1, 0])
     torch.testing.assert_close(quat_multiply(i, j), torch.tensor([0.0, 0, 0, 1]))
+
+
+def test_relu_mlp_matches_autograd_through_the_layers():
+    gen = torch.Generator().manual_seed(0)
+    mlp = make_mlp(9, 5, 16, 2, 1.0, gen).double()
+    x = torch.randn(40, 9, generator=gen, dtype=torch.float64)
+    x[:5] = 0.0  # rows whose hidden units sit at the ReLU's kink
+    x.requires_grad_(True)
+    grad = torch.randn(40, 5, generator=gen, dtype=torch.float64)
+    table = torch.log(torch.rand(7, 5, generator=gen, dtype=torch.float64) + 1e-8)
+    rows = torch.randint(0, 7, (40,), generator=gen)
+    wrt = [x, *mlp.parameters()]
+    # Plain, and with a log prior and a softmax (the skinning weights softmax(log(w + eps) + f_w)).
+    for log_prior, reference in (
+        (None, mlp(x)),
+        ((table, rows), torch.softmax(mlp(x) + table[rows], dim=-1)),
+    ):
+        expected = torch.autograd.grad(reference, wrt, grad)
+        out = relu_mlp(x, mlp, chunk=16, log_prior=log_prior)  # three chunks, the last one short
+        torch.testing.assert_close(out, reference, atol=1e-12, rtol=0)
+        for a, b in zip(torch.autograd.grad(out, wrt, grad), expected, strict=True):
+            torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-10)
+    # An input that needs no gradient gets none; the parameters still do.
+    out = relu_mlp(x.detach(), mlp, chunk=16)
+    assert all(g is not None for g in torch.autograd.grad(out.sum(), list(mlp.parameters())))
 
 
 def test_blend_weights_and_encoding():

@@ -24,7 +24,7 @@ from torch import Tensor, nn
 
 from eva_engine.avatar.config import AvatarConfig
 from eva_engine.avatar.gaussians import CanonicalGaussians
-from eva_engine.avatar.networks import LBSWeightOffsets, PoseRefiner, blend_skinning_weights
+from eva_engine.avatar.networks import LBSWeightOffsets, PoseRefiner, blend_log_skinning_weights
 from eva_engine.avatar.skinning import skin_gaussians
 from eva_engine.avatar.skinning_field import LatentBones, SkinningField
 from eva_engine.body.model import BodyModel
@@ -108,6 +108,10 @@ class Avatar(nn.Module):
             if config.latent_bones
             else None
         )
+        # log(w_body + eps) per body vertex [V, J]: gathered per Gaussian, not recomputed per step.
+        self.register_buffer(
+            "log_body_weights", torch.log(body.skinning_weights + config.lbs_eps), persistent=False
+        )
         self.active_sh_degree = gaussians.sh_degree
         self._weights_cache: tuple[list[Tensor], list[int], Tensor] | None = None
 
@@ -181,7 +185,7 @@ class Avatar(nn.Module):
         trained avatar) they are computed once and reused until a tensor they depend on changes
         (a new tensor or an in-place update)."""
         g = self.gaussians
-        inputs = [g.means, g.vertex_ids, self.body.skinning_weights]
+        inputs = [g.means, g.vertex_ids, self.log_body_weights]
         for module in (self.weight_offsets, self.skinning_field):
             if module is not None:
                 inputs += list(module.parameters())
@@ -198,9 +202,11 @@ class Avatar(nn.Module):
         if self.skinning_field is not None:
             weights = self.skinning_field(g.means)
         else:
-            base = self.body.skinning_weights[g.vertex_ids]
-            offsets = self.weight_offsets(g.means) if self.weight_offsets is not None else None
-            weights = blend_skinning_weights(base, offsets, self.config.lbs_eps)
+            if self.weight_offsets is not None:
+                means = g.means.detach() if self.config.detach_weight_inputs else g.means
+                weights = self.weight_offsets.skinning_weights(means, self.log_body_weights, g.vertex_ids)
+            else:
+                weights = blend_log_skinning_weights(self.log_body_weights[g.vertex_ids], None)
         self._weights_cache = (inputs, versions, weights) if not torch.is_grad_enabled() else None
         return weights
 
@@ -247,7 +253,8 @@ class Avatar(nn.Module):
         camera = camera.to(posed.means.device, posed.means.dtype)
         degree = self.active_sh_degree if sh_degree is None else min(sh_degree, self.gaussians.sh_degree)
         dirs = posed.means - camera.center  # world view directions, into canonical space:
-        dirs = (posed.rotations.transpose(-1, -2) @ dirs.unsqueeze(-1)).squeeze(-1)
+        # R^T d as a sum over R's rows: N batched 3x3 matmuls are slow on CPU.
+        dirs = (posed.rotations * dirs.unsqueeze(-1)).sum(dim=-2)
         colors = eval_sh(degree, posed.sh, dirs)
         if background is not None:
             background = background.to(colors)

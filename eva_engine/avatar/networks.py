@@ -19,6 +19,7 @@ import math
 import roma
 import torch
 from torch import Tensor, nn
+from torch.autograd.function import once_differentiable
 
 from eva_engine.body.model import PART_NAMES
 from eva_engine.layers import seeded_layer
@@ -52,6 +53,77 @@ def make_mlp(
     return nn.Sequential(*layers)
 
 
+def relu_mlp(
+    x: Tensor, mlp: nn.Sequential, chunk: int = 4096, log_prior: tuple[Tensor, Tensor] | None = None
+) -> Tensor:
+    """``mlp(x)`` for a ``make_mlp`` network, or with ``log_prior = (table [V, D_out], rows [N])``
+    the softmax ``softmax(mlp(x) + table[rows])``: the same values and gradients (parameters and
+    ``x``) as autograd through the layers, to rounding, computed ``chunk`` rows at a time so that
+    each chunk's activations stay in cache (at ~30k Gaussians, passes over [N, width] tensors cost
+    as much as the matrix products on CPU). x: [N, D_in] -> [N, D_out]."""
+    linears = [m for m in mlp if isinstance(m, nn.Linear)]
+    if len(linears) * 2 - 1 != len(mlp):
+        raise ValueError("relu_mlp takes make_mlp's Linear, (ReLU, Linear)* networks")
+    if not torch.is_grad_enabled():
+        out = mlp(x)
+        return out if log_prior is None else torch.softmax(out + log_prior[0][log_prior[1]], dim=-1)
+    params = [t for layer in linears for t in (layer.weight, layer.bias)]
+    table, rows = log_prior if log_prior is not None else (None, None)
+    return _ChunkedReluMLP.apply(x, chunk, table, rows, *params)
+
+
+class _ChunkedReluMLP(torch.autograd.Function):
+    """Linear, (ReLU, Linear)* [+ log prior, softmax], ``chunk`` rows at a time; each chunk's
+    layer inputs (and softmax output) are kept for the backward, which walks the chunk back."""
+
+    @staticmethod
+    def forward(ctx, x, chunk, table, rows, *params):
+        n_layers = len(params) // 2
+        kept, outs = [], []  # kept: per chunk, the input of every layer
+        for s in range(0, x.shape[0], chunk):
+            h = x[s : s + chunk]
+            for i in range(n_layers):
+                kept.append(h)
+                h = torch.addmm(params[2 * i + 1], h, params[2 * i].t())
+                if i < n_layers - 1:
+                    h.relu_()
+            if table is not None:
+                h = torch.softmax(h.add_(table.index_select(0, rows[s : s + chunk])), dim=-1)
+            outs.append(h)
+        out = torch.cat(outs) if len(outs) != 1 else outs[0]
+        ctx.save_for_backward(*kept, *params, *([out] if table is not None else []))
+        ctx.layers, ctx.chunk, ctx.softmax = n_layers, chunk, table is not None
+        return out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        n_layers, chunk = ctx.layers, ctx.chunk
+        saved = ctx.saved_tensors
+        if ctx.softmax:
+            *saved, out = saved
+        kept, params = saved[: -2 * n_layers], saved[-2 * n_layers :]
+        grads = [torch.zeros_like(p) for p in params]
+        need_x = ctx.needs_input_grad[0]
+        grad_x = []
+        grad = grad.contiguous()
+        for c, s in enumerate(range(0, grad.shape[0], chunk)):
+            g = grad[s : s + chunk]
+            if ctx.softmax:  # d softmax: w (g - <w, g>)
+                w = out[s : s + chunk]
+                g = torch._softmax_backward_data(g, w, -1, w.dtype)
+            for i in reversed(range(n_layers)):
+                a = kept[c * n_layers + i]  # layer i's input: for i > 0 a ReLU's output
+                grads[2 * i].addmm_(g.t(), a)
+                grads[2 * i + 1] += g.sum(dim=0)
+                if i > 0:
+                    g = torch.ops.aten.threshold_backward(g @ params[2 * i], a, 0.0)
+                elif need_x:
+                    grad_x.append(g @ params[0])
+        gx = (torch.cat(grad_x) if len(grad_x) != 1 else grad_x[0]) if need_x else None
+        return gx, None, None, None, *grads
+
+
 class LBSWeightOffsets(nn.Module):
     """f_w: canonical centres [N, 3] -> LBS weight offsets [N, J] (EVA eq. for w_k).
     generator: the initial weights' random draws (None: a generator seeded 0)."""
@@ -71,16 +143,24 @@ class LBSWeightOffsets(nn.Module):
         self.mlp = make_mlp(3 * (1 + 2 * frequencies), num_joints, width, depth, out_init, generator)
 
     def forward(self, means: Tensor) -> Tensor:
-        return self.mlp(positional_encoding(means, self.frequencies))
+        return relu_mlp(positional_encoding(means, self.frequencies), self.mlp)
+
+    def skinning_weights(self, means: Tensor, log_base: Tensor, rows: Tensor) -> Tensor:
+        """``blend_log_skinning_weights(log_base[rows], self(means))`` [N, J] in one chunked pass
+        (log_base: [V, J] log(w_body + eps) per body vertex; rows: [N] each Gaussian's vertex)."""
+        return relu_mlp(positional_encoding(means, self.frequencies), self.mlp, log_prior=(log_base, rows))
 
 
 def blend_skinning_weights(base: Tensor, offsets: Tensor | None, eps: float = 1e-8) -> Tensor:
     """w = softmax(log(base + eps) + offsets). base: [N, J] rows summing to 1; offsets: [N, J] or
     None (then w = base renormalised with eps, i.e. the body model's weights)."""
-    logits = torch.log(base + eps)
-    if offsets is not None:
-        logits = logits + offsets
-    return torch.softmax(logits, dim=-1)
+    return blend_log_skinning_weights(torch.log(base + eps), offsets)
+
+
+def blend_log_skinning_weights(log_base: Tensor, offsets: Tensor | None) -> Tensor:
+    """``blend_skinning_weights`` from log_base = log(base + eps) [N, J] (which an avatar computes
+    once per body vertex rather than per Gaussian and step)."""
+    return torch.softmax(log_base if offsets is None else log_base + offsets, dim=-1)
 
 
 class PoseRefiner(nn.Module):
