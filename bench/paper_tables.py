@@ -109,10 +109,18 @@ def run_one(ds, config, metrics, label: str) -> dict:
 def _results_config(train_config: dict) -> dict:
     """A method's train config without the entries that never change a result, so that runs made
     before such an entry existed compare equal: the LPIPS cache size (memory), the thread count
-    (compared at the top level, where it has moved), per-frame pose correction when off,
-    regularisers when all their weights are 0, and the skinning-field settings of mesh skinning."""
+    (compared at the top level, where it has moved), LPIPS on every step (``lpips_every`` 1),
+    the weight MLP's centres not detached, per-frame pose correction when off, regularisers when
+    all their weights are 0, and the skinning-field settings of mesh skinning."""
     out = {k: v for k, v in train_config.items() if k != "threads"}
-    out["loss"] = {k: v for k, v in out.get("loss", {}).items() if k != "lpips_cache_mb"}
+    loss = {k: v for k, v in out.get("loss", {}).items() if k != "lpips_cache_mb"}
+    if loss.get("lpips_every", 1) == 1:
+        loss.pop("lpips_every", None)
+    out["loss"] = loss
+    avatar = dict(out.get("avatar", {}))
+    if not avatar.get("detach_weight_inputs", False):
+        avatar.pop("detach_weight_inputs", None)
+    out["avatar"] = avatar
     if not (out.get("pose_correction") or {}).get("enabled", False):
         out.pop("pose_correction", None)
     if not any(v for k, v in (out.get("regularizers") or {}).items() if k.startswith("lambda_")):
@@ -328,6 +336,13 @@ def main() -> None:
         choices=["person_box", "frame"],
         help="normalisation of the pixel loss terms (a densification check)",
     )
+    ap.add_argument(
+        "--set",
+        nargs="+",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="train-config fields for every method, e.g. loss.lpips_every=2 (train.with_overrides)",
+    )
     ap.add_argument("--replot", action="store_true", help="only rewrite the .md from the .json")
     ap.add_argument(
         "--merge", nargs="+", metavar="NAME", help="only combine the runs of result files of one setting"
@@ -348,7 +363,7 @@ def main() -> None:
 
     from eva_engine.data import load_dataset
     from eva_engine.eval import ImageMetrics
-    from eva_engine.train import METHODS, preset, with_method
+    from eva_engine.train import METHODS, preset, with_method, with_overrides
 
     unknown = [m for m in args.methods if m not in METHODS]
     if unknown:
@@ -364,7 +379,7 @@ def main() -> None:
         "refine": [s.refine_start_iter, s.refine_stop_iter, s.refine_every],
         "threads": args.threads,
         "pixel_norm": args.pixel_norm,
-        "train_config": {m: with_method(base, m).to_dict() for m in args.methods},
+        "train_config": {m: with_overrides(with_method(base, m), args.set).to_dict() for m in args.methods},
     }
     doc = json.loads(path.read_text()) if path.is_file() else {}
     # Resume only a run of the same settings (compared as JSON: tuples are lists there).
@@ -388,6 +403,7 @@ def main() -> None:
             label = f"{method} seed {seed}"
             print(f"{label} ...", file=sys.stderr, flush=True)
             cfg = with_method(with_pixel_norm(preset(args.preset, seed=seed), args.pixel_norm), method)
+            cfg = with_overrides(cfg, args.set)
             entry = {"seed": seed, **run_one(ds, cfg, metrics, label)}
             runs.setdefault(method, []).append(entry)
             doc = {

@@ -6,6 +6,11 @@ and the full / hand / face metrics on the novel-pose frames.
     .venv/bin/python bench/train.py --size tiny --preset tiny     # seconds, a smoke run
     .venv/bin/python bench/train.py --dataset PATH --preset fast  # any eva-dataset
 
+Speed against an earlier commit: run that commit's own bench/train.py from a worktree of it
+(``PYTHONPATH=<worktree>``, so its eva_engine is the one imported) and record its entry here with
+``--import-run <worktree>/bench/results/train.json --label before``; train.md then gives each
+run's speed-up against the run labelled ``before`` with the same dataset, preset and method.
+
 The dataset is generated once under ``data/synthetic/<preset>-<size>-seed<seed>`` (eva synth's
 layout) and reused. Writes ``bench/results/train.json`` (machine-readable, one entry per run
 keyed by dataset and preset) and ``bench/results/train.md``. Target (2 CPU cores, 512 px): the
@@ -43,23 +48,50 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", type=Path, help="also save the avatar here")
+    ap.add_argument(
+        "--set",
+        nargs="+",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="train-config fields, e.g. loss.lpips_every=2 (eva_engine.train.with_overrides)",
+    )
+    ap.add_argument("--label", help="recorded under '<dataset>/<preset>[/<method>]@<label>' (e.g. before)")
+    ap.add_argument(
+        "--import-run",
+        type=Path,
+        help="copy the entries of another checkout's train.json here (with --label), then stop",
+    )
     args = ap.parse_args()
+    from eva_engine.paths import data_dir
+
+    path = args.dataset or data_dir() / "synthetic" / f"{args.synthetic}-{args.size}-seed{args.seed}"
+    key = f"{Path(path).name}/{args.preset}" + (f"/{args.method}" if args.method else "")
+    if args.import_run:
+        # The entry this command made in another checkout (its own bench script, its own code).
+        if not args.label:
+            ap.error("--import-run needs --label")
+        imported = json.loads(args.import_run.read_text())
+        if key not in imported:
+            ap.error(f"{args.import_run} has no run {key!r}")
+        sha = commit(args.import_run.resolve().parents[2])
+        save_runs({f"{key}@{args.label}": {"commit": sha, **imported[key], "label": args.label}})
+        return
+    if args.label:
+        key += f"@{args.label}"
 
     from eva_engine.avatar import save_avatar
     from eva_engine.data import load_dataset
-    from eva_engine.eval import evaluate_avatar, metrics_table
-    from eva_engine.paths import data_dir
-    from eva_engine.train import preset, train_avatar, with_method
+    from eva_engine.eval import evaluate_avatar
+    from eva_engine.train import preset, train_avatar, with_method, with_overrides
 
     torch.set_num_threads(args.threads)
-    path = args.dataset
-    if path is None:
+    if not (Path(path) / "meta.json").is_file():
+        if args.dataset:
+            ap.error(f"{path} is not an eva-dataset (no meta.json)")
         from eva_engine.synth import generate
 
-        path = data_dir() / "synthetic" / f"{args.synthetic}-{args.size}-seed{args.seed}"
-        if not (path / "meta.json").is_file():
-            print(f"generating {path} ...", file=sys.stderr)
-            generate(args.synthetic, args.size, args.seed, path)
+        print(f"generating {path} ...", file=sys.stderr)
+        generate(args.synthetic, args.size, args.seed, path)
     ds = load_dataset(path)
     overrides = {"device": args.device}
     if args.iterations:
@@ -67,7 +99,7 @@ def main() -> None:
     config = preset(args.preset, **overrides)
     if args.method:
         config = with_method(config, args.method)
-    name = args.preset if not args.method else f"{args.preset}/{args.method}"
+    config = with_overrides(config, args.set)
 
     def report(e) -> None:
         if e.stage != "train" or e.done % 100 == 0:
@@ -84,6 +116,9 @@ def main() -> None:
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "command": "python bench/train.py " + " ".join(sys.argv[1:]),
         "machine": describe(),
+        "commit": commit(),
+        "label": args.label,
+        "set": args.set,
         "dataset": str(path),
         "image_size": list(ds.image_size),
         "train_frames": len(ds.splits["train"]),
@@ -98,13 +133,69 @@ def main() -> None:
         "final_loss": result.losses[-1],
         "eval": {k: v for k, v in ev.to_dict().items() if k != "per_frame"},
     }
+    save_runs({key: entry})
+    print(markdown({key: entry}))
+
+
+def commit(root: Path = Path(__file__).resolve().parents[1]) -> str | None:
+    """The commit of the checkout at ``root`` (``+dirty`` with uncommitted changes), None
+    outside git."""
+    import subprocess
+
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short=12", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, capture_output=True, text=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+dirty" if dirty else "")
+
+
+def save_runs(new: dict) -> None:
+    """Merge entries into train.json (one per key) and rewrite train.md from all of them."""
     RESULTS.mkdir(parents=True, exist_ok=True)
     json_path = RESULTS / "train.json"
     runs = json.loads(json_path.read_text()) if json_path.is_file() else {}
-    runs[f"{Path(path).name}/{name}"] = entry
+    runs.update(new)
     json_path.write_text(json.dumps(runs, indent=2))
-    (RESULTS / "train.md").write_text(markdown(runs, metrics_table))
-    print(markdown({f"{Path(path).name}/{name}": entry}, metrics_table))
+    (RESULTS / "train.md").write_text(markdown(runs))
+
+
+def speedups(runs: dict) -> list[str]:
+    """Markdown lines: each unlabelled run against the ``before`` run of its dataset, preset and
+    method (training seconds and ms per iteration by stage)."""
+    before = {k.split("@")[0]: e for k, e in runs.items() if e.get("label") == "before"}
+    rows = []
+    for key, e in runs.items():
+        b = before.get(key)
+        if e.get("label") or b is None:
+            continue
+        stages = ", ".join(
+            f"{k} {b['ms_per_iteration_by_stage'][k]:.0f} -> {v:.0f}"
+            for k, v in e["ms_per_iteration_by_stage"].items()
+            if k in b["ms_per_iteration_by_stage"] and k != "data"
+        )
+        rows.append(
+            f"| {key} | {b.get('commit') or '?'} | {e.get('commit') or '?'} | {b['train_seconds']:.0f} | "
+            f"{e['train_seconds']:.0f} | {b['train_seconds'] / e['train_seconds']:.2f}x | "
+            f"{b['num_gaussians']:,} / {e['num_gaussians']:,} | {stages} |"
+        )
+    if not rows:
+        return []
+    return [
+        "## Speed-up against the runs labelled `before`",
+        "",
+        "Training wall time of the same command before and after (ms per iteration by stage, before -> "
+        "after); Gaussians at the end, before / after.",
+        "",
+        "| run | before | after | before s | after s | speed-up | Gaussians | ms/iteration by stage |",
+        "|---|---|---|---:|---:|---:|---:|---|",
+        *rows,
+        "",
+    ]
 
 
 def region_metrics(v: dict):
@@ -118,17 +209,17 @@ def region_metrics(v: dict):
     return RegionMetrics(**v)
 
 
-def markdown(runs: dict, metrics_table) -> str:
-    from eva_engine.eval import EvalResult
+def markdown(runs: dict) -> str:
+    from eva_engine.eval import EvalResult, metrics_table
 
-    lines = ["# Avatar training benchmark", ""]
+    lines = ["# Avatar training benchmark", "", *speedups(runs)]
     for key, e in runs.items():
         stages = " | ".join(f"{k} {v:.1f}" for k, v in e["ms_per_iteration_by_stage"].items())
         ok = "met" if e["iterations"] >= 2000 and e["train_seconds"] <= TARGET_SECONDS else "n/a or NOT met"
         lines += [
             f"## {key}",
             "",
-            f"- date: {e['date']}; command: `{e['command']}`",
+            f"- date: {e['date']}; command: `{e['command']}`; commit {e.get('commit') or 'not recorded'}",
             f"- machine: {e['machine']}",
             f"- data: {e['dataset']} ({e['image_size'][1]}x{e['image_size'][0]}, "
             f"{e['train_frames']} training frames)",

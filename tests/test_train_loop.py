@@ -21,6 +21,7 @@ from eva_engine.train import (
     preset,
     train_avatar,
     with_method,
+    with_overrides,
 )
 
 
@@ -169,6 +170,22 @@ def test_every_registered_preset_has_a_configuration(name):
     assert config.iterations == 7 and config.strategy.refine_stop_iter > config.strategy.refine_start_iter
 
 
+def test_overrides_set_nested_fields_and_refuse_unknown_ones():
+    base = with_method(preset("fast"), "eva")
+    config = with_overrides(
+        base, ["loss.lpips_every=2", "avatar.detach_weight_inputs=true", "strategy.grow_grad2d=3e-4"]
+    )
+    assert config.loss.lpips_every == 2 and config.avatar.detach_weight_inputs
+    assert config.strategy.grow_grad2d == 3e-4 and type(config.strategy) is type(base.strategy)
+    assert config.loss.lambda_lpips == base.loss.lambda_lpips  # the rest untouched
+    assert with_overrides(base, ["background=[1, 1, 1]"]).background == (1, 1, 1)
+    for bad in ("avatar.nope=1", "loss", "=1"):
+        with pytest.raises(ValueError):
+            with_overrides(base, [bad])
+    with pytest.raises(ValueError, match="lpips_every"):  # the field's own check still runs
+        with_overrides(base, ["loss.lpips_every=0"])
+
+
 def test_loss_terms_are_finite_and_use_the_crop(lpips):
     torch.manual_seed(0)
     h, w = 60, 50
@@ -201,3 +218,25 @@ def test_loss_terms_are_finite_and_use_the_crop(lpips):
     # Degenerate: an empty mask (person out of view) still gives finite terms.
     terms = AvatarLoss(LossConfig(), lpips=lpips)(render, target, torch.zeros(h, w))
     assert all(torch.isfinite(v) for v in terms.values())
+
+
+def test_lpips_every_k_steps_keeps_its_expected_weight(lpips):
+    torch.manual_seed(0)
+    h, w = 48, 40
+    image = torch.rand(h, w, 3, requires_grad=True)
+    render = RenderOutput(
+        image, torch.rand(h, w, 1), torch.zeros(h, w, 1), torch.zeros(0, 2), torch.zeros(0), torch.zeros(0), 0
+    )
+    mask, target = torch.ones(h, w), torch.rand(h, w, 3)
+    every = AvatarLoss(LossConfig(lpips_every=3), lpips=lpips)
+    always = AvatarLoss(LossConfig(), lpips=lpips)
+    reference = always(render, target, mask)
+    on, off = every(render, target, mask, step=6), every(render, target, mask, step=7)
+    assert "lpips" in on and "lpips" not in off
+    torch.testing.assert_close(on["lpips"], reference["lpips"])
+    # 3 lambda_l on one step in three: the same LPIPS weight per step on average.
+    lam = LossConfig().lambda_lpips
+    torch.testing.assert_close(on["total"] - off["total"], 3 * lam * reference["lpips"])
+    torch.testing.assert_close(every(render, target, mask)["total"], reference["total"])  # no step: always
+    with pytest.raises(ValueError, match="lpips_every"):
+        LossConfig(lpips_every=0)

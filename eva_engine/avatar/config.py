@@ -22,6 +22,9 @@ class AvatarConfig:
     mlp_out_init: half-range of the uniform init of both MLPs' last layers (bias 0), so they
         start as (almost exactly) the identity: EVA's official code uses 1e-5.
     lbs_eps: epsilon in w = softmax(log(w_body + eps) + w') (paper: 1e-8).
+    detach_weight_inputs: the weight-offset MLP reads the centres detached, as EVA's and
+        GauHuman's official code do (``f_w(p.detach())``): the skinning weights' gradient then
+        trains the MLP only, not the centres (and the backward skips the encoding).
     skinning: "mesh" (EVA, GauHuman: the nearest template vertex's weights, with the weight-offset
         MLP if ``weight_offsets``) or "field" (GART: a learnable voxel field of weights,
         ``avatar/skinning_field.py``; ``weight_offsets`` must then be off).
@@ -39,6 +42,7 @@ class AvatarConfig:
     mlp_depth: int = 2
     mlp_out_init: float = 1e-5
     lbs_eps: float = 1e-8
+    detach_weight_inputs: bool = False
     skinning: str = "mesh"
     field_resolution: int = 64
     latent_bones: int = 0

@@ -8,7 +8,7 @@ control strategies, and the loop.
 
 from eva_engine.recipes import METHODS, PRESETS
 from eva_engine.train.confidence import ConfidenceConfig, ConfidenceLoss, ConfidenceNet
-from eva_engine.train.config import OptimConfig, TrainConfig, preset
+from eva_engine.train.config import OptimConfig, TrainConfig, preset, with_overrides
 from eva_engine.train.losses import (
     PHOTOMETRIC_LOSSES,
     AvatarLoss,
@@ -57,4 +57,5 @@ __all__ = [
     "preset",
     "train_avatar",
     "with_method",
+    "with_overrides",
 ]

@@ -8,6 +8,7 @@ EVA (§4.1, appendix): 2,000 iterations, densification between iterations 400 an
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
 
 from eva_engine.avatar.config import AvatarConfig
@@ -148,3 +149,30 @@ def preset(name: str, **overrides) -> TrainConfig:
     else:
         raise NotImplementedError(f"preset {name!r} is in the registry but has no configuration here")
     return dataclasses.replace(cfg, **overrides) if overrides else cfg
+
+
+def with_overrides(config: TrainConfig, assignments: list[str]) -> TrainConfig:
+    """``config`` with dotted fields set, e.g. ``["loss.lpips_every=2",
+    "avatar.detach_weight_inputs=true"]`` (values read as JSON, else as a string): how a benchmark
+    compares one setting against another without a new preset or method."""
+    for assignment in assignments:
+        path, sep, text = assignment.partition("=")
+        if not sep or not path:
+            raise ValueError(f"expected field.path=value, got {assignment!r}")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        config = _replace_path(config, path.split("."), value, path)
+    return config
+
+
+def _replace_path(obj, names: list[str], value, path: str):
+    name = names[0]
+    if not dataclasses.is_dataclass(obj) or name not in {f.name for f in dataclasses.fields(obj)}:
+        raise ValueError(f"{path!r}: {type(obj).__name__} has no field {name!r}")
+    if len(names) > 1:
+        value = _replace_path(getattr(obj, name), names[1:], value, path)
+    elif isinstance(value, list):
+        value = tuple(value)
+    return dataclasses.replace(obj, **{name: value})

@@ -48,10 +48,15 @@ class LossConfig:
     lpips_cache_mb: float = 512.0
     """Memory for the targets' LPIPS features, kept per training frame (a target never changes, so
     its pass through the network is done once); frames past the budget are recomputed."""
+    lpips_every: int = 1
+    """The LPIPS term on every k-th step only, weighted k λ_l there (the same expected gradient):
+    its network's forward and backward are the costliest part of the loss on CPU."""
 
     def __post_init__(self) -> None:
         if self.pixel_norm not in PIXEL_NORMS:
             raise ValueError(f"pixel_norm must be one of {PIXEL_NORMS}, got {self.pixel_norm!r}")
+        if self.lpips_every < 1:
+            raise ValueError(f"lpips_every must be >= 1, got {self.lpips_every}")
 
 
 class PhotometricLoss(nn.Module):
@@ -117,12 +122,18 @@ class AvatarLoss(nn.Module):
         return crop_box(m, pad=self.config.crop_pad, min_size=self.config.min_crop)
 
     def forward(
-        self, render: RenderOutput, target: Tensor, mask: Tensor, key: Hashable | None = None
+        self,
+        render: RenderOutput,
+        target: Tensor,
+        mask: Tensor,
+        key: Hashable | None = None,
+        step: int | None = None,
     ) -> dict[str, Tensor]:
         """render: the rasterizer output; target: [H, W, 3] composited on the render background;
         mask: [H, W] person coverage in [0, 1]; key: the target's identity (e.g. its frame
-        index) when the same target comes back, so its LPIPS features are reused. Returns the
-        terms and ``"total"``."""
+        index) when the same target comes back, so its LPIPS features are reused; step: the
+        training step (with ``lpips_every`` > 1 the LPIPS term runs on multiples of it; None:
+        always, weighted λ_l). Returns the terms and ``"total"``."""
         cfg = self.config
         image = render.image
         h, w = mask.shape
@@ -135,16 +146,18 @@ class AvatarLoss(nn.Module):
         if cfg.lambda_mask:
             terms["mask"] = scale * ((render.alpha[..., 0] - mask) ** 2).mean()
             total = total + cfg.lambda_mask * terms["mask"]
-        if cfg.lambda_ssim or cfg.lambda_lpips:
+        every = cfg.lpips_every if step is not None else 1
+        lpips_now = cfg.lambda_lpips > 0 and (step is None or step % every == 0)
+        if cfg.lambda_ssim or lpips_now:
             img = image.clamp(0.0, 1.0).permute(2, 0, 1)[None, :, y0:y1, x0:x1]
             tgt = target.permute(2, 0, 1)[None, :, y0:y1, x0:x1]
             if cfg.lambda_ssim:
                 terms["ssim"] = 1.0 - ssim(img, tgt)[0]
                 total = total + cfg.lambda_ssim * terms["ssim"]
-            if cfg.lambda_lpips:
+            if lpips_now:
                 features = self.target_features(key, (x0, y0, x1, y1), tgt)
                 terms["lpips"] = self.lpips(img, tgt, img1_features=features)[0]
-                total = total + cfg.lambda_lpips * terms["lpips"]
+                total = total + every * cfg.lambda_lpips * terms["lpips"]
         terms["total"] = total
         return terms
 
