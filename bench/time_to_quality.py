@@ -28,6 +28,7 @@ from paper_tables import dataset_for
 from stats import fmt, mean_std
 
 from eva_engine.recipes import METHODS, PRESETS
+from eva_engine.synth_names import SYNTH_SIZES
 
 RESULTS = Path(__file__).resolve().parent / "results"
 REGIONS = ("full", "hand", "face")
@@ -152,7 +153,9 @@ def write(doc: dict, out: Path, name: str) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", default="bench", help="synthetic size (the paper tables': bench)")
+    ap.add_argument(
+        "--size", default="bench", choices=list(SYNTH_SIZES), help="synthetic size (the paper tables': bench)"
+    )
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--preset", default="fast", choices=list(PRESETS))
     ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), choices=list(METHODS))
