@@ -184,8 +184,13 @@ def main() -> None:
     from eva_engine.eval import ImageMetrics
 
     torch.set_num_threads(args.threads)
-    config = {"size": args.size, "preset": args.preset, "threads": args.threads, "seeds": args.seeds,
-              "eval_every": args.eval_every}  # fmt: skip
+    config = {
+        "size": args.size,
+        "preset": args.preset,
+        "threads": args.threads,
+        "seeds": args.seeds,
+        "eval_every": args.eval_every,
+    }
     doc = json.loads(path.read_text()) if path.is_file() else {"runs": []}
     if doc.get("config", config) | {"seeds": args.seeds} != config:
         raise SystemExit(f"{path} holds runs of other settings ({doc['config']}); pass another --name")
