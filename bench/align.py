@@ -47,6 +47,7 @@ from eva_engine.align.fit import FitConfig, fit_sequence
 from eva_engine.body import BodyParams, load_body_model
 from eva_engine.data import load_dataset
 from eva_engine.paths import data_dir
+from eva_engine.recipes import PRESETS
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -429,7 +430,7 @@ def main() -> None:
     parser.add_argument("--video-every", type=int, default=2)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--table3", action="store_true", help="also train avatars without / with alignment")
-    parser.add_argument("--table3-preset", default="fast")
+    parser.add_argument("--table3-preset", default="fast", choices=list(PRESETS))
     parser.add_argument("--table3-iterations", type=int, default=None)
     parser.add_argument("--table3-scale", type=float, default=0.5, help="image scale for the Table 3 runs")
     parser.add_argument("--out", type=Path, default=RESULTS)

@@ -39,6 +39,9 @@ import torch
 from machine import describe
 from stats import compare_paired, fmt, mean_std
 
+from eva_engine.recipes import METHODS, PRESETS, describe_presets
+from eva_engine.synth_names import SYNTH_SIZES, describe_synth_sizes
+
 RESULTS = Path(__file__).resolve().parent / "results"
 ROWS = ("3dgs+body", "gart+body", "gauhuman+body", "eva-no-cadc-no-cl", "eva-no-cadc", "eva-no-cl", "eva")
 TABLE1 = ("3dgs+body", "gart+body", "gauhuman+body", "eva-no-cadc-no-cl", "eva")
@@ -324,10 +327,10 @@ def dataset_for(size: str, seed: int) -> Path:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", default="bench", help="synthetic size: tiny, small or bench")
+    ap.add_argument("--size", default="bench", choices=list(SYNTH_SIZES), help=describe_synth_sizes())
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    ap.add_argument("--preset", default="default", help="training preset: tiny, fast, default (the paper's)")
-    ap.add_argument("--methods", nargs="+", default=list(ROWS))
+    ap.add_argument("--preset", default="default", choices=list(PRESETS), help=describe_presets())
+    ap.add_argument("--methods", nargs="+", default=list(ROWS), choices=list(METHODS))
     ap.add_argument("--name", default="paper_tables", help="result file stem (.json, .md)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument(
@@ -363,11 +366,8 @@ def main() -> None:
 
     from eva_engine.data import load_dataset
     from eva_engine.eval import ImageMetrics
-    from eva_engine.train import METHODS, preset, with_method, with_overrides
+    from eva_engine.train import preset, with_method, with_overrides
 
-    unknown = [m for m in args.methods if m not in METHODS]
-    if unknown:
-        ap.error(f"unknown methods {unknown}; choose from {list(METHODS)}")
     torch.set_num_threads(args.threads)
     base = with_pixel_norm(preset(args.preset), args.pixel_norm)
     s = base.strategy

@@ -40,10 +40,12 @@ import numpy as np
 import torch
 from machine import describe
 
+from eva_engine.recipes import METHODS, PRESETS
+
 RESULTS = Path(__file__).resolve().parent / "results"
 DEFAULT_VIDEOS = Path(__file__).resolve().parents[2] / "shared" / "reference" / "videos"
 VIDEO_SUFFIXES = (".mp4", ".mov", ".webm", ".mkv", ".avi")
-METHODS = ("3dgs+body", "eva")
+DEFAULT_METHODS = ("3dgs+body", "eva")
 REGIONS = ("full", "hand", "face")
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
 
@@ -237,8 +239,8 @@ def markdown(doc: dict) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--videos", type=Path, default=DEFAULT_VIDEOS, help="folder of videos")
-    ap.add_argument("--methods", nargs="+", default=list(METHODS))
-    ap.add_argument("--preset", default="default")
+    ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), choices=list(METHODS))
+    ap.add_argument("--preset", default="default", choices=list(PRESETS))
     ap.add_argument("--frames", type=int, default=280, help="frames to sample per video (train + test)")
     ap.add_argument("--max-size", type=int, default=512, help="long side in pixels")
     ap.add_argument("--seed", type=int, default=0)

@@ -28,6 +28,7 @@ from paper_tables import dataset_for
 from stats import fmt, mean_std
 
 from eva_engine.recipes import METHODS, PRESETS
+from eva_engine.synth_names import SYNTH_SIZES
 
 RESULTS = Path(__file__).resolve().parent / "results"
 REGIONS = ("full", "hand", "face")
@@ -152,7 +153,9 @@ def write(doc: dict, out: Path, name: str) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", default="bench", help="synthetic size (the paper tables': bench)")
+    ap.add_argument(
+        "--size", default="bench", choices=list(SYNTH_SIZES), help="synthetic size (the paper tables': bench)"
+    )
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--preset", default="fast", choices=list(PRESETS))
     ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), choices=list(METHODS))
@@ -181,8 +184,13 @@ def main() -> None:
     from eva_engine.eval import ImageMetrics
 
     torch.set_num_threads(args.threads)
-    config = {"size": args.size, "preset": args.preset, "threads": args.threads, "seeds": args.seeds,
-              "eval_every": args.eval_every}  # fmt: skip
+    config = {
+        "size": args.size,
+        "preset": args.preset,
+        "threads": args.threads,
+        "seeds": args.seeds,
+        "eval_every": args.eval_every,
+    }
     doc = json.loads(path.read_text()) if path.is_file() else {"runs": []}
     if doc.get("config", config) | {"seeds": args.seeds} != config:
         raise SystemExit(f"{path} holds runs of other settings ({doc['config']}); pass another --name")

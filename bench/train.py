@@ -29,6 +29,7 @@ import torch
 from machine import describe
 
 from eva_engine.recipes import METHODS, PRESETS, describe_methods, describe_presets
+from eva_engine.synth_names import SYNTH_PRESETS, SYNTH_SIZES, describe_synth_sizes
 
 RESULTS = Path(__file__).resolve().parent / "results"
 TARGET_SECONDS = 600.0
@@ -39,8 +40,13 @@ def main() -> None:
     ap.add_argument(
         "--dataset", type=Path, help="an existing eva-dataset (default: generate the synthetic one)"
     )
-    ap.add_argument("--synthetic", default="controlled", help="synthetic preset (controlled has parameters)")
-    ap.add_argument("--size", default="bench", help="synthetic size: tiny or bench")
+    ap.add_argument(
+        "--synthetic",
+        default="controlled",
+        choices=list(SYNTH_PRESETS),
+        help="synthetic preset (controlled has parameters)",
+    )
+    ap.add_argument("--size", default="bench", choices=list(SYNTH_SIZES), help=describe_synth_sizes())
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--preset", default="default", choices=list(PRESETS), help=describe_presets())
     ap.add_argument("--method", choices=list(METHODS), help=f"default: the preset's; {describe_methods()}")

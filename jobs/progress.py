@@ -4,7 +4,7 @@ the job's stages, shared by avatar and animation jobs."""
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from typing import Protocol
 
 from eva_engine.progress import Progress, ProgressEvent
 
@@ -20,11 +20,18 @@ PREPROCESS_SPANS = {
 FORCED = ("align", "regions")
 
 
-def preprocess_progress(report: Callable[..., None], fitted: str = "") -> Progress:
+class JobReport(Protocol):
+    """A job's progress sink (``jobs.pipeline.Reporter``): records ``event``, throttled unless
+    ``force``."""
+
+    def __call__(self, event: ProgressEvent, force: bool = False) -> None: ...
+
+
+def preprocess_progress(report: JobReport, fitted: str = "") -> Progress:
     """The ``progress`` of ``preprocess_video`` as job progress (``PREPROCESS_SPANS``): decoding
     and detection are the ``preprocess`` stage; the fit, the region masks and writing the frames
     the ``align`` stage. ``fitted`` ends the fitting message (e.g. " to the driving video").
-    ``report(event, force=...)``: a ``jobs.pipeline.Reporter``."""
+    ``report``: a ``jobs.pipeline.Reporter``."""
 
     def progress(event: ProgressEvent) -> None:
         stage, start, end = PREPROCESS_SPANS[event.stage]

@@ -7,6 +7,7 @@ import torch
 from helpers.scenes import teacher_avatar
 
 from eva_engine.avatar import Camera
+from eva_engine.geometry import project_points, to_camera
 from eva_engine.render import look_at
 
 
@@ -25,9 +26,8 @@ def face_camera(body, size: int) -> Camera:
 
 def project_y(body, camera: Camera, name: str) -> float:
     with torch.no_grad():
-        kp = body.keypoints(body(body.default_params(1)))[0, list(body.keypoint_names).index(name)]
-    cam = camera.viewmat[:3, :3] @ kp + camera.viewmat[:3, 3]
-    return float(camera.K[1, 1] * cam[1] / cam[2] + camera.K[1, 2])
+        kp = body.keypoints(body(body.default_params(1)))[0, [list(body.keypoint_names).index(name)]]
+    return float(project_points(to_camera(kp, camera.viewmat), camera.K)[0, 1])
 
 
 def fine_striped_avatar(body):

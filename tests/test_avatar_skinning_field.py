@@ -108,9 +108,15 @@ def test_regularisers_are_finite_with_gradients(anny_model):
 
 def test_a_field_skinned_avatar_saves_reloads_and_renders_identically(tmp_path, anny_model):
     config = AvatarConfig(
-        init_max_gaussians=400, sh_degree=1, skinning="field", weight_offsets=False, pose_refine=False,
-        field_resolution=16, latent_bones=2, init_opacity=0.99,
-    )  # fmt: skip
+        init_max_gaussians=400,
+        sh_degree=1,
+        skinning="field",
+        weight_offsets=False,
+        pose_refine=False,
+        field_resolution=16,
+        latent_bones=2,
+        init_opacity=0.99,
+    )
     avatar = Avatar.create(anny_model, anny_model.shape_defaults, config, seed=0)
     torch.manual_seed(0)
     with torch.no_grad():

@@ -18,6 +18,7 @@ import pytest
 from helpers import service as svc
 from helpers.service import FAST_OPTIONS, gradient_video, wait_for
 
+from eva_engine.avatar import read_avatar_meta
 from eva_engine.progress import ProgressEvent
 from jobs import JobLost, JobOptions, JobQueue, JobRun, JobsConfig, JobStore, JobStoreError, sweep
 from jobs import store as store_module
@@ -252,10 +253,8 @@ def test_a_job_over_its_memory_limit_fails_alone_with_the_reason(tmp_path, signe
     assert failed.state == "failed" and "ran out of memory" in failed.error, failed
     assert "2600 MB" in failed.error
     assert done.state == "succeeded", done
-    import json
-
-    info = json.loads((queue.storage.avatar_dir(done.avatar_id) / "avatar.json").read_text())
-    assert info["train_config"]["strategy"]["max_gaussians"] == config.max_gaussians  # the service's cap
+    info = read_avatar_meta(queue.storage.avatar_dir(done.avatar_id))
+    assert info.train_config["strategy"]["max_gaussians"] == config.max_gaussians  # the service's cap
 
 
 def test_a_job_over_its_time_limit_is_stopped(tmp_path, signer_video):

@@ -14,7 +14,7 @@ import sys
 
 import pytest
 import torch
-from test_render import PARAMS, cast, random_scene, render_with_grads, single, stacked
+from helpers.render import PARAMS, cast, random_scene, render_with_grads, single, stacked
 
 from eva_engine import native as native_lib
 from eva_engine.render import RasterConfig, bin_gaussians, eval_sh, native, project_gaussians, rasterize

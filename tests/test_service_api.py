@@ -9,11 +9,15 @@ import pytest
 from fastapi.testclient import TestClient
 from helpers import service as svc
 from helpers.service import FAST_OPTIONS, no_person_video
+from pydantic import ValidationError
 
 from eva_engine.recipes import METHODS, PRESETS
+from eva_engine.render.view import CAMERA_PRESETS
 from jobs import JobsConfig
 from jobs.options import MAX_FRAMES, JobOptions
+from service.animation_schemas import AnimationForm
 from service.app import create_app
+from service.schemas import AvatarForm
 from service.settings import ServiceSettings
 
 signer_video = svc.signer_video  # a fixture
@@ -68,6 +72,33 @@ def test_the_page_offers_the_registered_presets_and_methods(client):
     assert re.findall(r'value="([^"]*)"', methods) == ["", *METHODS]  # "": the preset's own
     assert re.findall(r'value="([^"]*)" selected', presets) == ["fast"]  # JobOptions' default
     assert 'value="3dgs+body">3dgs+body (baseline)</option>' in methods
+
+
+def test_the_page_bounds_its_fields_as_the_api_does(client):
+    """Every number field's min and max are the tightest values the API accepts (one step past
+    them it answers 422); the animation's cameras are the presets and the driving video's."""
+    page = client.get("/").text
+
+    def accepted(schema, name, value) -> bool:
+        try:
+            schema.model_validate({name: value})
+        except ValidationError:
+            return False
+        return True
+
+    for form_id, schema in (("upload-form", AvatarForm), ("animate-form", AnimationForm)):
+        form = re.search(rf'<form id="{form_id}".*?</form>', page, re.S).group(0)
+        inputs = re.findall(r'<input [^>]*type="number"[^>]*>', form)
+        assert len(inputs) >= 3, form
+        for tag in inputs:
+            attrs = dict(re.findall(r'([\w-]+)="([^"]*)"', tag))
+            name, step = attrs["name"], float(attrs.get("step", 1))
+            low, high = float(attrs["min"]), float(attrs["max"])
+            assert accepted(schema, name, low) and not accepted(schema, name, round(low - step, 10)), tag
+            assert accepted(schema, name, high) and not accepted(schema, name, round(high + step, 10)), tag
+    cameras = re.search(r'<select id="animate-camera".*?</select>', page, re.S).group(0)
+    assert re.findall(r'value="([^"]*)"', cameras) == [*CAMERA_PRESETS, "driving"]
+    assert re.findall(r'value="([^"]*)" selected', cameras) == ["front"]  # AnimationForm's default
 
 
 def test_upload_queues_a_job_that_can_be_cancelled(client, signer_video, tmp_path):

@@ -11,8 +11,9 @@ import torch
 from eva_engine.body import KEYPOINT_GROUPS, PART_NAMES
 from eva_engine.data import load_dataset, perturb
 from eva_engine.geometry import project_points, to_camera
-from eva_engine.synth.benchmark import PRESETS, generate
+from eva_engine.synth.benchmark import PRESETS, SIZES, generate
 from eva_engine.synth.motion import FACE_ACTIONS, MotionConfig, sign_motion
+from eva_engine.synth_names import SYNTH_PRESETS, SYNTH_SIZES
 
 
 @pytest.fixture(scope="module")
@@ -25,6 +26,10 @@ def _dilate(mask: np.ndarray, r: int = 1) -> np.ndarray:
     import cv2
 
     return cv2.dilate(mask.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
+
+
+def test_the_named_presets_and_sizes_are_the_defined_ones():
+    assert list(PRESETS) == list(SYNTH_PRESETS) and list(SIZES) == list(SYNTH_SIZES)
 
 
 def test_deterministic_by_seed(anny_model, datasets, tmp_path):

@@ -8,6 +8,7 @@ import json
 import pytest
 from typer.testing import CliRunner
 
+from eva_engine.avatar import read_avatar_meta
 from eva_engine.cli import app
 from eva_engine.synth import generate
 
@@ -24,13 +25,13 @@ def test_train_then_eval(dataset, tmp_path):
     res = runner.invoke(app, ["train", str(dataset), "--out", str(out), *args])
     assert res.exit_code == 0, res.output
     assert (out / "avatar.ply").is_file() and (out / "avatar.safetensors").is_file()
-    info = json.loads((out / "avatar.json").read_text())
-    assert info["iterations"] == 30 and info["method"] == "eva"
-    assert info["train_config"]["strategy"]["name"] == "ContextAwareStrategy"
-    assert info["train_config"]["loss"]["photometric"] == "confidence"
-    per_part = info["gaussians_per_part"]
-    assert per_part["before"]["hand"] > 0 and sum(per_part["after"].values()) == info["num_gaussians"]
-    assert info["num_gaussians"] > 0 and info["train_seconds"] > 0
+    info = read_avatar_meta(out)
+    assert info.iterations == 30 and info.method == "eva"
+    assert info.train_config["strategy"]["name"] == "ContextAwareStrategy"
+    assert info.train_config["loss"]["photometric"] == "confidence"
+    per_part = info.gaussians_per_part
+    assert per_part["before"]["hand"] > 0 and sum(per_part["after"].values()) == info.num_gaussians
+    assert info.num_gaussians > 0 and info.train_seconds > 0
     report = tmp_path / "metrics.json"
     res = runner.invoke(app, ["eval", str(out), str(dataset), "--json", str(report)])
     assert res.exit_code == 0, res.output

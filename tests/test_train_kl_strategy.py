@@ -100,9 +100,12 @@ def refine_once(gs: CanonicalGaussians, grad: list[float]) -> tuple[dict, dict, 
     """One refinement window with constant screen-space gradients ``grad [N]``; returns the stats,
     optimizers, state and the splats as they were just before the refinement."""
     strategy = KLStrategy(
-        refine_start_iter=R, refine_stop_iter=100, refine_every=R, prune_template_dist=0.5,
+        refine_start_iter=R,
+        refine_stop_iter=100,
+        refine_every=R,
+        prune_template_dist=0.5,
         reset_opacity_at_start=False,
-    )  # fmt: skip
+    )
     opts = adam(gs)
     strategy.check_sanity(gs, opts)
     before = {k: p.detach().clone() for k, p in gs.splats.items()}

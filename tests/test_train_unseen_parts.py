@@ -8,6 +8,7 @@ import dataclasses
 import torch
 from helpers.scenes import SceneDataset, front_camera, teacher_scene
 
+from eva_engine.geometry import project_points, to_camera
 from eva_engine.train import LossConfig, preset, train_avatar, with_method
 
 HAND = 1
@@ -17,9 +18,7 @@ def pixel_rows(avatar, params, camera, part: int) -> torch.Tensor:
     """[M] image rows of the posed centres of ``part``'s Gaussians."""
     posed = avatar.pose(params)
     sel = avatar.gaussians.part_ids == part
-    x = posed.means.detach()[sel]
-    cam = x @ camera.viewmat[:3, :3].T + camera.viewmat[:3, 3]
-    return camera.K[1, 1] * cam[:, 1] / cam[:, 2] + camera.K[1, 2]
+    return project_points(to_camera(posed.means.detach()[sel], camera.viewmat), camera.K)[:, 1]
 
 
 def head_and_shoulders(ds: SceneDataset, rows: int) -> SceneDataset:

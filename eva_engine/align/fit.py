@@ -154,6 +154,9 @@ class FitStage:
     w_pose: float = 1.0
     w_hand: float = 0.0
     w_face: float = 0.0
+    coarse_weight: float = 0.3
+    """Weight (relative to ``w_pose``) of the pose model's coarse hand and face points while this
+    stage gives the hand or face group no weight of its own (``w_hand`` or ``w_face`` 0)."""
     rigid_face_only: bool = False
     """Use only the face points that no facial action moves (eye corners, nose): the head's pose
     is fitted before the expression, so the mouth's points must not turn the head."""
@@ -164,6 +167,9 @@ class FitStage:
     hand_prior: float = 0.0
     smooth: float = 0.1
     limits: float = 1.0
+    range_weight: float = 10.0
+    """Weight of the quadratic penalty outside a parameter's valid range (expression, shape), as
+    ``limits`` is the joints'."""
     expression_reg: float = 0.0
     expression_smooth: float = 0.0
     """Weight of the frame-to-frame expression change (off by default: it slows L-BFGS down
@@ -235,14 +241,9 @@ class FitConfig:
     sigma_z: float = 0.03
     expression_sigma: float = 0.04
     """Seconds: the Gaussian that smooths the fitted expression over time (``clip.fit_clip``)."""
-    coarse_weight: float = 0.3
-    """Weight (relative to ``w_pose``) of the pose model's coarse hand and face points in stages
-    where the hand or face group has no weight of its own yet."""
     transl_smooth: float = 10.0
     """Weight of frame-to-frame translation (m²) against rotation (rad²) in the smoothness term:
     10 puts 1 cm of jitter on a par with ~1.8 degrees."""
-    range_weight: float = 10.0
-    """Weight of the quadratic penalty outside a parameter's valid range (expression, shape)."""
     dense_face: bool = True
     """Fit the face to all of MediaPipe's face-mesh landmarks through the body model's
     correspondence (``align.face_mesh``), where the model has one."""
@@ -334,8 +335,8 @@ class _Problem:
         # pose model's coarse hand and face points stand in for them.
         groups = (
             (stage.w_pose, self.group_mask["pose"]),
-            (cfg.coarse_weight * stage.w_pose * (stage.w_face == 0), self.group_mask["pose_face"]),
-            (cfg.coarse_weight * stage.w_pose * (stage.w_hand == 0), self.group_mask["pose_hand"]),
+            (stage.coarse_weight * stage.w_pose * (stage.w_face == 0), self.group_mask["pose_face"]),
+            (stage.coarse_weight * stage.w_pose * (stage.w_hand == 0), self.group_mask["pose_hand"]),
             (stage.w_hand, self.group_mask["hand"]),
             (stage.w_face, self.group_mask["face_rigid" if stage.rigid_face_only else "face"]),
         )
@@ -386,9 +387,9 @@ class _Problem:
             step = params.expression[1:] - params.expression[:-1]
             total = total + stage.expression_smooth * step.square().mean()
         total = total + stage.expression_reg * params.expression.square().mean()
-        total = total + cfg.range_weight * _box(params.expression, self.model.expression_bounds)
+        total = total + stage.range_weight * _box(params.expression, self.model.expression_bounds)
         total = total + stage.shape_reg * (self.values["shape"] - self.init.shape[:1]).square().mean()
-        total = total + cfg.range_weight * _box(self.values["shape"], self.model.shape_bounds)
+        total = total + stage.range_weight * _box(self.values["shape"], self.model.shape_bounds)
         # In units of the 2D sigma: a residual of one sigma costs ~1, so L-BFGS's step and
         # curvature estimates start at a sensible scale whatever the image size.
         return total / cfg.sigma_2d**2

@@ -8,29 +8,17 @@ from pathlib import Path
 import typer
 
 from eva_engine.cli.app import app
+from eva_engine.synth_names import SYNTH_PRESETS, SYNTH_SIZES, describe_synth_presets, describe_synth_sizes
 
-
-class SynthPreset(StrEnum):
-    controlled = "controlled"
-    wild = "wild"
-
-
-class SynthSize(StrEnum):
-    tiny = "tiny"
-    small = "small"
-    bench = "bench"
+# Enums so that typer lists and checks the choices; built from the one list of names.
+SynthPreset = StrEnum("SynthPreset", {name: name for name in SYNTH_PRESETS})
+SynthSize = StrEnum("SynthSize", {name: name for name in SYNTH_SIZES})
 
 
 @app.command()
 def synth(
-    preset: SynthPreset = typer.Option(
-        SynthPreset.wild,
-        help="controlled: XHumans-like, thighs up, ground truth given, tested on other motion takes; "
-        "wild: UPB-like waist-up signer, alternate frames tested.",
-    ),
-    size: SynthSize = typer.Option(
-        SynthSize.tiny, help="tiny: 96 px; small: 256 px (12 training frames); bench: 512 px, 150 of them."
-    ),
+    preset: SynthPreset = typer.Option(SynthPreset("wild"), help=f"{describe_synth_presets()}."),
+    size: SynthSize = typer.Option(SynthSize("tiny"), help=f"{describe_synth_sizes()}."),
     seed: int = typer.Option(0, min=0, help="Random seed (subject, look and motion)."),
     out: Path | None = typer.Option(
         None, help="Output folder (default: <data dir>/synthetic/<preset>-<size>-seed<seed>)."

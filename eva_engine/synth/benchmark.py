@@ -89,6 +89,7 @@ class Size:
     """"interleaved" split: every this many frames (the second of each group) is a test frame."""
 
 
+# Keyed by the names of ``eva_engine.synth_names`` (the CLI's choices), in its order.
 PRESETS: dict[str, Preset] = {
     "controlled": Preset(
         "controlled", (0.0, 0.22, 0.0), 2.0, 40.0, body_turn=0.5, give_ground_truth=True, split="takes"

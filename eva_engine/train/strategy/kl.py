@@ -125,9 +125,15 @@ class KLStrategy(DefaultStrategy):
             n_clone = int(is_clone.sum())
             if n_clone:
                 ops.split(
-                    gaussians, optimizers, state, is_clone, n_split=1, scale_divisor=1.0,
-                    generator=state["generator"], keep_parents=True,
-                )  # fmt: skip
+                    gaussians,
+                    optimizers,
+                    state,
+                    is_clone,
+                    n_split=1,
+                    scale_divisor=1.0,
+                    generator=state["generator"],
+                    keep_parents=True,
+                )
                 candidates = torch.cat([candidates, candidates.new_zeros(n_clone)])
 
             kl, _ = neighbour_kl(gaussians)
