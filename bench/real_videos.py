@@ -60,16 +60,20 @@ def frame_count(video: Path) -> int:
         return sum(1 for _ in container.decode(stream))
 
 
-def preprocess(video: Path, out: Path, frames: int, max_size: int) -> dict:
+def preprocess(video: Path, out: Path, frames: int, max_size: int, detect_max_size: int) -> dict:
     """The dataset of ``video`` (reused when it exists with these settings); returns its report."""
     from eva_engine.align import PreprocessConfig, preprocess_video
 
     every = max(1, math.ceil(frame_count(video) / frames))
     settings = {"every": every, "max_size": max_size, "test_every": 2, "frames": frames}
+    if detect_max_size != max_size:  # datasets made before detection had its own size: the same
+        settings["detect_max_size"] = detect_max_size
     stamp = out.with_name("dataset-settings.json")
     if (out / "meta.json").is_file() and stamp.is_file() and json.loads(stamp.read_text()) == settings:
         return json.loads(out.with_name("preprocess-report.json").read_text())
-    config = PreprocessConfig(every=every, max_frames=frames, max_size=max_size, test_every=2)
+    config = PreprocessConfig(
+        every=every, max_frames=frames, max_size=max_size, detect_max_size=detect_max_size, test_every=2
+    )
     started = time.perf_counter()
     report = preprocess_video(video, out, config, overwrite=True).to_json()
     report["seconds_total"] = time.perf_counter() - started
@@ -173,13 +177,15 @@ def contact_sheet(ds, avatars: dict, params: dict, indices: list[int], tile: int
 
 def markdown(doc: dict) -> str:
     cfg = doc["config"]
+    detect = cfg.get("detect_max_size", cfg["max_size"])
     lines = [
         "# The real-video table (UPB protocol)",
         "",
         f"- date: {doc['date']}; command: `{doc['command']}`",
         f"- machine: {doc['machine']}",
         f"- protocol: each video sampled to about {cfg['frames']} frames (every k-th), long side "
-        f"{cfg['max_size']} px, alternate frames train / test (`eva preprocess --test-every 2`); "
+        f"{cfg['max_size']} px (the detector's frames: up to {detect} px), "
+        "alternate frames train / test (`eva preprocess --test-every 2`); "
         f"preset `{cfg['preset']}` ({cfg['iterations']} iterations), seed {cfg['seed']}, "
         f"{cfg['threads']} threads",
         f"- poses of the test frames: {cfg.get('protocol', 'fitted poses')}",
@@ -243,6 +249,9 @@ def main() -> None:
     ap.add_argument("--preset", default="default", choices=list(PRESETS))
     ap.add_argument("--frames", type=int, default=280, help="frames to sample per video (train + test)")
     ap.add_argument("--max-size", type=int, default=512, help="long side in pixels")
+    ap.add_argument(
+        "--detect-max-size", type=int, default=1280, help="long side of the frames the detector sees"
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--name", default="real_videos", help="result file stem")
@@ -283,6 +292,7 @@ def main() -> None:
         "config": {
             "frames": args.frames,
             "max_size": args.max_size,
+            "detect_max_size": args.detect_max_size,
             "preset": args.preset,
             "seed": args.seed,
             "threads": args.threads,
@@ -295,7 +305,7 @@ def main() -> None:
     for video in videos:
         print(f"{video.name}: preprocessing ...", file=sys.stderr, flush=True)
         folder = work / video.stem
-        pre = preprocess(video, folder / "dataset", args.frames, args.max_size)
+        pre = preprocess(video, folder / "dataset", args.frames, args.max_size, args.detect_max_size)
         ds = load_dataset(folder / "dataset")
         entry = {
             "frames": {"train": len(ds.splits["train"]), "test": len(ds.splits["test_pose"])},

@@ -63,6 +63,39 @@ def test_writes_a_dataset_with_detections_and_fitted_params(signer, preprocessed
         assert err.median() < 8.0, (name, err)
 
 
+def test_detections_made_on_larger_frames_land_on_the_dataset_frames(signer, anny_model, tmp_path):
+    ds_truth, order, frames, video = signer
+    config = PreprocessConfig(max_size=128, detect_max_size=256, fit=False)
+    report = preprocess_video(video, tmp_path / "ds", config, model=anny_model)
+    ds = load_dataset(tmp_path / "ds")
+    assert ds.meta.image_size == (128, 128) and report.kept_frames == len(frames)
+    assert ds.mask(0).shape == (128, 128)
+    gt = ds_truth.gt_keypoints[order][..., :2] * 0.5  # the truth at 256 px, in 128 px frames
+    for name in ("left_wrist", "right_wrist", "nose"):
+        k = list(ds.keypoint_names).index(name)
+        err = (ds.keypoints[:, k, :2] - gt[:, k]).norm(dim=-1)
+        assert err.median() < 4.0, (name, err)
+
+
+def test_a_detection_resized_keeps_the_view():
+    from eva_engine.align.detect import NUM_KEYPOINTS, FrameDetection
+
+    rng = np.random.default_rng(0)
+    keypoints = rng.uniform(0, 200, (NUM_KEYPOINTS, 3)).astype(np.float32)
+    world = rng.normal(size=(33, 4)).astype(np.float32)
+    mesh = rng.uniform(0, 200, (478, 3)).astype(np.float32)
+    det = FrameDetection(keypoints, np.ones(42, np.float32), world, np.ones((100, 200), np.float32), {}, mesh)
+    small = det.resized((100, 200), (50, 80))
+    np.testing.assert_allclose(small.keypoints[:, 0], keypoints[:, 0] * 0.4, rtol=1e-6)
+    np.testing.assert_allclose(small.keypoints[:, 1], keypoints[:, 1] * 0.5, rtol=1e-6)
+    np.testing.assert_array_equal(small.keypoints[:, 2], keypoints[:, 2])  # confidences
+    np.testing.assert_allclose(small.face_mesh[:, :2], mesh[:, :2] * [0.4, 0.5], rtol=1e-6)
+    np.testing.assert_allclose(small.hand_depth, 0.4)  # in units of the image width
+    np.testing.assert_array_equal(small.pose_world, world)  # metric, not in pixels
+    assert small.mask.shape == (50, 80) and np.allclose(small.mask, 1.0)
+    assert det.resized((100, 200), (100, 200)) is det
+
+
 def test_region_masks_follow_the_fitted_body_and_the_detections(signer, preprocessed):
     """Each hand's mask from the fitted body lands on that hand's true pixels (the renderer's
     ground truth), only in frames where the detector found the hand, and inside the person."""

@@ -62,6 +62,28 @@ class FrameDetection:
     def has_person(self) -> bool:
         return self.found.get("pose", False)
 
+    def resized(self, source: tuple[int, int], size: tuple[int, int]) -> FrameDetection:
+        """This detection, made on an image of ``source`` = (H, W) pixels, in an image of ``size``
+        = (H, W) showing the same view: pixel coordinates and hand depths scaled, the mask
+        resampled, the metric pose world landmarks as they are."""
+        if source == size:
+            return self
+        import cv2
+
+        sy, sx = size[0] / source[0], size[1] / source[1]
+        keypoints = self.keypoints.copy()
+        keypoints[:, 0] *= sx
+        keypoints[:, 1] *= sy
+        face_mesh = self.face_mesh.copy()
+        face_mesh[:, 0] *= sx
+        face_mesh[:, 1] *= sy
+        mask = None
+        if self.mask is not None:
+            mask = cv2.resize(self.mask, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+        # Hand depth is MediaPipe's z in units of the image width.
+        hand_depth = self.hand_depth * np.float32(sx)
+        return FrameDetection(keypoints, hand_depth, self.pose_world, mask, dict(self.found), face_mesh)
+
 
 class HolisticDetector:
     """MediaPipe Holistic as a context manager: ``with HolisticDetector() as det: det(frame)``.

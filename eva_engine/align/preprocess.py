@@ -40,6 +40,10 @@ class PreprocessConfig:
     """How a video becomes a dataset.
 
     every / max_frames / max_size: frame sampling and the longest image side (pixels);
+    detect_max_size: the longest side of the frames the detector sees (None: as decoded). Hands
+    and faces are small in whole-body video: MediaPipe's hand and face models crop them from the
+    frame it is given, so a larger frame gives them more pixels and finds them more often
+    (``bench/results/detection.md``); the detections are then scaled to ``max_size``.
     fov_y_deg: the guessed camera's vertical field of view; test_every: every k-th kept frame
     goes to the ``test_pose`` split (0 = all frames train); fit: align the body model (else the
     dataset carries only detections); min_mask: person-mask threshold below which a pixel is
@@ -49,6 +53,7 @@ class PreprocessConfig:
     every: int = 1
     max_frames: int | None = 300
     max_size: int | None = 512
+    detect_max_size: int | None = 1280
     fov_y_deg: float = GUESS_FOV_Y_DEG
     test_every: int = 0
     fit: bool = True
@@ -56,6 +61,8 @@ class PreprocessConfig:
     fitting: FitConfig = field(default_factory=FitConfig)
 
     def __post_init__(self) -> None:
+        if self.detect_max_size is not None and self.detect_max_size < 1:
+            raise ValueError(f"detect_max_size must be >= 1, got {self.detect_max_size}")
         if self.test_every < 0 or self.test_every == 1:
             raise ValueError("test_every must be 0 (no test frames) or >= 2")
         if not 1.0 < self.fov_y_deg < 170.0:
@@ -111,12 +118,16 @@ def detect_frames(
     config: DetectorConfig | None = None,
     progress: Progress | None = None,
     total: int = 0,
+    size: tuple[int, int] | None = None,
 ) -> Detections:
-    """Run Holistic over RGB uint8 frames [H, W, 3] in order (tracking across them in video mode)."""
+    """Run Holistic over RGB uint8 frames [H, W, 3] in order (tracking across them in video mode).
+    size: (H, W) of the images the detections are for, when the frames show the same view at
+    another size (``FrameDetection.resized``); None: the frames' own."""
     results: list[FrameDetection] = []
     with HolisticDetector(config) as detector:
         for i, frame in enumerate(frames):
-            results.append(detector(frame))
+            found = detector(frame)
+            results.append(found.resized(frame.shape[:2], size) if size is not None else found)
             if progress is not None:
                 message = f"detecting the person: frame {i + 1}/{total}"
                 progress(ProgressEvent("detect", i + 1, total, message))
@@ -169,7 +180,14 @@ def preprocess_video(
     """Turn one video of one person into a dataset at ``out_dir`` (written atomically).
     ``progress`` hears stages "decode", "detect", "align", "regions" and "write"."""
     from eva_engine.body import load_body_model
-    from eva_engine.data import DatasetMeta, DatasetWriter, ParamNames, VideoReadOptions, read_video
+    from eva_engine.data import (
+        DatasetMeta,
+        DatasetWriter,
+        ParamNames,
+        VideoReadOptions,
+        iter_frames,
+        read_video,
+    )
 
     config = config or PreprocessConfig()
     seconds: dict[str, float] = {}
@@ -180,12 +198,21 @@ def preprocess_video(
         progress(ProgressEvent("decode", len(clip), len(clip), f"decoded {len(clip)} frames"))
 
     started = time.perf_counter()
-    det = detect_frames(iter(clip.frames), config.detector, progress, total=len(clip))
+    h, w = clip.frames.shape[1:3]
+    detect_long = max(clip.source_size)
+    if config.detect_max_size is not None:
+        detect_long = min(detect_long, config.detect_max_size)
+    if detect_long == max(h, w):
+        frames = iter(clip.frames)
+    else:  # a second decoding pass, at the detector's size, frame for frame the same
+        frames = iter_frames(video, VideoReadOptions(config.every, len(clip), config.detect_max_size))
+    det = detect_frames(frames, config.detector, progress, total=len(clip), size=(h, w))
+    if len(det.found) != len(clip):
+        raise PreprocessError(f"{video} decoded to {len(det.found)} frames on a second pass, not {len(clip)}")
     seconds["detect"] = time.perf_counter() - started
     keep = [i for i, f in enumerate(det.found) if f.get("pose", False)]
     if not keep:
         raise PreprocessError(f"no person was found in any of the {len(clip)} frames of {video}")
-    h, w = clip.frames.shape[1:3]
     rates = det.rates()
     det = det.select(keep)
     K, viewmat = guess_camera(w, h, config.fov_y_deg)

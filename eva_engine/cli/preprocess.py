@@ -19,6 +19,9 @@ def preprocess(
     every: int = typer.Option(1, min=1, help="Keep every k-th frame."),
     max_frames: int = typer.Option(300, min=1, help="Stop after this many kept frames."),
     max_size: int = typer.Option(512, min=64, max=4096, help="Longest image side in pixels."),
+    detect_max_size: int = typer.Option(
+        1280, min=64, max=8192, help="Longest side of the frames the detector sees (more pixels for hands)."
+    ),
     fov: float = typer.Option(55.0, min=5.0, max=150.0, help="Guessed vertical field of view (degrees)."),
     test_every: int = typer.Option(0, min=0, help="Every k-th frame goes to the test split (0: none)."),
     fit: bool = typer.Option(True, "--fit/--no-fit", help="Align the body model to the detections."),
@@ -36,7 +39,13 @@ def preprocess(
         console.print(f"[red]error:[/] {out} exists (pass --overwrite to replace a dataset)")
         raise typer.Exit(2)
     config = PreprocessConfig(
-        every=every, max_frames=max_frames, max_size=max_size, fov_y_deg=fov, test_every=test_every, fit=fit
+        every=every,
+        max_frames=max_frames,
+        max_size=max_size,
+        detect_max_size=detect_max_size,
+        fov_y_deg=fov,
+        test_every=test_every,
+        fit=fit,
     )
     with stage_bars(console) as report:
         try:

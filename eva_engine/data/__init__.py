@@ -17,7 +17,14 @@ from eva_engine.data.dataset import (
 )
 from eva_engine.data.perturb import PerturbConfig, perturb
 from eva_engine.data.resampled import ResampledDataset, resample_frame
-from eva_engine.data.video import VideoClip, VideoError, VideoReadOptions, read_video, write_video
+from eva_engine.data.video import (
+    VideoClip,
+    VideoError,
+    VideoReadOptions,
+    iter_frames,
+    read_video,
+    write_video,
+)
 
 __all__ = [
     "REGION_MASKS",
@@ -35,6 +42,7 @@ __all__ = [
     "VideoReadOptions",
     "load_dataset",
     "perturb",
+    "iter_frames",
     "read_video",
     "resample_frame",
     "write_video",

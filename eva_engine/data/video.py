@@ -12,7 +12,7 @@ raises :class:`VideoError`.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -81,11 +81,28 @@ def _resize(frame: np.ndarray, max_size: int | None) -> np.ndarray:
     return cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
 
 
-def read_video(path: str | Path, options: VideoReadOptions | None = None) -> VideoClip:
-    """Decode a video into RGB frames (see the module docstring). Raises :class:`VideoError`."""
+@dataclasses.dataclass
+class _DecodedStream:
+    """What decoding learnt about the stream besides its frames."""
+
+    fps: float = 0.0
+    rotation: int = 0
+    source_size: tuple[int, int] = (0, 0)
+
+
+def iter_frames(path: str | Path, options: VideoReadOptions | None = None) -> Iterator[np.ndarray]:
+    """The frames ``read_video(path, options)`` returns, one at a time (RGB uint8 [H, W, 3]): a
+    second pass over a video at another size without holding its frames."""
+    for rgb, _ in _decode(path, options or VideoReadOptions(), _DecodedStream()):
+        yield rgb
+
+
+def _decode(
+    path: str | Path, opts: VideoReadOptions, stream_info: _DecodedStream
+) -> Iterator[tuple[np.ndarray, float]]:
+    """(frame, seconds from the stream's first frame) for each kept frame; fills ``stream_info``."""
     import av
 
-    opts = options or VideoReadOptions()
     path = Path(path)
     if not path.is_file():
         raise VideoError(f"video file {path} does not exist")
@@ -93,10 +110,7 @@ def read_video(path: str | Path, options: VideoReadOptions | None = None) -> Vid
         container = av.open(str(path), mode="r")
     except (av.FFmpegError, OSError, ValueError) as err:
         raise VideoError(f"{path} is not a readable video: {err}") from err
-    frames: list[np.ndarray] = []
-    times: list[float] = []
-    rotation = 0
-    source_size = (0, 0)
+    kept = 0
     with container:
         streams = container.streams.video
         if not streams:
@@ -105,6 +119,7 @@ def read_video(path: str | Path, options: VideoReadOptions | None = None) -> Vid
         stream.thread_type = "AUTO"
         rate = stream.average_rate or stream.guessed_rate or stream.base_rate
         fps = float(rate) if rate else 0.0
+        stream_info.fps = fps
         start = None
         decoded = 0
         try:
@@ -116,17 +131,29 @@ def read_video(path: str | Path, options: VideoReadOptions | None = None) -> Vid
                 if not keep:
                     continue
                 t = frame.time if frame.time is not None else start + (decoded - 1) / (fps or 1.0)
-                rotation = int(frame.rotation or 0)
-                rgb = _rotate(frame.to_ndarray(format="rgb24"), rotation)
-                source_size = (int(rgb.shape[0]), int(rgb.shape[1]))
-                frames.append(_resize(rgb, opts.max_size))
-                times.append(float(t - start))
-                if opts.max_frames is not None and len(frames) >= opts.max_frames:
+                stream_info.rotation = int(frame.rotation or 0)
+                rgb = _rotate(frame.to_ndarray(format="rgb24"), stream_info.rotation)
+                stream_info.source_size = (int(rgb.shape[0]), int(rgb.shape[1]))
+                kept += 1
+                yield _resize(rgb, opts.max_size), float(t - start)
+                if opts.max_frames is not None and kept >= opts.max_frames:
                     break
         except (av.FFmpegError, OSError, ValueError) as err:
-            if not frames:
+            if not kept:
                 raise VideoError(f"{path} could not be decoded: {err}") from err
             # A damaged tail: keep what decoded (players do the same).
+
+
+def read_video(path: str | Path, options: VideoReadOptions | None = None) -> VideoClip:
+    """Decode a video into RGB frames (see the module docstring). Raises :class:`VideoError`."""
+    opts = options or VideoReadOptions()
+    frames: list[np.ndarray] = []
+    times: list[float] = []
+    decoded = _DecodedStream()
+    for rgb, t in _decode(path, opts, decoded):
+        frames.append(rgb)
+        times.append(t)
+    fps, rotation, source_size = decoded.fps, decoded.rotation, decoded.source_size
     if not frames:
         raise VideoError(f"{path} holds no decodable video frame")
     if not fps and len(times) > 1:

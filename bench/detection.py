@@ -1,0 +1,105 @@
+"""How often MediaPipe Holistic finds each hand and the face in the reference videos, by the size
+of the frames it is given (``PreprocessConfig.detect_max_size``).
+
+    .venv/bin/python bench/detection.py                 # ../shared/reference/videos (skips if absent)
+    .venv/bin/python bench/detection.py --videos DIR --sizes 512 1280
+
+Each video is sampled as ``bench/real_videos.py`` samples it (about ``--frames`` frames, every
+k-th), and every size runs the detector in video mode over the same frames, resized so their long
+side is at most that size (never upscaled). Writes ``bench/results/detection.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+from machine import describe
+from real_videos import DEFAULT_VIDEOS, VIDEO_SUFFIXES, frame_count
+
+RESULTS = Path(__file__).resolve().parent / "results"
+PARTS = ("pose", "left_hand", "right_hand", "face")
+
+
+def measure(video: Path, frames: int, size: int) -> dict:
+    from eva_engine.align import detect_frames
+    from eva_engine.data import VideoReadOptions, iter_frames
+
+    every = max(1, math.ceil(frame_count(video) / frames))
+    started = time.perf_counter()
+    det = detect_frames(iter_frames(video, VideoReadOptions(every, frames, size)))
+    seconds = time.perf_counter() - started
+    n = len(det.found)
+    return {"frames": n, "every": every, "rates": det.rates(), "ms_per_frame": 1000 * seconds / max(n, 1)}
+
+
+def markdown(doc: dict) -> str:
+    lines = [
+        "# Detection rates by the detector's frame size",
+        "",
+        f"- date: {doc['date']}; command: `{doc['command']}`",
+        f"- machine: {doc['machine']}",
+        "- MediaPipe Holistic 0.10.21 (model_complexity 1, video mode, refined face); each size gets "
+        "the same frames, resized so the long side is at most that size (never upscaled). "
+        "ms/frame includes decoding.",
+        "",
+        "| video | source | size | frames | pose | left hand | right hand | face | ms/frame |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for name, v in doc["videos"].items():
+        for size, r in v["sizes"].items():
+            rates = " | ".join(f"{100 * r['rates'][p]:.0f}%" for p in PARTS)
+            source = f"{v['source'][1]}x{v['source'][0]}"
+            ms = r["ms_per_frame"]
+            lines.append(f"| {name} | {source} | {size} | {r['frames']} | {rates} | {ms:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--videos", type=Path, default=DEFAULT_VIDEOS, help="folder of videos")
+    ap.add_argument("--frames", type=int, default=280, help="frames to sample per video")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[512, 768, 1024, 1280, 1920])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--name", default="detection", help="result file stem")
+    args = ap.parse_args()
+    videos = (
+        sorted(p for p in args.videos.glob("*") if p.suffix.lower() in VIDEO_SUFFIXES)
+        if args.videos.is_dir()
+        else []
+    )
+    if not videos:
+        print(f"skipping: no videos in {args.videos} (pass --videos DIR)", file=sys.stderr)
+        return
+    import torch
+
+    from eva_engine.data import VideoReadOptions, read_video
+
+    torch.set_num_threads(args.threads)
+    doc = {
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "command": "python bench/detection.py " + " ".join(sys.argv[1:]),
+        "machine": describe(),
+        "videos": {},
+    }
+    for video in videos:
+        source = read_video(video, VideoReadOptions(max_frames=1)).source_size
+        sizes = sorted({min(s, max(source)) for s in args.sizes})  # sizes past the source repeat it
+        entry = {"source": list(source), "sizes": {}}
+        for size in sizes:
+            print(f"{video.name} at {size} px ...", file=sys.stderr, flush=True)
+            entry["sizes"][str(size)] = measure(video, args.frames, size)
+        doc["videos"][video.name] = entry
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"{args.name}.json").write_text(json.dumps(doc, indent=1))
+    (RESULTS / f"{args.name}.md").write_text(markdown(doc))
+    print(markdown(doc))
+
+
+if __name__ == "__main__":
+    main()
