@@ -193,6 +193,28 @@ def merge(docs: list[dict]) -> dict:
     }
 
 
+def paired_regions(by_seed_a: dict[int, dict], by_seed_b: dict[int, dict], seeds: list[int]) -> list[str]:
+    """'region: LPIPS-VGG better (-3.1 ± 1.2%), PSNR ..., SSIM ...' per region both runs scored:
+    run a against run b (per-seed run entries), paired over ``seeds`` (``stats.compare_paired``)."""
+    parts = []
+    for region in REGIONS:
+        if any(region not in by_seed_a[s] or region not in by_seed_b[s] for s in seeds):
+            continue
+        cells = []
+        for metric, label in (("lpips_vgg", "LPIPS-VGG"), ("psnr", "PSNR"), ("ssim", "SSIM")):
+            verdict, gap = compare_paired(
+                [by_seed_a[s][region][metric] for s in seeds],
+                [by_seed_b[s][region][metric] for s in seeds],
+                LOWER_IS_BETTER[metric],
+            )
+            if verdict == "too few seeds":
+                cells.append(f"{label} {gap['mean']:+.1f}% (one seed: not judged)")
+            else:
+                cells.append(f"{label} {verdict} ({gap['mean']:+.1f} ± {gap['std']:.1f}%)")
+        parts.append(f"{region}: " + ", ".join(cells))
+    return parts
+
+
 def findings(methods: dict) -> list[str]:
     """Each comparison, per region, on LPIPS-VGG (headline), PSNR and SSIM, paired over the seeds
     both methods ran: better / worse / no difference by ``stats.compare_paired``."""
@@ -205,22 +227,7 @@ def findings(methods: dict) -> list[str]:
         seeds = sorted(by_seed_a.keys() & by_seed_b.keys())
         if not seeds:
             continue
-        parts = []
-        for region in REGIONS:
-            if any(region not in by_seed_a[s] or region not in by_seed_b[s] for s in seeds):
-                continue
-            cells = []
-            for metric, label in (("lpips_vgg", "LPIPS-VGG"), ("psnr", "PSNR"), ("ssim", "SSIM")):
-                verdict, gap = compare_paired(
-                    [by_seed_a[s][region][metric] for s in seeds],
-                    [by_seed_b[s][region][metric] for s in seeds],
-                    LOWER_IS_BETTER[metric],
-                )
-                if verdict == "too few seeds":
-                    cells.append(f"{label} {gap['mean']:+.1f}% (one seed: not judged)")
-                else:
-                    cells.append(f"{label} {verdict} ({gap['mean']:+.1f} ± {gap['std']:.1f}%)")
-            parts.append(f"{region}: " + ", ".join(cells))
+        parts = paired_regions(by_seed_a, by_seed_b, seeds)
         na, nb = (statistics.fmean(by[s]["n_gaussians"] for s in seeds) for by in (by_seed_a, by_seed_b))
         head = f"- **{a} vs {b}** ({what}; seeds {seeds}; N-GS {na:,.0f} vs {nb:,.0f}): "
         lines.append(head + "; ".join(parts) + ".")
