@@ -8,8 +8,9 @@ The blended 3x3 part of LBS is not a rotation (it shrinks where weights mix dist
 so the covariance is rotated by its Gram-Schmidt orthonormalisation (smooth, finite gradients
 even for a degenerate blend) and the quaternions are composed with it: q^f = q(R_i) q^c.
 
-``skin_gaussians`` runs a compiled C++ kernel (``csrc/skinning.cpp``: the same steps in one pass
-per Gaussian, with a hand-written backward) where it builds, and these torch steps elsewhere;
+``skin_gaussians`` blends the transforms with one matrix product either way, then runs the rest
+in a compiled C++ kernel (``csrc/skinning.cpp``: the same steps in one pass per Gaussian, with a
+hand-written backward) where it builds, and in these torch steps elsewhere;
 ``EVA_SKINNING_KERNEL`` (auto | cpp | torch) or the ``kernel`` argument picks (``eva_engine.native``).
 """
 
@@ -81,32 +82,29 @@ def skin_gaussians(
     (canonical -> posed; e.g. to bring view directions into canonical space for SH colours).
     kernel: "auto" | "cpp" | "torch" (module docstring); differentiable either way.
     """
-    if (
-        SKINNING.resolve(kernel, means) == "cpp"
-        and quats.dtype == weights.dtype == means.dtype
-        and transforms.device == means.device
-    ):
-        return _SkinCompiled.apply(means, quats, weights, transforms, SKINNING.load())
     a = blend_transforms(weights, transforms)
+    if SKINNING.resolve(kernel, means) == "cpp" and quats.dtype == a.dtype == means.dtype:
+        return _SkinCompiled.apply(means, quats, a.reshape(-1, 12), SKINNING.load())
     posed = (a[:, :, :3] @ means.unsqueeze(-1)).squeeze(-1) + a[:, :, 3]
     rot = orthonormalize(a[:, :, :3])
     return posed, quat_multiply(rotmat_to_quat_wxyz(rot), quats), rot
 
 
 class _SkinCompiled(torch.autograd.Function):
-    """``skin_gaussians`` in the compiled kernel: the same outputs, gradients by hand."""
+    """``skin_gaussians`` after the blend in the compiled kernel: the same outputs, gradients by
+    hand. blended: [N, 12] the row-major 3x4 blended transforms."""
 
     @staticmethod
-    def forward(ctx, means, quats, weights, transforms, ops):
-        ctx.save_for_backward(means, quats, weights, transforms)
+    def forward(ctx, means, quats, blended, ops):
+        ctx.save_for_backward(means, quats, blended)
         ctx.ops = ops
-        return ops.skin_forward(means, quats, weights, transforms, ORTHONORMALIZE_EPS)
+        return ops.skin_forward(means, quats, blended, ORTHONORMALIZE_EPS)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_means, grad_quats, grad_rots):
-        means, quats, weights, transforms = ctx.saved_tensors
+        means, quats, blended = ctx.saved_tensors
         grads = ctx.ops.skin_backward(
-            means, quats, weights, transforms, ORTHONORMALIZE_EPS, grad_means, grad_quats, grad_rots
+            means, quats, blended, ORTHONORMALIZE_EPS, grad_means, grad_quats, grad_rots
         )
         return (*(g if need else None for g, need in zip(grads, ctx.needs_input_grad, strict=False)), None)

@@ -1,15 +1,15 @@
-// Compiled CPU kernel of eva_engine.avatar.skinning.skin_gaussians: linear blend skinning of
-// Gaussians, forward and hand-written backward, one Gaussian per iteration, in double whatever
-// the tensors' dtype. Built by eva_engine/native.py; the torch version in skinning.py follows the
-// same steps and stays the fallback:
+// Compiled CPU kernel of eva_engine.avatar.skinning.skin_gaussians: the per-Gaussian part of
+// linear blend skinning, forward and hand-written backward, one Gaussian per iteration, in double
+// whatever the tensors' dtype. The blend A = sum_k w_k T_k itself is a matrix product, which
+// skinning.py leaves to torch. Built by eva_engine/native.py; the torch version in skinning.py
+// follows the same steps and stays the fallback:
 //
-//   A = sum_k w_k T_k (3x4)          posed = A[:, :3] p + A[:, 3]
+//   posed = A[:, :3] p + A[:, 3]     (A: the blended 3x4 transform, row-major)
 //   R = Gram-Schmidt(A[:, :3])       (columns r1, r2 from the first two, r3 = r1 x r2; eps as given)
 //   q(R): Markley's variant of Shepperd's method exactly as roma.rotmat_to_unitquat computes it
 //   posed quat = q(R) (x) q_c        (Hamilton product, w x y z)
 //
-// The transforms' gradient sums over Gaussians: each thread sums its static share into its own
-// buffer and the buffers are added in thread order, so a fixed thread count gives fixed results.
+// Nothing sums over Gaussians, so the results do not depend on the thread count.
 
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
@@ -29,18 +29,6 @@
 namespace {
 
 int num_threads() { return std::max(1, at::get_num_threads()); }
-
-// The transforms [J, 4, 4] as [12, J] doubles, entry-major (T[e * J + k] is entry e of the
-// row-major 3x4 of bone k; the bottom row is not used), so loops over bones are contiguous.
-std::vector<double> transform_entries(const at::Tensor& transforms) {
-  const auto t = transforms.to(at::kDouble).contiguous();
-  const int64_t J = t.size(0);
-  const double* src = t.data_ptr<double>();
-  std::vector<double> entries(12 * J);
-  for (int64_t k = 0; k < J; ++k)
-    for (int e = 0; e < 12; ++e) entries[e * J + k] = src[16 * k + e];
-  return entries;
-}
 
 inline double dot3(const double a[3], const double b[3]) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 
@@ -62,15 +50,9 @@ struct SkinState {
 };
 
 template <typename scalar_t>
-inline void skin_one(const scalar_t* w, const double* T, int64_t J, double eps, SkinState& st) {
+inline void skin_one(const scalar_t* blended, double eps, SkinState& st) {
   double* A = st.A;
-  for (int e = 0; e < 12; ++e) {
-    const double* Te = T + e * J;
-    double acc = 0.0;
-#pragma omp simd reduction(+ : acc)
-    for (int64_t k = 0; k < J; ++k) acc += static_cast<double>(w[k]) * Te[k];
-    A[e] = acc;
-  }
+  for (int e = 0; e < 12; ++e) A[e] = static_cast<double>(blended[e]);
   for (int r = 0; r < 3; ++r) st.a1[r] = A[4 * r], st.a2[r] = A[4 * r + 1];
   st.n1 = std::sqrt(dot3(st.a1, st.a1));
   for (int r = 0; r < 3; ++r) st.r1[r] = st.a1[r] / (st.n1 + eps);
@@ -105,12 +87,12 @@ inline void hamilton(const double a[4], const double b[4], double out[4]) {
 }
 
 template <typename scalar_t>
-void skin_forward_kernel(const scalar_t* means, const scalar_t* quats, const scalar_t* weights, const double* T,
-                         int64_t N, int64_t J, double eps, scalar_t* posed, scalar_t* posed_quats, scalar_t* rots) {
+void skin_forward_kernel(const scalar_t* means, const scalar_t* quats, const scalar_t* blended, int64_t N,
+                         double eps, scalar_t* posed, scalar_t* posed_quats, scalar_t* rots) {
 #pragma omp parallel for schedule(static) num_threads(num_threads())
   for (int64_t g = 0; g < N; ++g) {
     SkinState st;
-    skin_one(weights + g * J, T, J, eps, st);
+    skin_one(blended + 12 * g, eps, st);
     const double p[3] = {double(means[3 * g]), double(means[3 * g + 1]), double(means[3 * g + 2])};
     for (int r = 0; r < 3; ++r)
       posed[3 * g + r] =
@@ -162,21 +144,15 @@ inline void normalized_grad(const double v[3], double n, double eps, const doubl
 }
 
 template <typename scalar_t>
-void skin_backward_kernel(const scalar_t* means, const scalar_t* quats, const scalar_t* weights, const double* T,
-                          int64_t N, int64_t J, double eps, const scalar_t* g_posed, const scalar_t* g_quats,
-                          const scalar_t* g_rots, scalar_t* d_means, scalar_t* d_quats, scalar_t* d_weights,
-                          std::vector<double>& d_T, int64_t stride, int n_threads) {
-#pragma omp parallel num_threads(n_threads)
+void skin_backward_kernel(const scalar_t* means, const scalar_t* quats, const scalar_t* blended, int64_t N,
+                          double eps, const scalar_t* g_posed, const scalar_t* g_quats, const scalar_t* g_rots,
+                          scalar_t* d_means, scalar_t* d_quats, scalar_t* d_blended) {
+#pragma omp parallel num_threads(num_threads())
   {
-    double* dT = d_T.data() + static_cast<int64_t>(omp_get_thread_num()) * stride;
-    // Padded by a cache line on each side: threads writing neighbouring lines slow each other.
-    std::vector<double> dw_pad(J + 16);
-    double* acc = dw_pad.data() + 8;
 #pragma omp for schedule(static)
     for (int64_t g = 0; g < N; ++g) {
-      const scalar_t* w = weights + g * J;
       SkinState st;
-      skin_one(w, T, J, eps, st);
+      skin_one(blended + 12 * g, eps, st);
       const double p[3] = {double(means[3 * g]), double(means[3 * g + 1]), double(means[3 * g + 2])};
       const double qc[4] = {double(quats[4 * g]), double(quats[4 * g + 1]), double(quats[4 * g + 2]),
                             double(quats[4 * g + 3])};
@@ -237,83 +213,58 @@ void skin_backward_kernel(const scalar_t* means, const scalar_t* quats, const sc
       for (int c = 0; c < 3; ++c)
         d_means[3 * g + c] =
             static_cast<scalar_t>(st.A[c] * gp[0] + st.A[4 + c] * gp[1] + st.A[8 + c] * gp[2]);
-      // A = sum_k w_k T_k
-      for (int64_t k = 0; k < J; ++k) acc[k] = 0.0;
-      for (int e = 0; e < 12; ++e) {
-        const double* Te = T + e * J;
-        double* dTe = dT + e * J;
-        const double dAe = dA[e];
-        for (int64_t k = 0; k < J; ++k) {
-          acc[k] += dAe * Te[k];
-          dTe[k] += static_cast<double>(w[k]) * dAe;
-        }
-      }
-      scalar_t* dw = d_weights + g * J;
-      for (int64_t k = 0; k < J; ++k) dw[k] = static_cast<scalar_t>(acc[k]);
+      for (int e = 0; e < 12; ++e) d_blended[12 * g + e] = static_cast<scalar_t>(dA[e]);
     }
   }
 }
 
-void check_inputs(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& weights,
-                  const at::Tensor& transforms) {
+void check_inputs(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& blended) {
   TORCH_CHECK(means.device().is_cpu(), "eva_skinning kernels run on the CPU");
-  const int64_t n = means.size(0), j = transforms.size(0);
+  const int64_t n = means.size(0);
   TORCH_CHECK(means.dim() == 2 && means.size(1) == 3 && quats.sizes() == at::IntArrayRef({n, 4}) &&
-                  weights.sizes() == at::IntArrayRef({n, j}) && transforms.sizes() == at::IntArrayRef({j, 4, 4}),
-              "means [N, 3], quats [N, 4], weights [N, J], transforms [J, 4, 4]");
-  TORCH_CHECK(quats.scalar_type() == means.scalar_type() && weights.scalar_type() == means.scalar_type(),
-              "means, quats and weights must share one dtype");
+                  blended.sizes() == at::IntArrayRef({n, 12}),
+              "means [N, 3], quats [N, 4], blended transforms [N, 12]");
+  TORCH_CHECK(quats.scalar_type() == means.scalar_type() && blended.scalar_type() == means.scalar_type(),
+              "means, quats and blended transforms must share one dtype");
 }
 
 // Returns posed means [N, 3], posed quats [N, 4] and rotations [N, 3, 3].
 std::tuple<at::Tensor, at::Tensor, at::Tensor> skin_forward(const at::Tensor& means, const at::Tensor& quats,
-                                                            const at::Tensor& weights, const at::Tensor& transforms,
-                                                            double eps) {
-  check_inputs(means, quats, weights, transforms);
-  const auto m = means.contiguous(), q = quats.contiguous(), w = weights.contiguous();
-  const int64_t N = m.size(0), J = transforms.size(0);
-  const auto T = transform_entries(transforms);
+                                                            const at::Tensor& blended, double eps) {
+  check_inputs(means, quats, blended);
+  const auto m = means.contiguous(), q = quats.contiguous(), a = blended.contiguous();
+  const int64_t N = m.size(0);
   auto posed = at::empty({N, 3}, m.options());
   auto posed_quats = at::empty({N, 4}, m.options());
   auto rots = at::empty({N, 3, 3}, m.options());
   AT_DISPATCH_FLOATING_TYPES(m.scalar_type(), "eva_skinning_forward", [&] {
-    skin_forward_kernel<scalar_t>(m.data_ptr<scalar_t>(), q.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(), T.data(),
-                                  N, J, eps, posed.data_ptr<scalar_t>(), posed_quats.data_ptr<scalar_t>(),
+    skin_forward_kernel<scalar_t>(m.data_ptr<scalar_t>(), q.data_ptr<scalar_t>(), a.data_ptr<scalar_t>(), N, eps,
+                                  posed.data_ptr<scalar_t>(), posed_quats.data_ptr<scalar_t>(),
                                   rots.data_ptr<scalar_t>());
   });
   return {posed, posed_quats, rots};
 }
 
-// Returns the gradients of means [N, 3], quats [N, 4], weights [N, J] and transforms [J, 4, 4]
-// (in the transforms' dtype; their bottom row gets 0).
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_backward(
-    const at::Tensor& means, const at::Tensor& quats, const at::Tensor& weights, const at::Tensor& transforms,
-    double eps, const at::Tensor& g_posed, const at::Tensor& g_quats, const at::Tensor& g_rots) {
-  check_inputs(means, quats, weights, transforms);
-  const auto m = means.contiguous(), q = quats.contiguous(), w = weights.contiguous();
+// Returns the gradients of means [N, 3], quats [N, 4] and the blended transforms [N, 12].
+std::tuple<at::Tensor, at::Tensor, at::Tensor> skin_backward(const at::Tensor& means, const at::Tensor& quats,
+                                                             const at::Tensor& blended, double eps,
+                                                             const at::Tensor& g_posed, const at::Tensor& g_quats,
+                                                             const at::Tensor& g_rots) {
+  check_inputs(means, quats, blended);
+  const auto m = means.contiguous(), q = quats.contiguous(), a = blended.contiguous();
   const auto gp = g_posed.to(m.scalar_type()).contiguous(), gq = g_quats.to(m.scalar_type()).contiguous(),
              gr = g_rots.to(m.scalar_type()).contiguous();
-  const int64_t N = m.size(0), J = transforms.size(0);
-  const auto T = transform_entries(transforms);
+  const int64_t N = m.size(0);
   auto d_means = at::empty({N, 3}, m.options());
   auto d_quats = at::empty({N, 4}, m.options());
-  auto d_weights = at::empty({N, J}, m.options());
-  const int n_threads = num_threads();
-  // One [12, J] buffer per thread, each starting on its own cache line (8 doubles).
-  const int64_t stride = (12 * J + 7) / 8 * 8 + 8;
-  std::vector<double> d_T(static_cast<size_t>(n_threads * stride), 0.0);
+  auto d_blended = at::empty({N, 12}, m.options());
   AT_DISPATCH_FLOATING_TYPES(m.scalar_type(), "eva_skinning_backward", [&] {
-    skin_backward_kernel<scalar_t>(m.data_ptr<scalar_t>(), q.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(), T.data(),
-                                   N, J, eps, gp.data_ptr<scalar_t>(), gq.data_ptr<scalar_t>(),
-                                   gr.data_ptr<scalar_t>(), d_means.data_ptr<scalar_t>(),
-                                   d_quats.data_ptr<scalar_t>(), d_weights.data_ptr<scalar_t>(), d_T, stride, n_threads);
+    skin_backward_kernel<scalar_t>(m.data_ptr<scalar_t>(), q.data_ptr<scalar_t>(), a.data_ptr<scalar_t>(), N, eps,
+                                   gp.data_ptr<scalar_t>(), gq.data_ptr<scalar_t>(), gr.data_ptr<scalar_t>(),
+                                   d_means.data_ptr<scalar_t>(), d_quats.data_ptr<scalar_t>(),
+                                   d_blended.data_ptr<scalar_t>());
   });
-  auto d_transforms = at::zeros({J, 4, 4}, transforms.options().dtype(at::kDouble));
-  double* out = d_transforms.data_ptr<double>();
-  for (int t = 0; t < n_threads; ++t)  // in thread order: deterministic for a fixed thread count
-    for (int64_t k = 0; k < J; ++k)
-      for (int e = 0; e < 12; ++e) out[16 * k + e] += d_T[t * stride + e * J + k];
-  return {d_means, d_quats, d_weights, d_transforms.to(transforms.scalar_type())};
+  return {d_means, d_quats, d_blended};
 }
 
 }  // namespace
