@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from machine import describe
-from real_videos import DEFAULT_VIDEOS, VIDEO_SUFFIXES, frame_count
+from real_videos import DEFAULT_VIDEOS, frame_count, list_videos
 
 RESULTS = Path(__file__).resolve().parent / "results"
 PARTS = ("pose", "left_hand", "right_hand", "face")
@@ -68,11 +68,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--name", default="detection", help="result file stem")
     args = ap.parse_args()
-    videos = (
-        sorted(p for p in args.videos.glob("*") if p.suffix.lower() in VIDEO_SUFFIXES)
-        if args.videos.is_dir()
-        else []
-    )
+    videos = list_videos(args.videos)
     if not videos:
         print(f"skipping: no videos in {args.videos} (pass --videos DIR)", file=sys.stderr)
         return

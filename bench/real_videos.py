@@ -45,9 +45,17 @@ from eva_engine.recipes import METHODS, PRESETS
 RESULTS = Path(__file__).resolve().parent / "results"
 DEFAULT_VIDEOS = Path(__file__).resolve().parents[2] / "shared" / "reference" / "videos"
 VIDEO_SUFFIXES = (".mp4", ".mov", ".webm", ".mkv", ".avi")
+
 DEFAULT_METHODS = ("3dgs+body", "eva")
 REGIONS = ("full", "hand", "face")
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
+
+
+def list_videos(folder: Path) -> list[Path]:
+    """The videos directly in ``folder``, sorted; none when it is not a folder."""
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.glob("*") if p.suffix.lower() in VIDEO_SUFFIXES)
 
 
 def frame_count(video: Path) -> int:
@@ -262,11 +270,7 @@ def main() -> None:
     )
     ap.add_argument("--reuse", action="store_true", help="score the avatars saved in --work (same settings)")
     args = ap.parse_args()
-    videos = (
-        sorted(p for p in args.videos.glob("*") if p.suffix.lower() in VIDEO_SUFFIXES)
-        if args.videos.is_dir()
-        else []
-    )
+    videos = list_videos(args.videos)
     if not videos:
         print(
             f"skipping: no videos in {args.videos} (the reference videos sit in ../shared beside a "

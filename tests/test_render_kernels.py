@@ -230,15 +230,21 @@ def test_kernel_choice(compiled, monkeypatch):
         RasterConfig(kernel="cuda")
 
 
-def test_env_var_forces_the_torch_kernels_in_a_fresh_process():
+@pytest.mark.parametrize(
+    ("module", "library"),
+    [("eva_engine.render.native", "RASTER"), ("eva_engine.avatar.skinning", "SKINNING")],
+)
+def test_env_var_forces_the_torch_kernels_in_a_fresh_process(module, library):
     code = (
-        "import torch; from eva_engine.render import native; "
-        "print(native.RASTER.resolve('auto', torch.zeros(1)), native.RASTER.state)"
+        f"import torch; from {module} import {library} as lib; "
+        "print(lib.resolve('auto', torch.zeros(1)), lib.state, lib.env)"
     )
-    env = {**__import__("os").environ, native.KERNEL_ENV: "torch"}
+    env = {**__import__("os").environ, native.KERNEL_ENV: "torch", "EVA_SKINNING_KERNEL": "torch"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["torch", "{}"]  # nothing loaded or built
+    choice, state, variable = out.stdout.split()
+    assert (choice, state) == ("torch", "{}")  # nothing loaded or built
+    assert variable in env
 
 
 def test_failed_build_is_remembered(tmp_path):
