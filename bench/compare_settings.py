@@ -51,6 +51,11 @@ def markdown(base_name: str, base: dict, settings: dict[str, dict], command: str
         "",
         f"- date: {dt.datetime.now(dt.UTC).isoformat(timespec='seconds')}; command: `{command}`",
         f"- machine: {base['machine']}",
+        *(
+            f"- machine of `{name}`: {doc['machine']} (not the base's: its seconds do not compare)"
+            for name, doc in settings.items()
+            if doc["machine"].split(",")[0] != base["machine"].split(",")[0]
+        ),
         f"- base `{base_name}`: `{base['command'].split(' && ')[0]}` (one process per seed)",
         f"- benchmark: synthetic controlled, preset `{base['config']['preset']}`, seeds "
         f"{base['config']['seeds']}; LPIPS-VGG is held out (no method trains on it)",
