@@ -23,6 +23,7 @@ import argparse
 import datetime as dt
 import json
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -165,23 +166,21 @@ class StepProfiler:
     step ``start`` and keeps the ops with the most self CPU time, per step."""
 
     def __init__(self, start: int, steps: int, top: int = 30) -> None:
+        from torch.profiler import ProfilerActivity, profile
+
         self.steps = (start, start + steps)
         self.top = top
         self.result: dict = {}
-        self._profile = None
+        self._profile = profile(activities=[ProfilerActivity.CPU])
+        self._started = 0.0
 
     def __call__(self, step: int, avatar, seconds: float) -> None:
-        import time
-
-        from torch.profiler import ProfilerActivity, profile
-
         if step == self.steps[0]:
-            self._profile = profile(activities=[ProfilerActivity.CPU])
-            self._profile.__enter__()
+            self._profile.start()
             self._started = time.perf_counter()
             return
         wall = time.perf_counter() - self._started
-        self._profile.__exit__(None, None, None)
+        self._profile.stop()
         n = self.steps[1] - self.steps[0]
         events = sorted(self._profile.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
         self.result = {

@@ -120,5 +120,4 @@ def test_kernel_choice(compiled, monkeypatch):
     assert SKINNING.resolve("auto", like.half()) == "torch"  # a dtype the kernel does not take
     with pytest.raises(KernelUnavailableError):
         SKINNING.resolve("cpp", like.half())
-
     assert skinning.ORTHONORMALIZE_EPS > 0

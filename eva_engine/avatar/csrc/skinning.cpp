@@ -17,7 +17,6 @@
 #include <ATen/ops/empty.h>
 #include <ATen/ops/zeros.h>
 #include <c10/util/Exception.h>
-#include <omp.h>
 #include <torch/library.h>
 
 #include <algorithm>
@@ -147,74 +146,71 @@ template <typename scalar_t>
 void skin_backward_kernel(const scalar_t* means, const scalar_t* quats, const scalar_t* blended, int64_t N,
                           double eps, const scalar_t* g_posed, const scalar_t* g_quats, const scalar_t* g_rots,
                           scalar_t* d_means, scalar_t* d_quats, scalar_t* d_blended) {
-#pragma omp parallel num_threads(num_threads())
-  {
-#pragma omp for schedule(static)
-    for (int64_t g = 0; g < N; ++g) {
-      SkinState st;
-      skin_one(blended + 12 * g, eps, st);
-      const double p[3] = {double(means[3 * g]), double(means[3 * g + 1]), double(means[3 * g + 2])};
-      const double qc[4] = {double(quats[4 * g]), double(quats[4 * g + 1]), double(quats[4 * g + 2]),
-                            double(quats[4 * g + 3])};
-      const double gq[4] = {double(g_quats[4 * g]), double(g_quats[4 * g + 1]), double(g_quats[4 * g + 2]),
-                            double(g_quats[4 * g + 3])};
-      const double gp[3] = {double(g_posed[3 * g]), double(g_posed[3 * g + 1]), double(g_posed[3 * g + 2])};
-      // posed quat = qr (x) qc
-      const double* q1 = st.qr;
-      const double dq1[4] = {gq[0] * qc[0] + gq[1] * qc[1] + gq[2] * qc[2] + gq[3] * qc[3],
-                             -gq[0] * qc[1] + gq[1] * qc[0] - gq[2] * qc[3] + gq[3] * qc[2],
-                             -gq[0] * qc[2] + gq[1] * qc[3] + gq[2] * qc[0] - gq[3] * qc[1],
-                             -gq[0] * qc[3] - gq[1] * qc[2] + gq[2] * qc[1] + gq[3] * qc[0]};
-      d_quats[4 * g] = static_cast<scalar_t>(gq[0] * q1[0] + gq[1] * q1[1] + gq[2] * q1[2] + gq[3] * q1[3]);
-      d_quats[4 * g + 1] = static_cast<scalar_t>(-gq[0] * q1[1] + gq[1] * q1[0] + gq[2] * q1[3] - gq[3] * q1[2]);
-      d_quats[4 * g + 2] = static_cast<scalar_t>(-gq[0] * q1[2] - gq[1] * q1[3] + gq[2] * q1[0] + gq[3] * q1[1]);
-      d_quats[4 * g + 3] = static_cast<scalar_t>(-gq[0] * q1[3] + gq[1] * q1[2] - gq[2] * q1[1] + gq[3] * q1[0]);
-      // qr (w x y z) = x_i (x y z w) / |x_i|
-      const double dq[4] = {dq1[1], dq1[2], dq1[3], dq1[0]};  // x y z w
-      const double* x = st.x;
-      const double qn[4] = {x[0] / st.xn, x[1] / st.xn, x[2] / st.xn, x[3] / st.xn};
-      const double proj = qn[0] * dq[0] + qn[1] * dq[1] + qn[2] * dq[2] + qn[3] * dq[3];
-      double dx[4];
-      for (int c = 0; c < 4; ++c) dx[c] = (dq[c] - qn[c] * proj) / st.xn;
-      double da[3][3] = {{0, 0, 0}, {0, 0, 0}, {0, 0, 0}};
-      shepperd_grad(st.branch, dx, da);
-      // R[r][c] = a[c][r]: column c of R is row c of a; plus the rotations' own gradient.
-      double dr1[3], dr2[3], dr3[3];
-      for (int r = 0; r < 3; ++r) {
-        dr1[r] = da[0][r] + double(g_rots[9 * g + 3 * r]);
-        dr2[r] = da[1][r] + double(g_rots[9 * g + 3 * r + 1]);
-        dr3[r] = da[2][r] + double(g_rots[9 * g + 3 * r + 2]);
-      }
-      // r3 = r1 x r2
-      double t1[3], t2[3];
-      cross3(st.r2, dr3, t1);
-      cross3(dr3, st.r1, t2);
-      for (int r = 0; r < 3; ++r) dr1[r] += t1[r], dr2[r] += t2[r];
-      // r2 = a2p / (|a2p| + eps), a2p = a2 - (r1 . a2) r1
-      double da2p[3];
-      normalized_grad(st.a2p, st.n2, eps, dr2, da2p);
-      const double r1u = dot3(st.r1, da2p);
-      double da2[3];
-      for (int r = 0; r < 3; ++r) {
-        da2[r] = da2p[r] - st.r1[r] * r1u;
-        dr1[r] -= r1u * st.a2[r] + st.s * da2p[r];
-      }
-      // r1 = a1 / (|a1| + eps)
-      double da1[3];
-      normalized_grad(st.a1, st.n1, eps, dr1, da1);
-      // posed = A[:, :3] p + A[:, 3]
-      double dA[12];
-      for (int r = 0; r < 3; ++r) {
-        dA[4 * r] = da1[r] + gp[r] * p[0];
-        dA[4 * r + 1] = da2[r] + gp[r] * p[1];
-        dA[4 * r + 2] = gp[r] * p[2];
-        dA[4 * r + 3] = gp[r];
-      }
-      for (int c = 0; c < 3; ++c)
-        d_means[3 * g + c] =
-            static_cast<scalar_t>(st.A[c] * gp[0] + st.A[4 + c] * gp[1] + st.A[8 + c] * gp[2]);
-      for (int e = 0; e < 12; ++e) d_blended[12 * g + e] = static_cast<scalar_t>(dA[e]);
+#pragma omp parallel for schedule(static) num_threads(num_threads())
+  for (int64_t g = 0; g < N; ++g) {
+    SkinState st;
+    skin_one(blended + 12 * g, eps, st);
+    const double p[3] = {double(means[3 * g]), double(means[3 * g + 1]), double(means[3 * g + 2])};
+    const double qc[4] = {double(quats[4 * g]), double(quats[4 * g + 1]), double(quats[4 * g + 2]),
+                          double(quats[4 * g + 3])};
+    const double gq[4] = {double(g_quats[4 * g]), double(g_quats[4 * g + 1]), double(g_quats[4 * g + 2]),
+                          double(g_quats[4 * g + 3])};
+    const double gp[3] = {double(g_posed[3 * g]), double(g_posed[3 * g + 1]), double(g_posed[3 * g + 2])};
+    // posed quat = qr (x) qc
+    const double* q1 = st.qr;
+    const double dq1[4] = {gq[0] * qc[0] + gq[1] * qc[1] + gq[2] * qc[2] + gq[3] * qc[3],
+                           -gq[0] * qc[1] + gq[1] * qc[0] - gq[2] * qc[3] + gq[3] * qc[2],
+                           -gq[0] * qc[2] + gq[1] * qc[3] + gq[2] * qc[0] - gq[3] * qc[1],
+                           -gq[0] * qc[3] - gq[1] * qc[2] + gq[2] * qc[1] + gq[3] * qc[0]};
+    d_quats[4 * g] = static_cast<scalar_t>(gq[0] * q1[0] + gq[1] * q1[1] + gq[2] * q1[2] + gq[3] * q1[3]);
+    d_quats[4 * g + 1] = static_cast<scalar_t>(-gq[0] * q1[1] + gq[1] * q1[0] + gq[2] * q1[3] - gq[3] * q1[2]);
+    d_quats[4 * g + 2] = static_cast<scalar_t>(-gq[0] * q1[2] - gq[1] * q1[3] + gq[2] * q1[0] + gq[3] * q1[1]);
+    d_quats[4 * g + 3] = static_cast<scalar_t>(-gq[0] * q1[3] + gq[1] * q1[2] - gq[2] * q1[1] + gq[3] * q1[0]);
+    // qr (w x y z) = x_i (x y z w) / |x_i|
+    const double dq[4] = {dq1[1], dq1[2], dq1[3], dq1[0]};  // x y z w
+    const double* x = st.x;
+    const double qn[4] = {x[0] / st.xn, x[1] / st.xn, x[2] / st.xn, x[3] / st.xn};
+    const double proj = qn[0] * dq[0] + qn[1] * dq[1] + qn[2] * dq[2] + qn[3] * dq[3];
+    double dx[4];
+    for (int c = 0; c < 4; ++c) dx[c] = (dq[c] - qn[c] * proj) / st.xn;
+    double da[3][3] = {{0, 0, 0}, {0, 0, 0}, {0, 0, 0}};
+    shepperd_grad(st.branch, dx, da);
+    // R[r][c] = a[c][r]: column c of R is row c of a; plus the rotations' own gradient.
+    double dr1[3], dr2[3], dr3[3];
+    for (int r = 0; r < 3; ++r) {
+      dr1[r] = da[0][r] + double(g_rots[9 * g + 3 * r]);
+      dr2[r] = da[1][r] + double(g_rots[9 * g + 3 * r + 1]);
+      dr3[r] = da[2][r] + double(g_rots[9 * g + 3 * r + 2]);
     }
+    // r3 = r1 x r2
+    double t1[3], t2[3];
+    cross3(st.r2, dr3, t1);
+    cross3(dr3, st.r1, t2);
+    for (int r = 0; r < 3; ++r) dr1[r] += t1[r], dr2[r] += t2[r];
+    // r2 = a2p / (|a2p| + eps), a2p = a2 - (r1 . a2) r1
+    double da2p[3];
+    normalized_grad(st.a2p, st.n2, eps, dr2, da2p);
+    const double r1u = dot3(st.r1, da2p);
+    double da2[3];
+    for (int r = 0; r < 3; ++r) {
+      da2[r] = da2p[r] - st.r1[r] * r1u;
+      dr1[r] -= r1u * st.a2[r] + st.s * da2p[r];
+    }
+    // r1 = a1 / (|a1| + eps)
+    double da1[3];
+    normalized_grad(st.a1, st.n1, eps, dr1, da1);
+    // posed = A[:, :3] p + A[:, 3]
+    double dA[12];
+    for (int r = 0; r < 3; ++r) {
+      dA[4 * r] = da1[r] + gp[r] * p[0];
+      dA[4 * r + 1] = da2[r] + gp[r] * p[1];
+      dA[4 * r + 2] = gp[r] * p[2];
+      dA[4 * r + 3] = gp[r];
+    }
+    for (int c = 0; c < 3; ++c)
+      d_means[3 * g + c] =
+          static_cast<scalar_t>(st.A[c] * gp[0] + st.A[4 + c] * gp[1] + st.A[8 + c] * gp[2]);
+    for (int e = 0; e < 12; ++e) d_blended[12 * g + e] = static_cast<scalar_t>(dA[e]);
   }
 }
 
