@@ -43,9 +43,10 @@ from eva_engine.align import (
 )
 from eva_engine.align.clip import fit_clip
 from eva_engine.align.evaluate import expression_error, targets_from_params
-from eva_engine.align.fit import FitConfig, fit_sequence
+from eva_engine.align.fit import POSE_BODY, FitConfig, fit_sequence
 from eva_engine.body import BodyParams, load_body_model
 from eva_engine.data import load_dataset
+from eva_engine.geometry import project_points, to_camera
 from eva_engine.paths import data_dir
 from eva_engine.recipes import PRESETS
 
@@ -237,7 +238,6 @@ def face_mesh_px(model, params, targets: FitTargets) -> dict[str, float] | None:
     face's correspondence points; summarised as the median and 90th percentile over frames."""
     from eva_engine.align.face_mesh import load_correspondence
     from eva_engine.body.keypoints import KeypointRegressor
-    from eva_engine.geometry import project_points, to_camera
 
     corr = load_correspondence(model)
     if corr is None or targets.face_mesh is None:
@@ -262,7 +262,6 @@ def face_mesh_px(model, params, targets: FitTargets) -> dict[str, float] | None:
 
 def _detection_error(targets: FitTargets, truth: FitTargets) -> dict[str, float]:
     """Median px distance of the confident detections from the ground truth, per group."""
-    from eva_engine.align.fit import POSE_BODY
     from eva_engine.body import KEYPOINT_GROUPS
 
     d = (targets.keypoints[..., :2] - truth.keypoints[..., :2]).norm(dim=-1)
@@ -288,11 +287,28 @@ def real_videos(model, frames: int, every: int) -> list[dict]:
             ds = load_dataset(out)
             overlay = DOCS / f"align_overlay_{video.stem}.jpg"
             _overlay(model, ds, overlay)
+            outliers = _body_outliers(model, ds)
         row = report.to_json()
         row.update(video=video.name, total_seconds=total, overlay=str(overlay.relative_to(ROOT)))
+        row["body_outliers"] = outliers
         rows.append(row)
         print(json.dumps(row, indent=1), flush=True)
     return rows
+
+
+def _body_outliers(model, ds, off: float = 0.2) -> dict:
+    """Where the fit left a body joint far from its detection: the 90th percentile of the body
+    joints' 2D error (px) and the share of frames with a confident joint (> 0.5) more than
+    ``off`` person heights (2 sigma of the 2D term) from it -- what a median hides."""
+    targets = FitTargets(ds.keypoints, ds.K, ds.viewmat)
+    with torch.no_grad():
+        kp, _ = model.posed_keypoints(ds.params)
+        uv = project_points(to_camera(kp, targets.frame_viewmat()), targets.frame_K())
+    body = list(POSE_BODY)
+    err = (uv[:, body] - targets.keypoints[:, body, :2]).norm(dim=-1)
+    ok = targets.keypoints[:, body, 2] > 0.5
+    far = ((err / targets.person_scale()[:, None] > off) & ok).any(dim=1)
+    return {"p90_px": float(err[ok].quantile(0.9)), "frames_off": float(far.float().mean())}
 
 
 def _overlay(model, ds, path: Path, picks: int = 4) -> None:
@@ -399,8 +415,9 @@ def markdown(report: dict) -> str:
             "## Real videos (`eva preprocess`, guessed camera)",
             "",
             "| video | frames kept / decoded | pose / L hand / R hand / face found "
-            "| 2D px initial (body, hands, face) | 2D px fitted (body, hands, face) | align s | overlay |",
-            "|---|---|---|---|---|---:|---|",
+            "| 2D px initial (body, hands, face) | 2D px fitted (body, hands, face) "
+            "| fitted body: p90 px / frames with a joint > 0.2 heights off | align s | overlay |",
+            "|---|---|---|---|---|---|---:|---|",
         ]
         for r in report["videos"]:
             rates = " / ".join(
@@ -410,9 +427,11 @@ def markdown(report: dict) -> str:
             def fmt(d):
                 return ", ".join("-" if d[k] is None else f"{d[k]:.1f}" for k in ("body", "hands", "face"))
 
+            o = r.get("body_outliers")
+            outliers = "-" if o is None else f"{o['p90_px']:.1f} / {o['frames_off']:.0%}"
             lines.append(
                 f"| {r['video']} | {r['kept_frames']} / {r['decoded_frames']} | {rates} | "
-                f"{fmt(r['reprojection_initial'])} | {fmt(r['reprojection_fitted'])} | "
+                f"{fmt(r['reprojection_initial'])} | {fmt(r['reprojection_fitted'])} | {outliers} | "
                 f"{r['seconds'].get('align', 0):.1f} | [{Path(r['overlay']).name}](../../{r['overlay']}) |"
             )
         lines.append("")

@@ -24,13 +24,15 @@ Objective over all frames at once (batched body model, shape shared by the clip)
   smooths it over time).
 
 Optimiser: ``torch.optim.LBFGS`` with strong-Wolfe line search, in stages as in the paper's
-appendix: body init (the head's pose from the face points no facial action moves); hands with
+appendix: body init (the head's pose from the face points no facial action moves), first with
+an 8x wider 2D scale so that joints far outside the robust scale are pulled in; hands with
 the hand prior; the expression on its own (inside a joint stage its small gradients barely
 move); fine-tune with hands and face emphasised. The initial estimate turns each detected
 hand's palm to the detected 3D palm (``orient_hands``), so the fit starts on the right side of
-the palm-in / palm-out ambiguity. Missing detections have confidence 0 and drop out; a frame
-with nothing detected keeps its initial estimate, moved only by the smoothness term
-(``clip.fit_clip`` then fills hands from neighbouring frames).
+the palm-in / palm-out ambiguity, and the hands stage does it again for the fitted forearms.
+Missing detections have confidence 0 and drop out; a frame with nothing detected keeps its
+initial estimate, moved only by the smoothness term (``clip.fit_clip`` then fills hands from
+neighbouring frames).
 """
 
 from __future__ import annotations
@@ -175,6 +177,12 @@ class FitStage:
     """Weight of the frame-to-frame expression change (off by default: it slows L-BFGS down
     across the coupled frames; ``clip.fit_clip`` smooths the expression over time instead)."""
     shape_reg: float = 1e-3
+    sigma_scale: float = 1.0
+    """Multiplier of the 2D Geman-McClure scale (``FitConfig.sigma_2d``) in this stage."""
+    orient_hands_first: bool = False
+    """Before this stage, turn each detected hand's wrist to the detected palm again
+    (``orient_hands``, if ``FitConfig.orient_hands``): the body stages twist the forearms, and a
+    hand turned for the initial estimate's forearm turns with them."""
 
     def __post_init__(self) -> None:
         unknown = set(self.optimize) - set(PARAM_GROUPS)
@@ -189,18 +197,36 @@ def default_stages() -> tuple[FitStage, ...]:
     emphasised), with the face's expression fitted in a stage of its own before the fine-tune.
     The body and fine-tune stages run 120 L-BFGS iterations: one step length serves every frame
     of the clip, so the joint problem converges slower than one frame would (``docs/alignment.md``
-    has the measurements)."""
+    has the measurements).
+
+    The body stage runs first with an 8x wider Geman-McClure scale (``body_coarse``): where
+    MediaPipe's 3D world landmarks put an arm elsewhere than its 2D points do, the initial
+    estimate's arm lies several sigmas from the detections, where the robust term's gradient has
+    vanished, and the narrow-scale fit keeps it there (13% of the taiji frames had an arm joint
+    0.2-0.5 person heights off). The wide scale pulls it in; the stages after it are robust again.
+    """
+    body = FitStage(
+        "body",
+        120,
+        ("root", "transl", "body", "shape"),
+        w_face=0.3,
+        rigid_face_only=True,
+        body_3d=1.0,
+        init_pull=0.05,
+    )
     return (
+        dataclasses.replace(body, name="body_coarse", iterations=60, sigma_scale=8.0),
+        body,
         FitStage(
-            "body",
-            120,
-            ("root", "transl", "body", "shape"),
-            w_face=0.3,
-            rigid_face_only=True,
-            body_3d=1.0,
-            init_pull=0.05,
+            "hands",
+            40,
+            ("hand",),
+            w_hand=1.0,
+            hand_z=1.0,
+            hand_prior=1.0,
+            smooth=0.05,
+            orient_hands_first=True,
         ),
-        FitStage("hands", 40, ("hand",), w_hand=1.0, hand_z=1.0, hand_prior=1.0, smooth=0.05),
         # Expression on its own: inside the joint refine stage its small gradients barely move.
         FitStage(
             "face",
@@ -323,6 +349,13 @@ class _Problem:
             joints = joints.index_copy(1, idx, v[p])
         return BodyParams(v["root"], v["transl"], joints, v["expression"], v["shape"].expand(f, -1))
 
+    def set_params(self, params: BodyParams) -> None:
+        """Replace the current estimate's pose (root, translation, joints) with ``params``'."""
+        self.values["root"] = params.root_orient.detach().clone()
+        self.values["transl"] = params.transl.detach().clone()
+        for p, idx in self.joint_index.items():
+            self.values[p] = params.joints[:, idx].detach().clone()
+
     def loss(self, stage: FitStage) -> Tensor:
         cfg, t = self.config, self.targets
         params = self.params()
@@ -330,6 +363,7 @@ class _Problem:
         cam = to_camera(kp, self.viewmat)
         uv = project_points(cam, self.K)
         residual = (uv - t.keypoints[..., :2]) / self.scale[:, None, None]
+        sigma_2d = cfg.sigma_2d * stage.sigma_scale
         # Each group is a robust mean over its own points, so the 16 face points weigh as much as
         # the body's joints when gamma says so. Until hands / face get their own weight, the
         # pose model's coarse hand and face points stand in for them.
@@ -343,7 +377,7 @@ class _Problem:
         total = residual.new_zeros(())
         for gamma, mask in groups:
             if gamma > 0:
-                total = total + gamma * weighted_gm(residual, mask * self.conf, cfg.sigma_2d)
+                total = total + gamma * weighted_gm(residual, mask * self.conf, sigma_2d)
 
         if stage.w_face_mesh > 0 and self.face_mesh is not None:
             reg, landmarks = self.face_mesh
@@ -584,6 +618,8 @@ def fit_sequence(
     problem = _Problem(model, targets, config, init)
     losses = {}
     for stage in config.stages:
+        if stage.orient_hands_first and config.orient_hands and targets.hand_depth is not None:
+            problem.set_params(orient_hands(model, problem.params(), targets, config.hand_depth_scale))
         losses[stage.name] = problem.run_stage(stage, progress)
     params = problem.params().map(lambda t: t.detach().clone())
     for name, bounds in (("expression", model.expression_bounds), ("shape", model.shape_bounds)):
