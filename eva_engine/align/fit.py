@@ -202,8 +202,9 @@ def default_stages() -> tuple[FitStage, ...]:
     The body stage runs first with an 8x wider Geman-McClure scale (``body_coarse``): where
     MediaPipe's 3D world landmarks put an arm elsewhere than its 2D points do, the initial
     estimate's arm lies several sigmas from the detections, where the robust term's gradient has
-    vanished, and the narrow-scale fit keeps it there (13% of the taiji frames had an arm joint
-    0.2-0.5 person heights off). The wide scale pulls it in; the stages after it are robust again.
+    vanished, and the narrow-scale fit keeps it there (taiji: 6% of the frames with a joint more
+    than 0.2 person heights off, ``bench/results/align_before.md``; 0% after). The wide scale pulls
+    it in; the stages after it are robust again.
     """
     body = FitStage(
         "body",
