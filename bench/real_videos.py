@@ -45,7 +45,6 @@ from eva_engine.recipes import METHODS, PRESETS
 RESULTS = Path(__file__).resolve().parent / "results"
 DEFAULT_VIDEOS = Path(__file__).resolve().parents[2] / "shared" / "reference" / "videos"
 VIDEO_SUFFIXES = (".mp4", ".mov", ".webm", ".mkv", ".avi")
-
 DEFAULT_METHODS = ("3dgs+body", "eva")
 REGIONS = ("full", "hand", "face")
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")

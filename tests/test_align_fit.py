@@ -183,9 +183,10 @@ def test_targets_validate_shapes():
 
 def test_an_arm_far_outside_the_robust_scale_is_pulled_onto_its_2d_points(anny_model, clip):
     """MediaPipe's 3D world landmarks can lift an arm out to the side while its 2D points show it
-    folded (taiji, 13% of the frames). Started there, with 3D landmarks that agree with the wrong
-    arm, the arm lies ~4 Geman-McClure sigmas from its 2D points, where the robust term has no
-    gradient left: the narrow-scale stages alone keep it there; the wide first stage brings it in."""
+    folded (taiji: 6% of the frames, bench/results/align_before.md). Started there, with 3D
+    landmarks that agree with the wrong arm, the arm lies ~4 Geman-McClure sigmas from its 2D
+    points, where the robust term has no gradient left: the narrow-scale stages alone keep it
+    there; the wide first stage brings it in."""
     lifted = clip.map(lambda t: t.clone())
     upperarm = anny_model.pose_joint_names.index("upperarm01.R")
     lifted.joints[:, upperarm] += torch.tensor([0.0, 0.0, 2.2])

@@ -302,13 +302,10 @@ class _Problem:
         part = model.joint_part_ids[1:].cpu()  # pose joints exclude the root
         self.joint_index = {p: torch.nonzero(part == i).squeeze(1) for i, p in enumerate(PART_NAMES)}
         self.values: dict[str, Tensor] = {
-            "root": init.root_orient,
-            "transl": init.transl,
-            **{p: init.joints[:, idx] for p, idx in self.joint_index.items()},
-            "expression": init.expression,
-            "shape": init.shape[:1],
+            "expression": init.expression.detach().clone(),
+            "shape": init.shape[:1].detach().clone(),
         }
-        self.values = {k: v.detach().clone() for k, v in self.values.items()}
+        self.set_params(init)
         self.K = targets.frame_K()
         self.viewmat = targets.frame_viewmat()
         self.scale = targets.person_scale()
