@@ -118,6 +118,36 @@ def test_expression_is_fitted_to_the_face_points(anny_model, clip):
     assert result.params.expression.min() >= 0 and result.params.expression.max() <= 1
 
 
+def test_a_mixed_expression_is_fitted_from_the_neutral_face(anny_model, clip):
+    # Several facial actions at once, from the neutral face: every coefficient starts at its
+    # bound (0), and a range penalty in the face stage used to stall L-BFGS there.
+    from eva_engine.align.evaluate import expression_error
+
+    view = orbit_camera(0.0, 0.0, 1.2, target=(0.0, 0.5, 0.0))
+    truth = clip.map(lambda t: t.clone())
+    names = anny_model.expression_names
+    for name, value in {
+        "jawOpen": 0.3,
+        "mouthSmileLeft": 0.6,
+        "mouthSmileRight": 0.6,
+        "eyeBlinkLeft": 0.8,
+        "browInnerUp": 0.7,
+        "mouthFunnel": 0.4,
+    }.items():
+        truth.expression[:, names.index(name)] = value
+    targets = targets_from_params(anny_model, truth, K, view, image_size=(256, 256))
+    start = truth.map(lambda t: t.clone())
+    start.expression.zero_()
+    face_stage = next(s for s in default_stages() if s.name == "face")
+    result = fit_sequence(anny_model, targets, init=start, config=FitConfig(stages=(face_stage,)))
+    before, after = (
+        expression_error(anny_model, start, truth),
+        expression_error(anny_model, result.params, truth),
+    )
+    assert after < 0.6 * before, (before, after)
+    assert result.params.expression.min() >= 0 and result.params.expression.max() <= 1
+
+
 def test_initial_estimate_from_detections_alone_and_fit_lowers_hand_error(anny_model, clip):
     targets = targets_from_params(anny_model, clip, K, VIEW)
     init = initial_estimate(anny_model, targets, fast_config())

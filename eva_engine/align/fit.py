@@ -229,6 +229,11 @@ def default_stages() -> tuple[FitStage, ...]:
             orient_hands_first=True,
         ),
         # Expression on its own: inside the joint refine stage its small gradients barely move.
+        # No range penalty here: from the neutral face (every coefficient at its bound, 0) the
+        # first step takes half the coefficients below 0, where the penalty's curvature is ~10^4
+        # times the face points' and L-BFGS stalls at the bound (the fitted expression stayed
+        # at 0.03 at most against true values up to 0.97). The refine stage's penalty and the
+        # final clamp bring the coefficients back into range.
         FitStage(
             "face",
             40,
@@ -238,6 +243,7 @@ def default_stages() -> tuple[FitStage, ...]:
             w_face_mesh=2.0,
             smooth=0.05,
             expression_reg=1e-3,
+            range_weight=0.0,
         ),
         FitStage(
             "refine",
