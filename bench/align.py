@@ -43,7 +43,7 @@ from eva_engine.align import (
 )
 from eva_engine.align.clip import fit_clip
 from eva_engine.align.evaluate import expression_error, targets_from_params
-from eva_engine.align.fit import POSE_BODY, FitConfig, fit_sequence
+from eva_engine.align.fit import POSE_BODY, FitConfig, fit_sequence, reprojection_distances
 from eva_engine.body import BodyParams, load_body_model
 from eva_engine.data import load_dataset
 from eva_engine.geometry import project_points, to_camera
@@ -301,11 +301,8 @@ def _body_outliers(model, ds, off: float = 0.2) -> dict:
     joints' 2D error (px) and the share of frames with a confident joint (> 0.5) more than
     ``off`` person heights (2 sigma of the 2D term) from it -- what a median hides."""
     targets = FitTargets(ds.keypoints, ds.K, ds.viewmat)
-    with torch.no_grad():
-        kp, _ = model.posed_keypoints(ds.params)
-        uv = project_points(to_camera(kp, targets.frame_viewmat()), targets.frame_K())
     body = list(POSE_BODY)
-    err = (uv[:, body] - targets.keypoints[:, body, :2]).norm(dim=-1)
+    err = reprojection_distances(model, ds.params, targets)[:, body]
     ok = targets.keypoints[:, body, 2] > 0.5
     far = ((err / targets.person_scale()[:, None] > off) & ok).any(dim=1)
     return {"p90_px": float(err[ok].quantile(0.9)), "frames_off": float(far.float().mean())}

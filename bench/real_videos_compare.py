@@ -21,7 +21,7 @@ import json
 import sys
 from pathlib import Path
 
-from stats import compare_paired, mean_std
+from stats import compare_paired, fmt, mean_std
 
 RESULTS = Path(__file__).resolve().parent / "results"
 REGIONS = ("full", "hand", "face")
@@ -88,13 +88,10 @@ def markdown(doc: dict) -> str:
                 scale, digits = (
                     (1000.0, 1) if metric.startswith("lpips") else (1.0, 4 if metric == "ssim" else 2)
                 )
-
-                def fmt(s: dict, scale: float = scale, digits: int = digits) -> str:
-                    return f"{scale * s['mean']:.{digits}f} ± {scale * s['std']:.{digits}f}"
-
                 gap = c["gap_pct"]
                 lines.append(
-                    f"| {video} | {region} | {metric} | {fmt(c['before'])} | {fmt(c['after'])} | "
+                    f"| {video} | {region} | {metric} | {fmt(c['before'], scale, digits)} | "
+                    f"{fmt(c['after'], scale, digits)} | "
                     f"{gap['mean']:+.1f} ± {gap['std']:.1f} | {c['verdict']} |"
                 )
     return "\n".join(lines) + "\n"

@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 import torch
 
-from eva_engine.align.evaluate import mpjpe, targets_from_params
+from eva_engine.align.evaluate import expression_error, mpjpe, targets_from_params
 from eva_engine.align.fit import (
     FitConfig,
     FitTargets,
@@ -121,8 +121,6 @@ def test_expression_is_fitted_to_the_face_points(anny_model, clip):
 def test_a_mixed_expression_is_fitted_from_the_neutral_face(anny_model, clip):
     # Several facial actions at once, from the neutral face: every coefficient starts at its
     # bound (0), and a range penalty in the face stage used to stall L-BFGS there.
-    from eva_engine.align.evaluate import expression_error
-
     view = orbit_camera(0.0, 0.0, 1.2, target=(0.0, 0.5, 0.0))
     truth = clip.map(lambda t: t.clone())
     names = anny_model.expression_names

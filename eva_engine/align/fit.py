@@ -230,10 +230,10 @@ def default_stages() -> tuple[FitStage, ...]:
         ),
         # Expression on its own: inside the joint refine stage its small gradients barely move.
         # No range penalty here: from the neutral face (every coefficient at its bound, 0) the
-        # first step takes half the coefficients below 0, where the penalty's curvature is ~10^4
-        # times the face points' and L-BFGS stalls at the bound (the fitted expression stayed
-        # at 0.03 at most against true values up to 0.97). The refine stage's penalty and the
-        # final clamp bring the coefficients back into range.
+        # first step takes half the coefficients below 0, where the penalty's curvature dwarfs
+        # the face points' and L-BFGS stalls at the bound (expression error 5.21 mm against the
+        # neutral face's 5.26, bench/results/align_before.md). The refine stage's penalty and
+        # the final clamp bring the coefficients back into range.
         FitStage(
             "face",
             40,
@@ -634,21 +634,27 @@ def fit_sequence(
     return FitResult(params=params, stage_losses=losses, seconds=time.perf_counter() - started)
 
 
-def reprojection_error(model: BodyModel, params: BodyParams, targets: FitTargets) -> dict[str, float]:
-    """Median 2D distance in pixels between model keypoints and confident detections, per group
-    (body = the pose body joints, left/right hand, face); NaN where nothing was detected."""
+def reprojection_distances(model: BodyModel, params: BodyParams, targets: FitTargets) -> Tensor:
+    """[F, K] 2D distance in pixels between each model keypoint and its detection (whatever the
+    detection's confidence)."""
     with torch.no_grad():
         kp, _ = model.posed_keypoints(params)
         uv = project_points(to_camera(kp, targets.frame_viewmat()), targets.frame_K())
-        dist = (uv - targets.keypoints[..., :2]).norm(dim=-1)
-        ok = targets.keypoints[..., 2] > 0.5
-        groups = {
-            "body": torch.tensor(POSE_BODY),
-            "hands": torch.arange(KEYPOINT_GROUPS["left_hand"].start, KEYPOINT_GROUPS["right_hand"].stop),
-            "face": torch.arange(KEYPOINT_GROUPS["face"].start, KEYPOINT_GROUPS["face"].stop),
-        }
-        out = {}
-        for name, idx in groups.items():
-            d = dist[:, idx][ok[:, idx]]
-            out[name] = float(d.median()) if d.numel() else math.nan
-        return out
+        return (uv - targets.keypoints[..., :2]).norm(dim=-1)
+
+
+def reprojection_error(model: BodyModel, params: BodyParams, targets: FitTargets) -> dict[str, float]:
+    """Median 2D distance in pixels between model keypoints and confident detections, per group
+    (body = the pose body joints, left/right hand, face); NaN where nothing was detected."""
+    dist = reprojection_distances(model, params, targets)
+    ok = targets.keypoints[..., 2] > 0.5
+    groups = {
+        "body": torch.tensor(POSE_BODY),
+        "hands": torch.arange(KEYPOINT_GROUPS["left_hand"].start, KEYPOINT_GROUPS["right_hand"].stop),
+        "face": torch.arange(KEYPOINT_GROUPS["face"].start, KEYPOINT_GROUPS["face"].stop),
+    }
+    out = {}
+    for name, idx in groups.items():
+        d = dist[:, idx][ok[:, idx]]
+        out[name] = float(d.median()) if d.numel() else math.nan
+    return out
