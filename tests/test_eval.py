@@ -42,6 +42,10 @@ def test_the_teacher_beats_an_untrained_avatar(anny_model, metrics):
     assert {"hand_left", "hand_right", "face", "hand", "full"} <= set(frame)
     for m in METRICS:  # the frame's hand score is the mean of its two hands
         assert frame["hand"][m] == pytest.approx((frame["hand_left"][m] + frame["hand_right"][m]) / 2)
+    # The teacher is drawn where its own masks are: its silhouette matches in every region.
+    for region in ("full", "hand", "face"):
+        assert good.regions[region].silhouette_iou > 0.9, region
+    assert good.regions["full"].silhouette_iou > bad.regions["full"].silhouette_iou
     assert good.num_gaussians == len(teacher.gaussians) and good.render_fps > 0
     assert set(good.to_dict()["per_frame"]) == {"2"}
     with pytest.raises(ValueError, match="no frames"):
@@ -58,6 +62,19 @@ def test_region_metrics_crop_to_the_region(metrics):
     m = metrics(pred, target, mask)
     assert m["psnr"] == float("inf") and m["lpips_vgg"] == 0.0 and m["lpips_alex"] == 0.0
     assert metrics(pred, target)["psnr"] < 20
+
+
+def test_silhouette_iou_measures_placement_in_the_crop(metrics):
+    target = torch.ones(64, 64, 3)
+    person = torch.zeros(64, 64)
+    person[10:30, 10:30] = 1.0  # 20 x 20
+    alpha = torch.zeros(64, 64)
+    alpha[10:30, 20:40] = 1.0  # the same square 10 px to the right: 200 of 600 pixels shared
+    assert metrics(target, target, None, alpha, person)["silhouette_iou"] == pytest.approx(200 / 600)
+    region = torch.zeros(64, 64)
+    region[54:60, 54:60] = 1.0  # grown to a 32 px crop in the corner: neither silhouette there
+    assert metrics(target, target, region, alpha, person)["silhouette_iou"] == 1.0
+    assert "silhouette_iou" not in metrics(target, target, region)
 
 
 def test_each_hand_is_scored_on_its_own_crop(anny_model, metrics):
@@ -137,3 +154,20 @@ def test_test_time_refinement_is_a_separate_protocol(anny_model, metrics):
         metrics_table({"fitted": fitted, "refined": refined})
     with pytest.raises(ValueError):
         PoseRefinement(steps=0)
+
+
+def test_placement_splits_region_scores_by_silhouette_overlap():
+    """Crops drawn where the person is score better: placement reports it per region."""
+    per_frame = {}
+    for i in range(6):
+        iou = 0.5 + 0.08 * i
+        row = {"lpips_vgg": 0.4 - 0.05 * i, "silhouette_iou": iou}
+        per_frame[i] = {"hand_left": row, "hand_right": dict(row), "face": {"lpips_vgg": 0.1, "psnr": 20.0}}
+    r = EvalResult(split="test_pose", num_frames=6, regions={}, num_gaussians=1, render_fps=1.0)
+    r.per_frame = per_frame
+    p = r.placement("hand")
+    assert p["crops"] == 12 and p["rank_correlation"] == pytest.approx(-1.0, abs=0.05)
+    assert p["lpips_vgg_iou_above"] < p["lpips_vgg_iou_below"]
+    assert p["iou_mean"] == pytest.approx(0.7)
+    assert r.placement("face") is None  # no IoU measured
+    assert r.placement("full") is None

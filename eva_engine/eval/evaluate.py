@@ -22,6 +22,9 @@ Protocol (documented choices, ``docs/evaluation.md``):
   the network the EVA authors evaluate with, and one our training loss never sees) and with
   AlexNet (``lpips_alex``, the network our LPIPS loss trains on). Stored as is; tables print
   LPIPS x1000 like the paper.
+- placement: ``silhouette_iou``, the intersection over union of the render's alpha and the
+  person mask (both > 0.5) in the same crop. Not a quality metric: it tells whether a poor
+  region score comes from where the avatar is drawn (the test pose) or from how it looks.
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from eva_engine.metrics import LPIPS, crop_box, mask_bbox, psnr, ssim
 
 REGIONS = ("full", "hand", "face")
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
+PLACEMENT = "silhouette_iou"
 REGION_OF_MASK = {"hand_left": "hand", "hand_right": "hand", "face": "face"}
 PAD = 4
 MIN_CROP = 32
@@ -73,7 +77,9 @@ class ImageMetrics:
     """PSNR, SSIM and both LPIPS networks on one image pair; holds the LPIPS modules (build once).
 
     ``metrics(pred, target)`` with [H, W, 3] images in [0, 1] -> {metric: float}; with
-    ``mask [H, W]`` the pair is first cropped to the mask's box (module docstring).
+    ``mask [H, W]`` the pair is first cropped to the mask's box (module docstring); with the
+    render's ``pred_alpha [H, W]`` and the target's ``person_mask [H, W]`` it adds
+    ``silhouette_iou`` on the same crop.
     """
 
     def __init__(self, pad: int = PAD, min_crop: int = MIN_CROP, lpips_alex: LPIPS | None = None) -> None:
@@ -86,24 +92,42 @@ class ImageMetrics:
         return crop_box(mask[None, None] > 0.5, pad=self.pad, min_size=self.min_crop)
 
     @torch.no_grad()
-    def __call__(self, pred: Tensor, target: Tensor, mask: Tensor | None = None) -> dict[str, float]:
+    def __call__(
+        self,
+        pred: Tensor,
+        target: Tensor,
+        mask: Tensor | None = None,
+        pred_alpha: Tensor | None = None,
+        person_mask: Tensor | None = None,
+    ) -> dict[str, float]:
         a, b = pred.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]
-        if mask is not None:
-            x0, y0, x1, y1 = self.box(mask)
-            a, b = a[..., y0:y1, x0:x1], b[..., y0:y1, x0:x1]
-        return {
+        box = self.box(mask) if mask is not None else (0, 0, pred.shape[1], pred.shape[0])
+        x0, y0, x1, y1 = box
+        a, b = a[..., y0:y1, x0:x1], b[..., y0:y1, x0:x1]
+        out = {
             "psnr": float(psnr(a, b)[0]),
             "ssim": float(ssim(a, b)[0]),
             "lpips_vgg": float(self.lpips_vgg(a, b)[0]),
             "lpips_alex": float(self.lpips_alex(a, b)[0]),
         }
+        if pred_alpha is not None and person_mask is not None:
+            out[PLACEMENT] = silhouette_iou(pred_alpha[y0:y1, x0:x1], person_mask[y0:y1, x0:x1])
+        return out
+
+
+def silhouette_iou(alpha: Tensor, mask: Tensor) -> float:
+    """Intersection over union of two coverages [H, W] thresholded at 0.5 (1 when both are empty)."""
+    p, q = alpha > 0.5, mask > 0.5
+    union = int((p | q).sum())
+    return float((p & q).sum()) / union if union else 1.0
 
 
 @dataclass
 class RegionMetrics:
     """Means over the frames that show the region. frames: frames scored; crops: crops scored
     (a frame with both hands gives two hand crops); box_px: median longer side of the region's
-    box (before growing to ``MIN_CROP``)."""
+    box (before growing to ``MIN_CROP``); silhouette_iou: the placement diagnostic (module
+    docstring), absent where it was not measured."""
 
     psnr: float
     ssim: float
@@ -112,6 +136,7 @@ class RegionMetrics:
     frames: int
     crops: int = 0
     box_px: float = 0.0
+    silhouette_iou: float | None = None
 
 
 @dataclass
@@ -132,6 +157,30 @@ class EvalResult:
     refined_params: BodyParams | None = field(default=None, repr=False)
     """With ``PoseRefinement``: every frame's params, the scored frames' rows refined."""
 
+    def placement(self, region: str) -> dict[str, float] | None:
+        """How far ``region``'s ("full", "hand" or "face") LPIPS-VGG goes with placement, over its
+        crops: the mean and median ``silhouette_iou``, the mean LPIPS-VGG of the crops at or above
+        the median IoU and of those below, and the rank correlation of IoU and LPIPS-VGG (None
+        with fewer than 4 crops or without the IoU)."""
+        names = [n for n, r in REGION_OF_MASK.items() if r == region] if region != "full" else ["full"]
+        rows = [f[n] for f in self.per_frame.values() for n in names if n in f and PLACEMENT in f[n]]
+        if len(rows) < 4:
+            return None
+        iou = torch.tensor([r[PLACEMENT] for r in rows], dtype=torch.float64)
+        lp = torch.tensor([r["lpips_vgg"] for r in rows], dtype=torch.float64)
+        median = float(iou.median())
+        above = iou >= median
+        ranks = [x.argsort().argsort().double() for x in (iou, lp)]
+        rho = torch.corrcoef(torch.stack(ranks))[0, 1]
+        return {
+            "crops": len(rows),
+            "iou_mean": float(iou.mean()),
+            "iou_median": median,
+            "lpips_vgg_iou_above": float(lp[above].mean()),
+            "lpips_vgg_iou_below": float(lp[~above].mean()) if bool((~above).any()) else float("nan"),
+            "rank_correlation": float(rho) if torch.isfinite(rho) else 0.0,
+        }
+
     def to_dict(self) -> dict:
         d = dataclasses.asdict(dataclasses.replace(self, refined_params=None))
         d.pop("refined_params")
@@ -140,7 +189,8 @@ class EvalResult:
 
 
 def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
-    return {k: sum(r[k] for r in rows) / len(rows) for k in METRICS}
+    """The mean of each key every row has."""
+    return {k: sum(r[k] for r in rows) / len(rows) for k in rows[0] if all(k in r for r in rows)}
 
 
 def _box_side(mask: Tensor) -> int:
@@ -189,16 +239,18 @@ def evaluate_avatar(
         h, w = frame.image.shape[:2]
         cam = Camera(frame.K.float(), frame.viewmat.float(), w, h)
         t0 = time.perf_counter()
-        pred = avatar(params[i], cam, background.to(device)).image.clamp(0.0, 1.0).cpu()
+        render = avatar(params[i], cam, background.to(device))
+        pred = render.image.clamp(0.0, 1.0).cpu()
         render_time += time.perf_counter() - t0
+        alpha = render.alpha.reshape(h, w).cpu()
         target = composite_target(frame.image, frame.mask, background)
-        rows: dict[str, dict[str, float]] = {"full": metrics(pred, target)}
+        rows: dict[str, dict[str, float]] = {"full": metrics(pred, target, None, alpha, frame.mask)}
         crops: dict[str, list[dict[str, float]]] = {"hand": [], "face": []}
         for name in REGION_MASKS:
             mask = frame.regions.get(name)
             if mask is None or not bool((mask > 0.5).any()):
                 continue
-            rows[name] = metrics(pred, target, mask)
+            rows[name] = metrics(pred, target, mask, alpha, frame.mask)
             crops[REGION_OF_MASK[name]].append(rows[name])
             boxes[REGION_OF_MASK[name]].append(_box_side(mask))
         rows.update({region: _mean(found) for region, found in crops.items() if found})
