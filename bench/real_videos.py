@@ -24,6 +24,10 @@ test frame's pose for N steps against its image with the avatar frozen before sc
 in ``--work`` instead of training them again:
 
     .venv/bin/python bench/real_videos.py --preset fast --reuse --refine-poses 20 --name real_videos_refined
+
+A setting against the default: ``--set FIELD=VALUE ...`` (dotted train-config fields, as in
+``bench/paper_tables.py``) trains every method with it; its avatars are kept apart
+(``avatar-<method>-<name>``), and ``bench/real_videos_compare.py`` pairs the runs by seed.
 """
 
 from __future__ import annotations
@@ -98,15 +102,24 @@ def same_settings(saved: dict, wanted: dict) -> bool:
 
 
 def train_and_eval(
-    ds, method: str, preset_name: str, seed: int, metrics, out: Path, refinement, reuse: bool
+    ds,
+    method: str,
+    preset_name: str,
+    seed: int,
+    metrics,
+    out: Path,
+    refinement,
+    reuse: bool,
+    overrides: list[str] = (),
 ) -> tuple:
     """Train ``method`` (or, with ``reuse``, load the avatar an earlier run saved in ``out`` with
-    the same settings) and evaluate it: (table entry, avatar, ``EvalResult``)."""
+    the same settings) and evaluate it: (table entry, avatar, ``EvalResult``). ``overrides``:
+    dotted train-config fields (``train.with_overrides``)."""
     from eva_engine.avatar import load_saved_avatar, save_avatar
     from eva_engine.eval import evaluate_avatar
-    from eva_engine.train import preset, train_avatar, with_method
+    from eva_engine.train import preset, train_avatar, with_method, with_overrides
 
-    config = with_method(preset(preset_name, seed=seed), method)
+    config = with_overrides(with_method(preset(preset_name, seed=seed), method), list(overrides))
     entry: dict = {"iterations": config.iterations}
     if reuse and (out / "avatar.json").is_file():
         saved = load_saved_avatar(out)
@@ -127,7 +140,8 @@ def train_and_eval(
     ev = evaluate_avatar(avatar, ds, metrics=metrics, train_seconds=train_seconds, refinement=refinement)
     entry.update(n_gaussians=len(avatar.gaussians), train_seconds=train_seconds, notes=ev.notes)
     for region, m in ev.regions.items():
-        entry[region] = {k: getattr(m, k) for k in (*METRICS, "frames", "crops", "box_px")}
+        entry[region] = {k: getattr(m, k) for k in (*METRICS, "frames", "crops", "box_px", "silhouette_iou")}
+    entry["placement"] = {r: p for r in ("hand", "face") if (p := ev.placement(r)) is not None}
     return entry, avatar, ev
 
 
@@ -196,6 +210,7 @@ def markdown(doc: dict) -> str:
         f"preset `{cfg['preset']}` ({cfg['iterations']} iterations), seed {cfg['seed']}, "
         f"{cfg['threads']} threads",
         f"- poses of the test frames: {cfg.get('protocol', 'fitted poses')}",
+        *([f"- train-config overrides: `{' '.join(cfg['set'])}`"] if cfg.get("set") else []),
         "",
         "LPIPS ×1000. LPIPS-VGG is held out (no method trains on it); the EVA rows train on LPIPS-Alex, "
         "3dgs+body on L1 + D-SSIM. Targets: the person composited on white; region boxes from the "
@@ -236,6 +251,7 @@ def markdown(doc: dict) -> str:
             "- region sizes (median box side): " + ", ".join(f"{r} {b:.0f} px" for r, b in boxes.items()),
             f"- preprocessing {pre['seconds_total']:.0f} s",
             *[f"- note ({m}): {n}" for m, e in v["methods"].items() for n in e.get("notes", [])],
+            *placement_lines(v["methods"]),
             "",
             f"![{video}]({v['contact_sheet']})",
             "",
@@ -247,6 +263,21 @@ def markdown(doc: dict) -> str:
             "",
         ]
     return "\n".join(lines) + "\n"
+
+
+def placement_lines(methods: dict) -> list[str]:
+    """Per method and region: silhouette IoU of render and person mask in the crops, and the
+    LPIPS-VGG of the crops placed at least as well as the median against the rest."""
+    out = []
+    for m, e in methods.items():
+        for r, p in e.get("placement", {}).items():
+            out.append(
+                f"- placement ({m}, {r}): silhouette IoU {p['iou_mean']:.2f} mean over {p['crops']} crops; "
+                f"LPIPS-VGG ×1000 {1000 * p['lpips_vgg_iou_above']:.0f} at IoU ≥ {p['iou_median']:.2f} "
+                f"(median), {1000 * p['lpips_vgg_iou_below']:.0f} below; rank correlation "
+                f"{p['rank_correlation']:+.2f}"
+            )
+    return out
 
 
 def main() -> None:
@@ -268,6 +299,14 @@ def main() -> None:
         "--refine-poses", type=int, default=0, help="second protocol: test poses refined N steps (0: off)"
     )
     ap.add_argument("--reuse", action="store_true", help="score the avatars saved in --work (same settings)")
+    ap.add_argument(
+        "--set",
+        nargs="+",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="train-config fields for every method, e.g. pose_correction.enabled=true "
+        "(train.with_overrides); the avatars are saved under avatar-<method>-<name>",
+    )
     args = ap.parse_args()
     videos = list_videos(args.videos)
     if not videos:
@@ -302,6 +341,7 @@ def main() -> None:
             "iterations": preset(args.preset).iterations,
             "methods": args.methods,
             "protocol": refinement.protocol if refinement else FITTED_POSES,
+            "set": args.set,
         },
         "videos": {},
     }
@@ -319,7 +359,7 @@ def main() -> None:
         avatars, poses = {}, {}
         for method in args.methods:
             print(f"{video.name}: {method} ...", file=sys.stderr, flush=True)
-            tag = method.replace("+", "_")
+            tag = method.replace("+", "_") + (f"-{args.name}" if args.set else "")
             entry["methods"][method], avatars[method], ev = train_and_eval(
                 ds,
                 method,
@@ -329,6 +369,7 @@ def main() -> None:
                 folder / f"avatar-{tag}",
                 refinement,
                 args.reuse,
+                args.set,
             )
             poses[method] = ev.refined_params if ev.refined_params is not None else ds.params
         test = ds.splits["test_pose"]

@@ -115,3 +115,51 @@ def test_presets_do_not_correct_poses():
     """Test frames are scored with uncorrected poses; an avatar trained on corrected ones does
     worse on them (bench/results/time_to_quality_pose_correction.md), so it is opt-in."""
     assert not any(preset(name).pose_correction.enabled for name in ("tiny", "fast", "default"))
+
+
+def test_zero_mean_correction_applies_each_frames_deviation_from_the_mean(anny_model):
+    params = anny_model.default_params(3)
+    config = PoseCorrectionConfig(enabled=True, zero_mean=True)
+    corr = PoseCorrection(3, anny_model.joint_part_ids[1:], params.expression.shape[1], config)
+    with torch.no_grad():
+        for t, value in enumerate((0.1, 0.2, 0.6)):
+            corr.transl[t].fill_(value)
+            corr.joints[t].fill_(value)
+    applied = torch.stack([corr.delta(t)["transl"] for t in range(3)])
+    assert torch.allclose(applied.mean(0), torch.zeros(3), atol=1e-7)
+    assert torch.allclose(applied[:, 0], torch.tensor([-0.2, -0.1, 0.3]), atol=1e-6)
+    joints = torch.stack([corr.delta(t)["joints"] for t in range(3)])
+    assert torch.allclose(joints.mean(0), torch.zeros_like(joints[0]), atol=1e-7)
+    moved = corr.apply(params[0], 0)
+    assert torch.allclose(moved.transl, params.transl[0:1] - 0.2, atol=1e-6)
+    # The prior holds the parameters themselves: a shared offset costs, though it is not applied.
+    with torch.no_grad():
+        for t in range(3):
+            corr.transl[t].fill_(0.3)
+            corr.joints[t].zero_()
+    assert torch.allclose(corr.delta(1)["transl"], torch.zeros(3))
+    assert float(corr.prior(1).detach()) > 0
+    # A frame's gradient reaches its own parameters only.
+    corr.zero_grad()
+    corr.apply(params[1], 1).transl.sum().backward()
+    assert corr.transl[1].grad is not None and corr.transl[0].grad is None
+
+
+def test_zero_mean_correction_keeps_a_bias_every_frame_shares(anny_model):
+    """Two frames fitted 2 cm off alike: a plain correction moves both back, a zero-mean one
+    keeps the shared offset (it is what the fit of a test frame has too)."""
+    size = 96
+    ds, teacher = teacher_scene(anny_model, n_frames=2, size=size)
+    truth = ds.params[[0, 1]]
+    start = truth.map(lambda t: t.clone())
+    start.transl[:, 0] += 0.02
+    images = torch.stack([ds[i].image for i in (0, 1)])
+    masks = torch.stack([ds[i].mask for i in (0, 1)])
+    cams = [front_camera(size)] * 2
+    shift = {}
+    for zero_mean in (False, True):
+        cfg = PoseCorrectionConfig(enabled=True, start_iter=0, zero_mean=zero_mean)
+        fixed, _ = refine_poses(teacher, images, masks, cams, start, torch.ones(3), cfg, steps=60)
+        shift[zero_mean] = float((fixed.transl[:, 0] - truth.transl[:, 0]).mean())
+    assert abs(shift[False]) < 0.01, shift
+    assert abs(shift[True] - 0.02) < 1e-4, shift

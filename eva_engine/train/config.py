@@ -120,7 +120,7 @@ def preset(name: str, **overrides) -> TrainConfig:
     Per-frame pose correction is off in every preset (its schedule is set, ``enabled=False``):
     test frames are rendered with uncorrected poses, and an avatar trained on corrected ones
     scores worse on them (``bench/results/time_to_quality_pose_correction.md`` against
-    ``time_to_quality.md``).
+    ``time_to_quality.md``; on real video with ``zero_mean`` too: ``real_videos_zm.md``).
     """
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {list(PRESETS)}")

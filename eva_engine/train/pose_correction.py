@@ -8,7 +8,14 @@ edges, smeared fingers). Each training frame t gets its own residuals, starting 
     transl_t' = transl_t + δtransl_t,   expression_t' = expression_t + δexpr_t
 
 optimised with the avatar, and held to the fit by a quadratic prior per group (``weights``):
-the image moves a frame's pose only as far as the photometric gain outweighs the prior. The
+the image moves a frame's pose only as far as the photometric gain outweighs the prior.
+
+With ``zero_mean`` each frame gets its residuals minus their mean over the frames: what every
+frame's fit shares (a bias of the fit, which the test frames and a user's poses share too) stays
+in the poses the avatar learns from, and only each frame's own deviation is corrected. Without
+it the residuals can move every frame alike, and the avatar learns a body placed where no
+uncorrected pose puts it. The prior acts on the parameters before the mean is taken, so the
+shared part cannot drift without bound. The
 corrections start after ``start_iter`` (the avatar must first look like the person, or the
 residuals would explain its initial errors), and each frame's residuals are separate
 parameters, so a step moves only the frame it rendered (Adam skips parameters without
@@ -38,7 +45,8 @@ class PoseCorrectionConfig:
     """enabled: learn per-frame residuals; lr: their Adam rate (radians / metres / expression
     units per step); start_iter: first training step that moves them; weights: the prior's
     weight per group (rotation groups on squared radians, translation on squared metres,
-    expression on squared coefficients), a group absent from ``groups`` is not corrected."""
+    expression on squared coefficients), a group absent from ``groups`` is not corrected;
+    zero_mean: apply each frame's residuals minus their mean over the frames (module docstring)."""
 
     enabled: bool = False
     lr: float = 2e-3
@@ -52,6 +60,7 @@ class PoseCorrectionConfig:
         ("face", 0.1),
         ("expression", 0.03),
     )
+    zero_mean: bool = False
 
     def __post_init__(self) -> None:
         unknown = set(self.groups) - set(GROUPS)
@@ -95,8 +104,8 @@ class PoseCorrection(nn.Module):
     def num_frames(self) -> int:
         return len(self.root)
 
-    def delta(self, t: int) -> dict[str, Tensor]:
-        """Frame t's residuals, with the groups that are not corrected at zero."""
+    def raw(self, t: int) -> dict[str, Tensor]:
+        """Frame t's parameters, with the groups that are not corrected at zero."""
         g = self.config.groups
         zero3 = self.root[t].new_zeros(3)
         return {
@@ -105,6 +114,27 @@ class PoseCorrection(nn.Module):
             "joints": self.joints[t] * self.joint_mask,
             "expression": self.expression[t] if "expression" in g else torch.zeros_like(self.expression[t]),
         }
+
+    @torch.no_grad()
+    def mean(self) -> dict[str, Tensor]:
+        """The residuals' mean over the frames, per group (zero without ``zero_mean``)."""
+        if not self.config.zero_mean:
+            return {}
+        stacks = {
+            "root": self.root,
+            "transl": self.transl,
+            "joints": self.joints,
+            "expression": self.expression,
+        }
+        return {k: torch.stack(list(v)).mean(0) for k, v in stacks.items()}
+
+    def delta(self, t: int) -> dict[str, Tensor]:
+        """Frame t's applied residuals: ``raw(t)``, minus the mean over the frames with
+        ``zero_mean`` (the mean is a constant to the step: its gradient would reach every frame)."""
+        d = self.raw(t)
+        for k, m in self.mean().items():
+            d[k] = d[k] - (m * self.joint_mask if k == "joints" else m)
+        return d
 
     def apply(self, params: BodyParams, t: int) -> BodyParams:
         """Frame t's fit (batch 1) with its residuals applied."""
@@ -122,7 +152,7 @@ class PoseCorrection(nn.Module):
 
     def prior(self, t: int) -> Tensor:
         """Σ_group weight_group · squared norm of the group's residuals (frame t)."""
-        c, d = self.config, self.delta(t)
+        c, d = self.config, self.raw(t)
         total = c.weight("root") * d["root"].square().sum() + c.weight("transl") * d["transl"].square().sum()
         total = total + (self.joint_weight * d["joints"].square().sum(-1)).sum()
         return total + c.weight("expression") * d["expression"].square().sum()
@@ -135,13 +165,15 @@ class PoseCorrection(nn.Module):
 
     @torch.no_grad()
     def magnitudes(self) -> dict[str, float]:
-        """Mean residual size per group over the frames (radians, metres, coefficients)."""
+        """Mean size of the applied residuals per group over the frames (radians, metres,
+        coefficients)."""
+        d = [self.delta(t) for t in range(self.num_frames)]
         out = {
-            "root": torch.stack(list(self.root)).norm(dim=-1).mean(),
-            "transl": torch.stack(list(self.transl)).norm(dim=-1).mean(),
-            "expression": torch.stack(list(self.expression)).abs().mean(),
+            "root": torch.stack([x["root"] for x in d]).norm(dim=-1).mean(),
+            "transl": torch.stack([x["transl"] for x in d]).norm(dim=-1).mean(),
+            "expression": torch.stack([x["expression"] for x in d]).abs().mean(),
         }
-        joints = torch.stack(list(self.joints)).norm(dim=-1)  # [T, P]
+        joints = torch.stack([x["joints"] for x in d]).norm(dim=-1)  # [T, P]
         for i, part in enumerate(PART_NAMES):
             sel = self.joint_part_ids == i
             if bool(sel.any()):
