@@ -38,6 +38,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -110,7 +111,7 @@ def train_and_eval(
     out: Path,
     refinement,
     reuse: bool,
-    overrides: list[str] = (),
+    overrides: Sequence[str] = (),
 ) -> tuple:
     """Train ``method`` (or, with ``reuse``, load the avatar an earlier run saved in ``out`` with
     the same settings) and evaluate it: (table entry, avatar, ``EvalResult``). ``overrides``:

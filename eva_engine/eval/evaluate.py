@@ -101,8 +101,7 @@ class ImageMetrics:
         person_mask: Tensor | None = None,
     ) -> dict[str, float]:
         a, b = pred.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]
-        box = self.box(mask) if mask is not None else (0, 0, pred.shape[1], pred.shape[0])
-        x0, y0, x1, y1 = box
+        x0, y0, x1, y1 = self.box(mask) if mask is not None else (0, 0, pred.shape[1], pred.shape[0])
         a, b = a[..., y0:y1, x0:x1], b[..., y0:y1, x0:x1]
         out = {
             "psnr": float(psnr(a, b)[0]),

@@ -8,18 +8,19 @@ edges, smeared fingers). Each training frame t gets its own residuals, starting 
     transl_t' = transl_t + δtransl_t,   expression_t' = expression_t + δexpr_t
 
 optimised with the avatar, and held to the fit by a quadratic prior per group (``weights``):
-the image moves a frame's pose only as far as the photometric gain outweighs the prior.
+the image moves a frame's pose only as far as the photometric gain outweighs the prior. The
+corrections start after ``start_iter`` (the avatar must first look like the person, or the
+residuals would explain its initial errors), and each frame's residuals are separate
+parameters, so a step moves only the frame it rendered (Adam skips parameters without
+gradients).
 
 With ``zero_mean`` each frame gets its residuals minus their mean over the frames: what every
 frame's fit shares (a bias of the fit, which the test frames and a user's poses share too) stays
 in the poses the avatar learns from, and only each frame's own deviation is corrected. Without
 it the residuals can move every frame alike, and the avatar learns a body placed where no
 uncorrected pose puts it. The prior acts on the parameters before the mean is taken, so the
-shared part cannot drift without bound. The
-corrections start after ``start_iter`` (the avatar must first look like the person, or the
-residuals would explain its initial errors), and each frame's residuals are separate
-parameters, so a step moves only the frame it rendered (Adam skips parameters without
-gradients).
+shared part cannot drift without bound. Measured on real video it scores worse than no
+correction on hands and faces (``bench/results/real_videos_zm.md``); it is opt-in.
 
 Test frames are not corrected during training: they are rendered with their fitted poses (the
 main protocol). ``refine_poses`` runs the same correction with the avatar frozen, which is what
@@ -117,7 +118,8 @@ class PoseCorrection(nn.Module):
 
     @torch.no_grad()
     def mean(self) -> dict[str, Tensor]:
-        """The residuals' mean over the frames, per group (zero without ``zero_mean``)."""
+        """The residuals' mean over the frames, per group (empty without ``zero_mean``: nothing is
+        subtracted)."""
         if not self.config.zero_mean:
             return {}
         stacks = {
@@ -128,17 +130,18 @@ class PoseCorrection(nn.Module):
         }
         return {k: torch.stack(list(v)).mean(0) for k, v in stacks.items()}
 
-    def delta(self, t: int) -> dict[str, Tensor]:
+    def delta(self, t: int, mean: dict[str, Tensor] | None = None) -> dict[str, Tensor]:
         """Frame t's applied residuals: ``raw(t)``, minus the mean over the frames with
-        ``zero_mean`` (the mean is a constant to the step: its gradient would reach every frame)."""
+        ``zero_mean`` (the mean is a constant to the step: its gradient would reach every frame).
+        ``mean``: ``self.mean()``, when the caller already has it (one per pass over the frames)."""
         d = self.raw(t)
-        for k, m in self.mean().items():
+        for k, m in (self.mean() if mean is None else mean).items():
             d[k] = d[k] - (m * self.joint_mask if k == "joints" else m)
         return d
 
-    def apply(self, params: BodyParams, t: int) -> BodyParams:
-        """Frame t's fit (batch 1) with its residuals applied."""
-        d = self.delta(t)
+    def apply(self, params: BodyParams, t: int, mean: dict[str, Tensor] | None = None) -> BodyParams:
+        """Frame t's fit (batch 1) with its residuals applied (``mean``: as in ``delta``)."""
+        d = self.delta(t, mean)
         dtype = params.joints.dtype
         root = roma.rotvec_composition([params.root_orient, d["root"][None].to(dtype)])
         joints = roma.rotvec_composition([params.joints, d["joints"][None].to(dtype)])
@@ -160,14 +163,16 @@ class PoseCorrection(nn.Module):
     @torch.no_grad()
     def corrected(self, params: BodyParams) -> BodyParams:
         """All T frames' corrected parameters (``params`` with T rows)."""
-        rows = [self.apply(params[t], t) for t in range(self.num_frames)]
+        mean = self.mean()
+        rows = [self.apply(params[t], t, mean) for t in range(self.num_frames)]
         return BodyParams.cat(rows)
 
     @torch.no_grad()
     def magnitudes(self) -> dict[str, float]:
         """Mean size of the applied residuals per group over the frames (radians, metres,
         coefficients)."""
-        d = [self.delta(t) for t in range(self.num_frames)]
+        mean = self.mean()
+        d = [self.delta(t, mean) for t in range(self.num_frames)]
         out = {
             "root": torch.stack([x["root"] for x in d]).norm(dim=-1).mean(),
             "transl": torch.stack([x["transl"] for x in d]).norm(dim=-1).mean(),
