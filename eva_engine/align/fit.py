@@ -22,14 +22,17 @@ Objective over all frames at once (batched body model, shape shared by the clip)
   model has a face-mesh correspondence (``face_mesh``), through all of MediaPipe's face-mesh
   landmarks, with a small sparsity prior and the model's valid range (``clip.fit_clip`` then
   smooths it over time).
+- Outline (``align.silhouette``): a two-sided chamfer between the person mask's outline and the
+  projected body, in the last, short stage (``outline``), where the targets carry masks.
 
 Optimiser: ``torch.optim.LBFGS`` with strong-Wolfe line search, in stages as in the paper's
 appendix: body init (the head's pose from the face points no facial action moves), first with
 an 8x wider 2D scale so that joints far outside the robust scale are pulled in; hands with
 the hand prior; the expression on its own (inside a joint stage its small gradients barely
-move); fine-tune with hands and face emphasised. The initial estimate turns each detected
-hand's palm to the detected 3D palm (``orient_hands``), so the fit starts on the right side of
-the palm-in / palm-out ambiguity, and the hands stage does it again for the fitted forearms.
+move); fine-tune with hands and face emphasised; the same with the outline added. The
+initial estimate turns each detected hand's palm to the detected 3D palm (``orient_hands``), so
+the fit starts on the right side of the palm-in / palm-out ambiguity, and the hands stage does
+it again for the fitted forearms.
 Missing detections have confidence 0 and drop out; a frame with nothing detected keeps its
 initial estimate, moved only by the smoothness term (``clip.fit_clip`` then fills hands from
 neighbouring frames).
@@ -48,6 +51,12 @@ from torch import Tensor
 
 from eva_engine.align.hands import HandTrackConfig, articulation_prior
 from eva_engine.align.robust import weighted_gm, z_only_gm
+from eva_engine.align.silhouette import (
+    SilhouetteTargets,
+    sample_spacing,
+    silhouette_loss,
+    silhouette_vertices,
+)
 from eva_engine.body import KEYPOINT_GROUPS, PART_NAMES, BodyModel, BodyParams
 from eva_engine.body.kinematics import axis_angle_to_matrix
 from eva_engine.geometry import MIN_DEPTH, project_points, to_camera
@@ -74,6 +83,8 @@ class FitTargets:
     hand_depth: [F, 42] MediaPipe hand-landmark depth relative to the wrist, in pixels, or None.
     pose_world: [F, 33, 4] MediaPipe metric pose world landmarks + visibility, or None.
     face_mesh:  [F, 478, 3] MediaPipe face-mesh landmarks (x px, y px, confidence), or None.
+    person_masks: [F, H, W] person masks in [0, 1] (the silhouette term, ``align.silhouette``),
+                or None; a frame without a mask is all ones (it then contributes nothing).
     """
 
     keypoints: Tensor
@@ -82,6 +93,7 @@ class FitTargets:
     hand_depth: Tensor | None = None
     pose_world: Tensor | None = None
     face_mesh: Tensor | None = None
+    person_masks: Tensor | None = None
 
     def __post_init__(self) -> None:
         kp = torch.as_tensor(self.keypoints, dtype=torch.float32)
@@ -117,6 +129,11 @@ class FitTargets:
                 raise ValueError(f"face_mesh must be [{f}, L, 3], got {tuple(fm.shape)}")
             ok = torch.isfinite(fm).all(-1) & (fm[..., 2] > 0)
             self.face_mesh = torch.where(ok[..., None], fm, torch.zeros_like(fm))
+        if self.person_masks is not None:
+            pm = torch.as_tensor(self.person_masks, dtype=torch.float32)
+            if pm.ndim != 3 or pm.shape[0] != f:
+                raise ValueError(f"person_masks must be [{f}, H, W], got {tuple(pm.shape)}")
+            self.person_masks = torch.nan_to_num(pm, nan=1.0).clamp(0.0, 1.0)
 
     @property
     def num_frames(self) -> int:
@@ -163,6 +180,8 @@ class FitStage:
     """Use only the face points that no facial action moves (eye corners, nose): the head's pose
     is fitted before the expression, so the mouth's points must not turn the head."""
     w_face_mesh: float = 0.0
+    w_silhouette: float = 0.0
+    """Weight of the silhouette terms (``align.silhouette``), where the targets have person masks."""
     body_3d: float = 0.0
     hand_z: float = 0.0
     init_pull: float = 0.0
@@ -199,6 +218,10 @@ def default_stages() -> tuple[FitStage, ...]:
     of the clip, so the joint problem converges slower than one frame would (``docs/alignment.md``
     has the measurements).
 
+    The last stage (``outline``) is the fine-tune again, 30 iterations, with the person mask's
+    outline (``align.silhouette``; its 2,500 body points cost more per step than every other
+    term): keypoints fix the joints, not the shoulders' or the cranium's outline around them.
+
     The body stage runs first with an 8x wider Geman-McClure scale (``body_coarse``): where
     MediaPipe's 3D world landmarks put an arm elsewhere than its 2D points do, the initial
     estimate's arm lies several sigmas from the detections, where the robust term's gradient has
@@ -214,6 +237,19 @@ def default_stages() -> tuple[FitStage, ...]:
         rigid_face_only=True,
         body_3d=1.0,
         init_pull=0.05,
+    )
+    refine = FitStage(
+        "refine",
+        120,
+        PARAM_GROUPS,
+        w_hand=2.0,
+        w_face=2.0,
+        w_face_mesh=2.0,
+        body_3d=0.3,
+        hand_z=0.5,
+        hand_prior=1.0,
+        init_pull=0.01,
+        expression_reg=1e-3,
     )
     return (
         dataclasses.replace(body, name="body_coarse", iterations=60, sigma_scale=8.0),
@@ -245,19 +281,9 @@ def default_stages() -> tuple[FitStage, ...]:
             expression_reg=1e-3,
             range_weight=0.0,
         ),
-        FitStage(
-            "refine",
-            120,
-            PARAM_GROUPS,
-            w_hand=2.0,
-            w_face=2.0,
-            w_face_mesh=2.0,
-            body_3d=0.3,
-            hand_z=0.5,
-            hand_prior=1.0,
-            init_pull=0.01,
-            expression_reg=1e-3,
-        ),
+        refine,
+        # The outline last and short: its body points cost more per step than all the rest.
+        dataclasses.replace(refine, name="outline", iterations=30, w_silhouette=3.0),
     )
 
 
@@ -287,6 +313,8 @@ class FitConfig:
     """Start each detected hand's wrist rotation at the rotation that best aligns the model's palm
     with the detected 3D palm (Kabsch), instead of the rest pose: the fit then starts on the right
     side of the palm-facing / back-facing ambiguity."""
+    silhouette_points: int = 2500
+    """How many of the body model's vertices stand for its outline in the silhouette terms."""
     history_size: int = 20
 
 
@@ -344,6 +372,9 @@ class _Problem:
                 vertex_terms = dict(zip(names, terms.values(), strict=True))
                 reg = KeypointRegressor(names, vertex_terms, {}, model.num_joints)
                 self.face_mesh = (reg.to(model.device), torch.tensor(list(terms), dtype=torch.int64))
+        self.silhouette = None  # (regressor of the outline's vertices, SilhouetteTargets, spacing m)
+        if targets.person_masks is not None and any(s.w_silhouette > 0 for s in config.stages):
+            self.silhouette = _silhouette_problem(model, targets.person_masks, config.silhouette_points)
 
     def params(self) -> BodyParams:
         v = self.values
@@ -389,6 +420,15 @@ class _Problem:
             det = t.face_mesh[:, landmarks]
             res = (pts - det[..., :2]) / self.scale[:, None, None]
             total = total + stage.w_face_mesh * weighted_gm(res, det[..., 2], cfg.sigma_2d)
+
+        if stage.w_silhouette > 0 and self.silhouette is not None:
+            reg, sil, spacing = self.silhouette
+            body_cam = to_camera(self.model.posed_points(params, reg), self.viewmat)
+            uv_body = project_points(body_cam, self.K)
+            depth = body_cam[..., 2].detach().mean(1).clamp_min(MIN_DEPTH)
+            tolerance = 0.5 * spacing * self.K[:, 0, 0] / depth
+            sil_loss = silhouette_loss(uv_body, sil, self.scale, cfg.sigma_2d, tolerance)
+            total = total + stage.w_silhouette * sil_loss
 
         if stage.body_3d > 0 and t.pose_world is not None:
             body = kp[:, : KEYPOINT_GROUPS["pose"].stop]
@@ -466,6 +506,19 @@ class _Problem:
         with torch.no_grad():
             last = float(self.loss(stage))
         return first, last
+
+
+def _silhouette_problem(model: BodyModel, masks: Tensor, count: int):
+    from eva_engine.body.keypoints import KeypointRegressor
+
+    vertices = silhouette_vertices(model.num_vertices, count).tolist()
+    names = [f"outline_{v}" for v in vertices]
+    terms = {n: {v: 1.0} for n, v in zip(names, vertices, strict=True)}
+    reg = KeypointRegressor(names, terms, {}, model.num_joints)
+    with torch.no_grad():
+        rest = model(model.default_params(1)).vertices[0, torch.tensor(vertices)]
+    spacing = sample_spacing(rest.double())
+    return reg.to(model.device), SilhouetteTargets.from_masks(masks).to(model.device), spacing
 
 
 def rigid_face_points(model: BodyModel, tolerance: float = 0.003) -> Tensor:

@@ -88,6 +88,17 @@ class Detections:
             torch.from_numpy(self.hand_depth),
             torch.from_numpy(self.pose_world),
             torch.from_numpy(self.face_mesh) if self.face_mesh is not None else None,
+            self.person_masks(),
+        )
+
+    def person_masks(self) -> torch.Tensor | None:
+        """[F, H, W] the person masks, all ones where a frame has none (None without any mask)."""
+        shapes = {m.shape for m in self.masks if m is not None}
+        if len(shapes) != 1:
+            return None
+        (shape,) = shapes
+        return torch.from_numpy(
+            np.stack([np.ones(shape, np.float32) if m is None else m.astype(np.float32) for m in self.masks])
         )
 
     def select(self, rows: list[int]) -> Detections:
