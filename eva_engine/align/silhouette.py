@@ -39,7 +39,7 @@ class SilhouetteTargets:
     """What the silhouette terms compare against, for F frames of H x W.
 
     outside_distance: [F, 1, H, W] pixels from each pixel to the nearest mask pixel (0 inside);
-    outline: [F, P] -> [F, P, 2] pixel positions of points spread along the mask's outline;
+    outline: [F, P, 2] pixel positions of points spread along the mask's outline;
     outline_weight: [F, P] 1 for a real point, 0 for padding (a frame without an outline).
     """
 
@@ -90,7 +90,7 @@ class SilhouetteTargets:
         return SilhouetteTargets(*(t.to(device) for t in fields))
 
 
-def silhouette_vertices(num_vertices: int, count: int = 2000, seed: int = 0) -> Tensor:
+def silhouette_vertices(num_vertices: int, count: int = 2500, seed: int = 0) -> Tensor:
     """[min(count, V)] sorted vertex indices: a fixed random subset of the surface."""
     g = torch.Generator().manual_seed(seed)
     return torch.randperm(num_vertices, generator=g)[: min(count, num_vertices)].sort().values
