@@ -53,13 +53,12 @@ from eva_engine.align.hands import HandTrackConfig, articulation_prior
 from eva_engine.align.robust import weighted_gm, z_only_gm
 from eva_engine.align.silhouette import (
     SilhouetteTargets,
-    sample_spacing,
     silhouette_loss,
     silhouette_vertices,
 )
 from eva_engine.body import KEYPOINT_GROUPS, PART_NAMES, BodyModel, BodyParams
 from eva_engine.body.kinematics import axis_angle_to_matrix
-from eva_engine.geometry import MIN_DEPTH, project_points, to_camera
+from eva_engine.geometry import MIN_DEPTH, mean_neighbour_distance, project_points, to_camera
 from eva_engine.progress import Progress, ProgressEvent
 
 # Pose landmarks that are body joints (shoulders .. foot index); the others are face points
@@ -517,7 +516,7 @@ def _silhouette_problem(model: BodyModel, masks: Tensor, count: int):
     reg = KeypointRegressor(names, terms, {}, model.num_joints)
     with torch.no_grad():
         rest = model(model.default_params(1)).vertices[0, torch.tensor(vertices)]
-    spacing = sample_spacing(rest.double())
+    spacing = float(mean_neighbour_distance(rest.double(), 1).mean())
     return reg.to(model.device), SilhouetteTargets.from_masks(masks).to(model.device), spacing
 
 

@@ -96,13 +96,6 @@ def silhouette_vertices(num_vertices: int, count: int = 2500, seed: int = 0) -> 
     return torch.randperm(num_vertices, generator=g)[: min(count, num_vertices)].sort().values
 
 
-def sample_spacing(rest_points: Tensor) -> float:
-    """Metres: the mean distance from each of ``rest_points`` [V, 3] to its nearest neighbour."""
-    d = torch.cdist(rest_points, rest_points)
-    d.fill_diagonal_(float("inf"))
-    return float(d.min(dim=1).values.mean())
-
-
 def silhouette_loss(
     uv: Tensor, targets: SilhouetteTargets, scale: Tensor, sigma: float, tolerance: Tensor | float = 0.0
 ) -> Tensor:

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from eva_engine.body.model import nearest_vertex_index
+from eva_engine.geometry import mean_neighbour_distance
 from eva_engine.render.sh import num_sh_bases
 
 PER_GAUSSIAN_BUFFERS = ("part_ids", "vertex_ids")
@@ -85,7 +86,7 @@ class CanonicalGaussians(nn.Module):
             ids = ids[perm.sort().values]
         ids = ids.to(template_vertices.device)
         means = template_vertices[ids].detach().clone()
-        scale = _mean_neighbour_distance(means, 3).clamp(1e-4, 0.05)
+        scale = mean_neighbour_distance(means, 3).clamp(1e-4, 0.05)
         n = means.shape[0]
         k = num_sh_bases(sh_degree)
         splats = {
@@ -155,17 +156,3 @@ class CanonicalGaussians(nn.Module):
             idx = nearest_vertex_index(means[sel], verts)
             out[sel] = (means[sel] - verts[idx]).norm(dim=-1)
         return out
-
-
-def _mean_neighbour_distance(points: Tensor, k: int, chunk: int = 2048) -> Tensor:
-    """[N] mean distance of each of ``points [N, 3]`` to its ``k`` nearest other points (0.01 m
-    when there are no others)."""
-    n = points.shape[0]
-    if n < 2:
-        return points.new_full((n,), 0.01)
-    k = min(k, n - 1)
-    out = []
-    for p in points.split(chunk):
-        d = torch.cdist(p, points).topk(k + 1, dim=1, largest=False).values
-        out.append(d[:, 1:].mean(dim=1))
-    return torch.cat(out)
