@@ -42,7 +42,7 @@ from eva_engine.align import (
     reprojection_error,
 )
 from eva_engine.align.clip import fit_clip
-from eva_engine.align.evaluate import expression_error, targets_from_params
+from eva_engine.align.evaluate import expression_error, head_rotation_error, targets_from_params
 from eva_engine.align.fit import POSE_BODY, FitConfig, fit_sequence, reprojection_distances
 from eva_engine.body import BodyParams, load_body_model
 from eva_engine.data import load_dataset
@@ -86,15 +86,17 @@ def synthetic(model, frames: int, dataset: Path | None) -> dict:
         return {
             "mpjpe_mm": mpjpe(model, params, truth, visible),
             "expression_mm": expression_error(model, params, truth),
+            "head_deg": head_rotation_error(model, params, truth),
             "px_vs_ground_truth": reprojection_error(model, params, truth_2d),
             "px_vs_detections": reprojection_error(model, params, targets),
             "face_mesh_px_per_frame": face_mesh_px(model, params, targets),
         }
 
     # The fit itself, without detection noise: the exact projections, hand depths and world pose
-    # of the true keypoints (and the detected face mesh, which has no exact counterpart).
+    # of the true keypoints (and the detected face mesh and its depths, which have no exact
+    # counterpart).
     exact = targets_from_params(model, truth, K, view, ds.image_size)
-    exact = dataclasses.replace(exact, face_mesh=targets.face_mesh)
+    exact = dataclasses.replace(exact, face_mesh=targets.face_mesh, face_depth=targets.face_depth)
     exact_fit = fit_clip(model, exact, ds.timestamps[order], FitConfig(hand_depth_scale=1.0))  # true depths
 
     per_frame = {
@@ -353,8 +355,9 @@ def markdown(report: dict) -> str:
         + ".",
         "",
         "| estimate | MPJPE body in view (mm) | MPJPE body all (mm) | MPJPE hands (mm) | expression (mm) "
-        "| 2D body (px) | 2D hands (px) | 2D face (px) | face mesh px per frame (median / p90) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---|",
+        "| head rotation (deg) | 2D body (px) | 2D hands (px) | 2D face (px) "
+        "| face mesh px per frame (median / p90) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for name in ("initial", "fitted", "fitted_to_exact_targets", "ground_truth_params"):
         if name not in s:
@@ -365,7 +368,8 @@ def markdown(report: dict) -> str:
         fm_cell = f"{fm['median']:.2f} / {fm['p90']:.2f}" if fm else "-"
         lines.append(
             f"| {name} | {mp.get('body_in_view', float('nan')):.1f} | {mp['body']:.1f} | {mp['hands']:.1f} "
-            f"| {m.get('expression_mm', float('nan')):.2f} | {px['body']:.2f} | {px['hands']:.2f} "
+            f"| {m.get('expression_mm', float('nan')):.2f} | {m.get('head_deg', float('nan')):.1f} "
+            f"| {px['body']:.2f} | {px['hands']:.2f} "
             f"| {px['face']:.2f} | {fm_cell} |"
         )
     sec = s["seconds"]
@@ -377,7 +381,8 @@ def markdown(report: dict) -> str:
         f"frames; it includes the wrong-hand check and the gap filling); detection {sec['detect']:.1f} s. "
         "MPJPE: body hip-centred (in view: only the body joints inside the image, all: every joint, "
         "legs of a waist-up frame included), hands wrist-centred; expression: mean distance of the face "
-        "vertices the true expression moves, fitted vs true expression on the true rest face. "
+        "vertices the true expression moves, fitted vs true expression on the true rest face; head "
+        "rotation: mean angle between the fitted and the true head's world rotation. "
         + (
             f"Hands: {s['hands']['rejected']} wrong-side detections dropped, {s['hands']['filled_frames']} "
             "hand-frames filled from neighbours."

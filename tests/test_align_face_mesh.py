@@ -3,6 +3,8 @@ what MediaPipe finds on a rendered face, and the dense face term in fitting."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -65,3 +67,86 @@ def test_posed_points_fast_path_matches_posing_the_mesh(anny_model, corresponden
     slow = reg(out.vertices, out.joints)
     assert fast.shape == (3, len(names), 3)
     torch.testing.assert_close(fast, slow, atol=2e-5, rtol=0)
+
+
+def _face_targets(model, correspondence, params, K, view, depth_scale):
+    """Exact face-mesh targets of ``params``: projected landmarks and their relative depths in
+    pixels, as MediaPipe reports them (divided by ``depth_scale``, which the fit multiplies in)."""
+    from eva_engine.align.evaluate import targets_from_params
+    from eva_engine.body.keypoints import KeypointRegressor
+
+    terms = correspondence.vertex_terms(model.faces)
+    names = [f"fm{k}" for k in terms]
+    reg = KeypointRegressor(names, dict(zip(names, terms.values(), strict=True)), {}, model.num_joints)
+    with torch.no_grad():
+        cam = to_camera(model.posed_points(params, reg), view)
+    f = params.batch_size
+    mesh = torch.zeros(f, NUM_LANDMARKS, 3)
+    mesh[:, list(terms), :2] = project_points(cam, K)
+    mesh[:, list(terms), 2] = 1.0
+    depth = torch.zeros(f, NUM_LANDMARKS)
+    z = cam[..., 2]
+    depth[:, list(terms)] = (z - z.mean(1, keepdim=True)) * K[0, 0] / z.mean(1, keepdim=True) / depth_scale
+    base = targets_from_params(model, params, K, view, image_size=(512, 512))
+    return dataclasses.replace(base, face_mesh=mesh, face_depth=depth)
+
+
+def _head_error_deg(model, a, b, view) -> torch.Tensor:
+    """[F, 3] the rotation between the head's rotations of ``a`` and ``b`` as a rotation vector
+    in camera axes, in degrees: x pitch, y yaw, z roll (about the optical axis)."""
+    import roma
+
+    head = model.joint_names.index("head")
+    with torch.no_grad():
+        ra, rb = model(a).transforms[:, head, :3, :3], model(b).transforms[:, head, :3, :3]
+    r = view[:3, :3]
+    return torch.rad2deg(roma.rotmat_to_rotvec(r @ ra @ rb.transpose(1, 2) @ r.T))
+
+
+def test_face_depths_turn_a_head_back(anny_model, correspondence):
+    """The face mesh's relative depths alone (no 2D term) turn a head that starts 17 degrees off
+    in pitch and yaw back (roll about the optical axis changes no depth); they do not move the
+    expression, which is the 2D terms' to fit."""
+    from eva_engine.align.fit import FitConfig, FitStage, fit_sequence
+    from eva_engine.render import intrinsics, orbit_camera
+
+    K, view = intrinsics(512, 512, 30.0), orbit_camera(0.0, 0.0, 1.0, target=(0.0, 0.6, 0.0))
+    names = anny_model.pose_joint_names
+    truth = anny_model.default_params(3)
+    head = names.index("head")
+    truth.joints[:, head] = torch.tensor([[0.0, 0.3, 0.0], [0.2, -0.2, 0.0], [-0.15, 0.0, 0.1]])
+    truth.expression[:, anny_model.expression_names.index("jawOpen")] = 0.5
+    config = FitConfig()
+    targets = _face_targets(anny_model, correspondence, truth, K, view, config.face_depth_scale)
+    start = truth.map(lambda t: t.clone())
+    start.joints[:, head] += torch.tensor([0.3, 0.3, 0.0])
+    stage = FitStage("depth", 40, ("face", "expression"), w_pose=0.0, face_z=10.0, smooth=0.0)
+    config = dataclasses.replace(config, stages=(stage,))
+    result = fit_sequence(anny_model, targets, init=start, config=config)
+    before = _head_error_deg(anny_model, start, truth, view)
+    after = _head_error_deg(anny_model, result.params, truth, view)
+    assert (before[:, :2].abs() > 15).all() and (after[:, :2].abs() < 1.0).all(), (before, after)
+    assert torch.equal(result.params.expression, start.expression)
+
+
+def test_face_depth_term_is_finite_on_degenerate_targets(anny_model, correspondence):
+    """Huge, zero and missing depths, and a face almost at the camera: finite loss and gradients."""
+    from eva_engine.align.fit import FitConfig, FitStage, _Problem
+    from eva_engine.render import intrinsics, orbit_camera
+
+    K, view = intrinsics(512, 512, 30.0), orbit_camera(0.0, 0.0, 1.0, target=(0.0, 0.6, 0.0))
+    params = anny_model.default_params(4)
+    params.transl[3, 2] = 0.99  # the face just in front of the camera
+    targets = _face_targets(anny_model, correspondence, params, K, view, 1.0)
+    targets.face_depth[0] = 1e9
+    targets.face_depth[1] = 0.0
+    targets.face_mesh[2, :, 2] = 0.0  # no face found
+    stage = FitStage("depth", 1, ("root", "transl", "face"), w_pose=0.0, face_z=10.0)
+    problem = _Problem(anny_model, targets, FitConfig(stages=(stage,)), params)
+    for g in ("root", "transl", "face"):
+        problem.values[g].requires_grad_(True)
+    loss = problem.loss(stage)
+    loss.backward()
+    assert torch.isfinite(loss)
+    for g in ("root", "transl", "face"):
+        assert torch.isfinite(problem.values[g].grad).all(), g

@@ -207,6 +207,14 @@ def test_targets_validate_shapes():
         FitTargets(torch.zeros(3, 91, 3), K, VIEW, hand_depth=torch.zeros(2, 42))
     with pytest.raises(ValueError, match="K must be"):
         FitTargets(torch.zeros(3, 91, 3), torch.eye(4), VIEW)
+    with pytest.raises(ValueError, match="face_depth"):  # depths without the landmarks they belong to
+        FitTargets(torch.zeros(3, 91, 3), K, VIEW, face_depth=torch.zeros(3, 478))
+    mesh = torch.zeros(3, 478, 3)
+    with pytest.raises(ValueError, match="face_depth"):
+        FitTargets(torch.zeros(3, 91, 3), K, VIEW, face_mesh=mesh, face_depth=torch.zeros(3, 10))
+    depth = torch.full((3, 478), float("nan"))
+    t = FitTargets(torch.zeros(3, 91, 3), K, VIEW, face_mesh=mesh, face_depth=depth)
+    assert torch.equal(t.face_depth, torch.zeros(3, 478))
 
 
 def test_an_arm_far_outside_the_robust_scale_is_pulled_onto_its_2d_points(anny_model, clip):
@@ -261,3 +269,25 @@ def test_hands_are_turned_to_the_detected_palm_again_after_the_body_stages(anny_
     before, after = mpjpe(anny_model, twisted, clip), mpjpe(anny_model, turned, clip)
     # Not exactly 0: the detected palm is lifted to 3D at the wrist's depth (weak perspective).
     assert after["hands"] < 0.25 * before["hands"]
+
+
+def test_a_frame_without_a_face_turns_its_head_to_the_pose_face_points(anny_model, clip):
+    """Where the face mesh found no face (a head turned away), the pose model's nose, eyes and
+    ears still turn the head, also in stages that give the face group its own weight."""
+    import roma
+
+    from eva_engine.align.fit import POSE_FACE
+
+    targets = targets_from_params(anny_model, clip, K, VIEW)
+    targets.keypoints[2, KEYPOINT_GROUPS["face"], 2] = 0.0
+    assert targets.keypoints[2, list(POSE_FACE), 2].gt(0).all()
+    start = clip.map(lambda t: t.clone())
+    start.joints[2, anny_model.pose_joint_names.index("head"), 1] += 0.5  # 29 degrees of yaw
+    refine = next(s for s in default_stages() if s.name == "refine")
+    stage = dataclasses.replace(refine, optimize=("face",), iterations=40, smooth=0.0, face_z=0.0)
+    result = fit_sequence(anny_model, targets, init=start, config=FitConfig(stages=(stage,)))
+    head = anny_model.joint_names.index("head")
+    with torch.no_grad():
+        r = anny_model(result.params).transforms[2, head, :3, :3]
+        t = anny_model(clip).transforms[2, head, :3, :3]
+    assert torch.rad2deg(roma.rotmat_to_rotvec(r @ t.T).norm()) < 5.0

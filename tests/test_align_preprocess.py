@@ -41,7 +41,8 @@ def test_writes_a_dataset_with_detections_and_fitted_params(signer, preprocessed
     assert ds.meta.source == "video" and ds.meta.camera_source == "estimated"
     assert ds.meta.params_source == "fitted" and ds.meta.keypoints_source == "mediapipe"
     assert ds.meta.body_model == "anny" and ds.params.batch_size == len(frames)
-    assert set(ds.keypoint_extras) == {"hand_depth", "pose_world", "face_mesh", "hand_confidence"}
+    extras = {"hand_depth", "pose_world", "face_mesh", "face_depth", "hand_confidence"}
+    assert set(ds.keypoint_extras) == extras
     assert ds.splits["test_pose"] == [3, 7, 11] and len(ds.splits["train"]) == 9
     assert report.detection_rates["pose"] == 1.0 and report.detection_rates["face"] == 1.0
     assert min(report.detection_rates["left_hand"], report.detection_rates["right_hand"]) >= 0.5
@@ -84,13 +85,17 @@ def test_a_detection_resized_keeps_the_view():
     keypoints = rng.uniform(0, 200, (NUM_KEYPOINTS, 3)).astype(np.float32)
     world = rng.normal(size=(33, 4)).astype(np.float32)
     mesh = rng.uniform(0, 200, (478, 3)).astype(np.float32)
-    det = FrameDetection(keypoints, np.ones(42, np.float32), world, np.ones((100, 200), np.float32), {}, mesh)
+    depth = rng.normal(size=478).astype(np.float32)
+    det = FrameDetection(
+        keypoints, np.ones(42, np.float32), world, np.ones((100, 200), np.float32), {}, mesh, depth
+    )
     small = det.resized((100, 200), (50, 80))
     np.testing.assert_allclose(small.keypoints[:, 0], keypoints[:, 0] * 0.4, rtol=1e-6)
     np.testing.assert_allclose(small.keypoints[:, 1], keypoints[:, 1] * 0.5, rtol=1e-6)
     np.testing.assert_array_equal(small.keypoints[:, 2], keypoints[:, 2])  # confidences
     np.testing.assert_allclose(small.face_mesh[:, :2], mesh[:, :2] * [0.4, 0.5], rtol=1e-6)
     np.testing.assert_allclose(small.hand_depth, 0.4)  # in units of the image width
+    np.testing.assert_allclose(small.face_depth, depth * 0.4, rtol=1e-6)
     np.testing.assert_array_equal(small.pose_world, world)  # metric, not in pixels
     assert small.mask.shape == (50, 80) and np.allclose(small.mask, 1.0)
     assert det.resized((100, 200), (100, 200)) is det
@@ -175,3 +180,21 @@ def test_cli_errors_are_exit_code_2(tmp_path):
     (tmp_path / "exists").mkdir()
     res = runner.invoke(app, ["preprocess", str(bad), "--out", str(tmp_path / "exists")])
     assert res.exit_code == 2 and "exists" in res.output
+
+
+def test_holistic_face_depths_are_centred_pixels():
+    """MediaPipe's face z (units of the image width) becomes pixels relative to the landmarks'
+    mean; without a face, depths are zero."""
+    from types import SimpleNamespace
+
+    from eva_engine.align.detect import convert_holistic
+
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(0, 1, (478, 3))
+    landmarks = SimpleNamespace(landmark=[SimpleNamespace(x=x, y=y, z=z, visibility=0.0) for x, y, z in xyz])
+    none = dict(pose_landmarks=None, left_hand_landmarks=None, right_hand_landmarks=None)
+    det = convert_holistic(SimpleNamespace(face_landmarks=landmarks, **none), 200, 100)
+    np.testing.assert_allclose(det.face_depth, (xyz[:, 2] - xyz[:, 2].mean()) * 200, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(det.face_mesh[:, :2], xyz[:, :2] * [200, 100], rtol=1e-5)
+    empty = convert_holistic(SimpleNamespace(face_landmarks=None, **none), 200, 100)
+    assert not empty.face_depth.any() and not empty.face_mesh.any()

@@ -16,6 +16,8 @@ Per frame (image of H x W pixels):
                 aligned axes (x right, y down, z away from the camera).
     face_mesh:  [478, 3] all face-mesh landmarks (x px, y px, confidence 1 when the face was
                 found; the 10 iris points 0 without iris refinement), for dense face fitting.
+    face_depth: [478] relative depth of each face-mesh landmark, in pixels (MediaPipe's z times
+                W, centred on the landmarks' mean; positive = farther from the camera).
     mask:       [H, W] person probability in [0, 1] (holistic's segmentation).
 """
 
@@ -57,6 +59,7 @@ class FrameDetection:
     mask: np.ndarray | None
     found: dict[str, bool] = field(default_factory=dict)
     face_mesh: np.ndarray = field(default_factory=lambda: np.zeros((FACE_MESH_POINTS, 3), np.float32))
+    face_depth: np.ndarray = field(default_factory=lambda: np.zeros(FACE_MESH_POINTS, np.float32))
 
     @property
     def has_person(self) -> bool:
@@ -80,9 +83,12 @@ class FrameDetection:
         mask = None
         if self.mask is not None:
             mask = cv2.resize(self.mask, (size[1], size[0]), interpolation=cv2.INTER_AREA)
-        # Hand depth is MediaPipe's z in units of the image width.
+        # Hand and face depths are MediaPipe's z in units of the image width.
         hand_depth = self.hand_depth * np.float32(sx)
-        return FrameDetection(keypoints, hand_depth, self.pose_world, mask, dict(self.found), face_mesh)
+        face_depth = self.face_depth * np.float32(sx)
+        return FrameDetection(
+            keypoints, hand_depth, self.pose_world, mask, dict(self.found), face_mesh, face_depth
+        )
 
 
 class HolisticDetector:
@@ -168,10 +174,12 @@ def convert_holistic(result, width: int, height: int) -> FrameDetection:
     face = _landmarks(result.face_landmarks, 468)
     found["face"] = face is not None
     face_mesh = np.zeros((FACE_MESH_POINTS, 3), dtype=np.float32)
+    face_depth = np.zeros(FACE_MESH_POINTS, dtype=np.float32)
     if face is not None:
         n = min(len(face), FACE_MESH_POINTS)
         face_mesh[:n, :2] = face[:n, :2] * scale
         face_mesh[:n, 2] = 1.0
+        face_depth[:n] = (face[:n, 2] - face[:n, 2].mean()) * width
         sl = KEYPOINT_GROUPS["face"]
         index = np.array(list(FACE_MESH_INDEX.values()))
         if len(face) <= index.max():  # no iris refinement: irises are not available
@@ -193,4 +201,4 @@ def convert_holistic(result, width: int, height: int) -> FrameDetection:
         | (keypoints[:, 1] >= height)
     )
     keypoints[outside, 2] *= 0.5
-    return FrameDetection(keypoints, hand_depth, pose_world, mask, found, face_mesh)
+    return FrameDetection(keypoints, hand_depth, pose_world, mask, found, face_mesh, face_depth)

@@ -7,6 +7,7 @@ depth error (unobservable up to scale from one camera) does not swamp the articu
 
 from __future__ import annotations
 
+import roma
 import torch
 from torch import Tensor
 
@@ -114,3 +115,13 @@ def expression_error(model: BodyModel, params: BodyParams, truth: BodyParams, mo
     if not bool(active.any()):
         return 0.0
     return float((a - b).norm(dim=-1)[active].mean() * 1000)
+
+
+def head_rotation_error(model: BodyModel, params: BodyParams, truth: BodyParams) -> float:
+    """Mean angle (degrees) between the fitted and the true world rotation of the head joint, over
+    the frames: where the fit turned the head, whatever the joints that turned it."""
+    j = model.joint_names.index("head")
+    with torch.no_grad():
+        a = model(params).transforms[:, j, :3, :3]
+        b = model(truth).transforms[:, j, :3, :3].to(a)
+    return float(torch.rad2deg(roma.rotmat_to_rotvec(a @ b.transpose(1, 2)).norm(dim=-1)).mean())

@@ -21,7 +21,9 @@ Objective over all frames at once (batched body model, shape shared by the clip)
 - Face: the expression coefficients are fitted through the 16 face points and, where the body
   model has a face-mesh correspondence (``face_mesh``), through all of MediaPipe's face-mesh
   landmarks, with a small sparsity prior and the model's valid range (``clip.fit_clip`` then
-  smooths it over time).
+  smooths it over time). The face mesh's relative depths (``face_z``, MediaPipe's z as the hands'
+  psi_z) turn the head: 2D landmarks leave its pitch and yaw loose. Frames where no face was
+  found keep the pose model's coarse face points (nose, eyes, ears).
 - Outline (``align.silhouette``): a two-sided chamfer between the person mask's outline and the
   projected body, in the last, short stage (``outline``), where the targets carry masks.
 
@@ -84,6 +86,8 @@ class FitTargets:
     face_mesh:  [F, 478, 3] MediaPipe face-mesh landmarks (x px, y px, confidence), or None.
     person_masks: [F, H, W] person masks in [0, 1] (the silhouette term, ``align.silhouette``),
                 or None; a frame without a mask is all ones (it then contributes nothing).
+    face_depth: [F, L] MediaPipe face-mesh landmark depth relative to their mean, in pixels, or
+                None (weighted by ``face_mesh``'s confidence).
     """
 
     keypoints: Tensor
@@ -93,6 +97,7 @@ class FitTargets:
     pose_world: Tensor | None = None
     face_mesh: Tensor | None = None
     person_masks: Tensor | None = None
+    face_depth: Tensor | None = None
 
     def __post_init__(self) -> None:
         kp = torch.as_tensor(self.keypoints, dtype=torch.float32)
@@ -133,6 +138,12 @@ class FitTargets:
             if pm.ndim != 3 or pm.shape[0] != f:
                 raise ValueError(f"person_masks must be [{f}, H, W], got {tuple(pm.shape)}")
             self.person_masks = torch.nan_to_num(pm, nan=1.0).clamp(0.0, 1.0)
+        if self.face_depth is not None:
+            fd = torch.as_tensor(self.face_depth, dtype=torch.float32)
+            if self.face_mesh is None or fd.shape != self.face_mesh.shape[:2]:
+                shape = tuple(fd.shape)
+                raise ValueError(f"face_depth must be [F, L] beside face_mesh [F, L, 3], got {shape}")
+            self.face_depth = torch.nan_to_num(fd, nan=0.0, posinf=0.0, neginf=0.0)
 
     @property
     def num_frames(self) -> int:
@@ -174,11 +185,14 @@ class FitStage:
     w_face: float = 0.0
     coarse_weight: float = 0.3
     """Weight (relative to ``w_pose``) of the pose model's coarse hand and face points while this
-    stage gives the hand or face group no weight of its own (``w_hand`` or ``w_face`` 0)."""
+    stage gives the hand or face group no weight of its own (``w_hand`` or ``w_face`` 0); the face
+    points also in the frames where no face was detected."""
     rigid_face_only: bool = False
     """Use only the face points that no facial action moves (eye corners, nose): the head's pose
     is fitted before the expression, so the mouth's points must not turn the head."""
     w_face_mesh: float = 0.0
+    face_z: float = 0.0
+    """Weight of the face mesh's relative-depth term (``face_depth``), where the targets have it."""
     w_silhouette: float = 0.0
     """Weight of the silhouette terms (``align.silhouette``), where the targets have person masks."""
     body_3d: float = 0.0
@@ -244,6 +258,7 @@ def default_stages() -> tuple[FitStage, ...]:
         w_hand=2.0,
         w_face=2.0,
         w_face_mesh=2.0,
+        face_z=10.0,
         body_3d=0.3,
         hand_z=0.5,
         hand_prior=1.0,
@@ -276,6 +291,7 @@ def default_stages() -> tuple[FitStage, ...]:
             w_pose=0.0,
             w_face=2.0,
             w_face_mesh=2.0,
+            face_z=10.0,
             smooth=0.05,
             expression_reg=1e-3,
             range_weight=0.0,
@@ -308,6 +324,11 @@ class FitConfig:
     hand_depth_scale: float = 1.6
     """MediaPipe's relative hand depths are compressed: on rendered Anny hands (``bench/align.py``)
     the true depths are 1.6-1.7 x its values (correlation 0.8); they are scaled by this."""
+    face_depth_scale: float = 0.9
+    """MediaPipe's face-mesh depths are not: on rendered Anny faces the true relative depths are
+    0.9 x its values (correlation 0.95, ``bench/align.py``'s synthetic clip)."""
+    sigma_face_z: float = 0.01
+    """Metres: the Geman-McClure scale of the face's relative depths (they span about +-2 cm)."""
     orient_hands: bool = True
     """Start each detected hand's wrist rotation at the rotation that best aligns the model's palm
     with the detected 3D palm (Kabsch), instead of the rest pose: the fit then starts on the right
@@ -354,13 +375,14 @@ class _Problem:
             "face": _mask(kp.shape[1], range(KEYPOINT_GROUPS["face"].start, KEYPOINT_GROUPS["face"].stop)),
         }
         self.group_mask["face_rigid"] = self.group_mask["face"] * rigid_face_points(model).float()
+        self.face_missing = ((self.conf * self.group_mask["face"]).sum(1) == 0).float()  # [F]
         limits = torch.tensor([JOINT_LIMITS[p] for p in PART_NAMES])
         self.joint_limit = limits[part]  # [P]
         uses_prior = any(s.hand_prior > 0 for s in config.stages)
         self.articulation = articulation_prior(model) if uses_prior else None
         self.face_mesh = None  # (regressor, landmark indices) of the dense face term
         dense = config.dense_face and targets.face_mesh is not None
-        if dense and any(s.w_face_mesh > 0 for s in config.stages):
+        if dense and any(s.w_face_mesh > 0 or s.face_z > 0 for s in config.stages):
             from eva_engine.align.face_mesh import load_correspondence
             from eva_engine.body.keypoints import KeypointRegressor
 
@@ -401,10 +423,15 @@ class _Problem:
         # Each group is a robust mean over its own points, so the 16 face points weigh as much as
         # the body's joints when gamma says so. Until hands / face get their own weight, the
         # pose model's coarse hand and face points stand in for them.
+        # Frames without a detected face keep the coarse face points when the face group has its
+        # own weight: nothing else would turn their heads (a turned head is what the face mesh
+        # misses; taiji: 22% of the frames).
+        coarse = stage.coarse_weight * stage.w_pose
+        face_frames = self.face_missing if stage.w_face > 0 else torch.ones_like(self.face_missing)
         groups = (
             (stage.w_pose, self.group_mask["pose"]),
-            (stage.coarse_weight * stage.w_pose * (stage.w_face == 0), self.group_mask["pose_face"]),
-            (stage.coarse_weight * stage.w_pose * (stage.w_hand == 0), self.group_mask["pose_hand"]),
+            (coarse, self.group_mask["pose_face"] * face_frames[:, None]),
+            (coarse * (stage.w_hand == 0), self.group_mask["pose_hand"]),
             (stage.w_hand, self.group_mask["hand"]),
             (stage.w_face, self.group_mask["face_rigid" if stage.rigid_face_only else "face"]),
         )
@@ -413,12 +440,20 @@ class _Problem:
             if gamma > 0:
                 total = total + gamma * weighted_gm(residual, mask * self.conf, sigma_2d)
 
-        if stage.w_face_mesh > 0 and self.face_mesh is not None:
+        use_depth = stage.face_z > 0 and t.face_depth is not None
+        if (stage.w_face_mesh > 0 or use_depth) and self.face_mesh is not None:
             reg, landmarks = self.face_mesh
-            pts = project_points(to_camera(self.model.posed_points(params, reg), self.viewmat), self.K)
             det = t.face_mesh[:, landmarks]
-            res = (pts - det[..., :2]) / self.scale[:, None, None]
-            total = total + stage.w_face_mesh * weighted_gm(res, det[..., 2], cfg.sigma_2d)
+            if stage.w_face_mesh > 0:
+                face_cam = to_camera(self.model.posed_points(params, reg), self.viewmat)
+                res = (project_points(face_cam, self.K) - det[..., :2]) / self.scale[:, None, None]
+                total = total + stage.w_face_mesh * weighted_gm(res, det[..., 2], cfg.sigma_2d)
+            if use_depth:
+                # The depths turn the head, not the face: through the expression they pull lips
+                # and lids toward MediaPipe's depth guesses (synthetic expression error +10%).
+                rigid = dataclasses.replace(params, expression=params.expression.detach())
+                face_cam = to_camera(self.model.posed_points(rigid, reg), self.viewmat)
+                total = total + stage.face_z * self._face_depth_loss(face_cam, landmarks, det[..., 2])
 
         if stage.w_silhouette > 0 and self.silhouette is not None:
             reg, sil, spacing = self.silhouette
@@ -470,6 +505,19 @@ class _Problem:
         # In units of the 2D sigma: a residual of one sigma costs ~1, so L-BFGS's step and
         # curvature estimates start at a sensible scale whatever the image size.
         return total / cfg.sigma_2d**2
+
+    def _face_depth_loss(self, face_cam: Tensor, landmarks: Tensor, conf: Tensor) -> Tensor:
+        """Robust error of the face's relative depth pattern against MediaPipe's face-mesh depths
+        (converted to metres at the face's depth, scaled by ``face_depth_scale``), each side
+        centred on its confidence-weighted mean: only the pattern counts, which fixes the head's
+        pitch and yaw where 2D landmarks leave them loose. face_cam: [F, L, 3]; conf: [F, L]."""
+        cfg = self.config
+        w = conf / conf.sum(1, keepdim=True).clamp_min(1e-8)
+        model_z = face_cam[..., 2]
+        depth = model_z.detach().mean(1, keepdim=True).clamp_min(MIN_DEPTH)
+        target = cfg.face_depth_scale * self.targets.face_depth[:, landmarks] * depth / self.K[:, 0, 0, None]
+        res = (model_z - (w * model_z).sum(1, keepdim=True)) - (target - (w * target).sum(1, keepdim=True))
+        return weighted_gm(res[..., None], conf, cfg.sigma_face_z)
 
     def run_stage(self, stage: FitStage, progress: Progress | None) -> tuple[float, float]:
         moving = [g for g in stage.optimize if self.values[g].numel() > 0]

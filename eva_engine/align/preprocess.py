@@ -79,6 +79,7 @@ class Detections:
     masks: list[np.ndarray | None]
     found: list[dict[str, bool]]
     face_mesh: np.ndarray | None = None  # [F, 478, 3]
+    face_depth: np.ndarray | None = None  # [F, 478]
 
     def targets(self, K: torch.Tensor, viewmat: torch.Tensor) -> FitTargets:
         return FitTargets(
@@ -89,6 +90,7 @@ class Detections:
             torch.from_numpy(self.pose_world),
             torch.from_numpy(self.face_mesh) if self.face_mesh is not None else None,
             self.person_masks(),
+            torch.from_numpy(self.face_depth) if self.face_depth is not None else None,
         )
 
     def person_masks(self) -> torch.Tensor | None:
@@ -110,6 +112,7 @@ class Detections:
             [self.masks[i] for i in rows],
             [self.found[i] for i in rows],
             self.face_mesh[rows] if self.face_mesh is not None else None,
+            self.face_depth[rows] if self.face_depth is not None else None,
         )
 
     def regions_found(self) -> np.ndarray:
@@ -157,6 +160,7 @@ def detect_frames(
         masks=[r.mask for r in results],
         found=[r.found for r in results],
         face_mesh=np.stack([r.face_mesh for r in results]),
+        face_depth=np.stack([r.face_depth for r in results]),
     )
 
 
@@ -303,6 +307,7 @@ def preprocess_video(
                 "hand_depth": targets.hand_depth,
                 "pose_world": targets.pose_world,
                 **({"face_mesh": targets.face_mesh} if targets.face_mesh is not None else {}),
+                **({"face_depth": targets.face_depth} if targets.face_depth is not None else {}),
                 **({"hand_confidence": fit.hand_confidence.float()} if fit is not None else {}),
             },
             extra={
