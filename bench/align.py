@@ -239,18 +239,15 @@ def face_mesh_px(model, params, targets: FitTargets) -> dict[str, float] | None:
     """Per frame, the median px distance between the detected face-mesh landmarks and the fitted
     face's correspondence points; summarised as the median and 90th percentile over frames."""
     from eva_engine.align.face_mesh import load_correspondence
-    from eva_engine.body.keypoints import KeypointRegressor
 
     corr = load_correspondence(model)
     if corr is None or targets.face_mesh is None:
         return None
-    terms = corr.vertex_terms(model.faces)
-    names = [f"fm{k}" for k in terms]
-    reg = KeypointRegressor(names, dict(zip(names, terms.values(), strict=True)), {}, model.num_joints)
+    reg, landmarks = corr.regressor(model)
     with torch.no_grad():
         cam = to_camera(model.posed_points(params, reg), targets.frame_viewmat())
         uv = project_points(cam, targets.frame_K())
-    det = targets.face_mesh[:, list(terms)]
+    det = targets.face_mesh[:, landmarks]
     per_frame = []
     for f in range(uv.shape[0]):
         ok = det[f, :, 2] > 0

@@ -52,11 +52,7 @@ def test_reprojection_on_a_rendered_face(anny_model, correspondence):
 
 
 def test_posed_points_fast_path_matches_posing_the_mesh(anny_model, correspondence):
-    from eva_engine.body.keypoints import KeypointRegressor
-
-    terms = correspondence.vertex_terms(anny_model.faces)
-    names = [f"fm{k}" for k in terms]
-    reg = KeypointRegressor(names, dict(zip(names, terms.values(), strict=True)), {}, anny_model.num_joints)
+    reg, landmarks = correspondence.regressor(anny_model)
     g = torch.Generator().manual_seed(0)
     params = anny_model.default_params(3)
     params.joints.copy_(torch.randn(params.joints.shape, generator=g) * 0.2)
@@ -65,7 +61,7 @@ def test_posed_points_fast_path_matches_posing_the_mesh(anny_model, corresponden
     fast = anny_model.posed_points(params, reg)
     out = anny_model(params)
     slow = reg(out.vertices, out.joints)
-    assert fast.shape == (3, len(names), 3)
+    assert fast.shape == (3, len(landmarks), 3)
     torch.testing.assert_close(fast, slow, atol=2e-5, rtol=0)
 
 
@@ -73,20 +69,17 @@ def _face_targets(model, correspondence, params, K, view, depth_scale):
     """Exact face-mesh targets of ``params``: projected landmarks and their relative depths in
     pixels, as MediaPipe reports them (divided by ``depth_scale``, which the fit multiplies in)."""
     from eva_engine.align.evaluate import targets_from_params
-    from eva_engine.body.keypoints import KeypointRegressor
 
-    terms = correspondence.vertex_terms(model.faces)
-    names = [f"fm{k}" for k in terms]
-    reg = KeypointRegressor(names, dict(zip(names, terms.values(), strict=True)), {}, model.num_joints)
+    reg, landmarks = correspondence.regressor(model)
     with torch.no_grad():
         cam = to_camera(model.posed_points(params, reg), view)
     f = params.batch_size
     mesh = torch.zeros(f, NUM_LANDMARKS, 3)
-    mesh[:, list(terms), :2] = project_points(cam, K)
-    mesh[:, list(terms), 2] = 1.0
+    mesh[:, landmarks, :2] = project_points(cam, K)
+    mesh[:, landmarks, 2] = 1.0
     depth = torch.zeros(f, NUM_LANDMARKS)
     z = cam[..., 2]
-    depth[:, list(terms)] = (z - z.mean(1, keepdim=True)) * K[0, 0] / z.mean(1, keepdim=True) / depth_scale
+    depth[:, landmarks] = (z - z.mean(1, keepdim=True)) * K[0, 0] / z.mean(1, keepdim=True) / depth_scale
     base = targets_from_params(model, params, K, view, image_size=(512, 512))
     return dataclasses.replace(base, face_mesh=mesh, face_depth=depth)
 

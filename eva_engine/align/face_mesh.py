@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from eva_engine.body.keypoints import KeypointRegressor
 from eva_engine.body.model import SIDED_PART_NAMES, BodyModel
 
 logger = logging.getLogger(__name__)
@@ -62,6 +63,15 @@ class FaceMeshCorrespondence:
                 terms[int(v)] = terms.get(int(v), 0.0) + float(w)
             out[k] = terms
         return out
+
+    def regressor(self, model: BodyModel) -> tuple[KeypointRegressor, Tensor]:
+        """(regressor of the valid landmarks' surface points, on the model's device, for
+        ``BodyModel.posed_points``; ``landmarks [L]`` their MediaPipe indices, in its order)."""
+        terms = self.vertex_terms(model.faces.cpu())
+        names = [f"face_mesh_{k}" for k in terms]
+        vertex_terms = dict(zip(names, terms.values(), strict=True))
+        reg = KeypointRegressor(names, vertex_terms, {}, model.num_joints)
+        return reg.to(model.device), torch.tensor(list(terms), dtype=torch.int64)
 
     def to_json(self) -> dict:
         return {

@@ -384,15 +384,10 @@ class _Problem:
         dense = config.dense_face and targets.face_mesh is not None
         if dense and any(s.w_face_mesh > 0 or s.face_z > 0 for s in config.stages):
             from eva_engine.align.face_mesh import load_correspondence
-            from eva_engine.body.keypoints import KeypointRegressor
 
             corr = load_correspondence(model)
             if corr is not None:
-                terms = corr.vertex_terms(model.faces.cpu())
-                names = [f"face_mesh_{k}" for k in terms]
-                vertex_terms = dict(zip(names, terms.values(), strict=True))
-                reg = KeypointRegressor(names, vertex_terms, {}, model.num_joints)
-                self.face_mesh = (reg.to(model.device), torch.tensor(list(terms), dtype=torch.int64))
+                self.face_mesh = corr.regressor(model)
         self.silhouette = None  # (regressor of the outline's vertices, SilhouetteTargets, spacing m)
         if targets.person_masks is not None and any(s.w_silhouette > 0 for s in config.stages):
             self.silhouette = _silhouette_problem(model, targets.person_masks, config.silhouette_points)
