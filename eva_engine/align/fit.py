@@ -186,8 +186,7 @@ class FitStage:
     coarse_weight: float = 0.3
     """Weight (relative to ``w_pose``) of the pose model's coarse hand and face points while this
     stage gives the hand or face group no weight of its own (``w_hand`` or ``w_face`` 0); the face
-    points also in the frames where no face was detected, there moving the head alone (in stages
-    that move the face part)."""
+    points also in the frames where no face was detected."""
     rigid_face_only: bool = False
     """Use only the face points that no facial action moves (eye corners, nose): the head's pose
     is fitted before the expression, so the mouth's points must not turn the head."""
@@ -376,10 +375,7 @@ class _Problem:
             "face": _mask(kp.shape[1], range(KEYPOINT_GROUPS["face"].start, KEYPOINT_GROUPS["face"].stop)),
         }
         self.group_mask["face_rigid"] = self.group_mask["face"] * rigid_face_points(model).float()
-        # Frames without a detected face: the pose model's face points turn their heads.
-        self.face_missing = torch.nonzero((self.conf * self.group_mask["face"]).sum(1) == 0).squeeze(1)
-        neck = torch.tensor([n.startswith("neck") for n in model.pose_joint_names])
-        self.head_joints = ((part == PART_NAMES.index("face")) | neck)[:, None]  # [P, 1]
+        self.face_missing = ((self.conf * self.group_mask["face"]).sum(1) == 0).float()  # [F]
         limits = torch.tensor([JOINT_LIMITS[p] for p in PART_NAMES])
         self.joint_limit = limits[part]  # [P]
         uses_prior = any(s.hand_prior > 0 for s in config.stages)
@@ -395,21 +391,6 @@ class _Problem:
         self.silhouette = None  # (regressor of the outline's vertices, SilhouetteTargets, spacing m)
         if targets.person_masks is not None and any(s.w_silhouette > 0 for s in config.stages):
             self.silhouette = _silhouette_problem(model, targets.person_masks, config.silhouette_points)
-
-    def _head_fallback_loss(self, params: BodyParams, sigma_2d: float) -> Tensor:
-        """The pose model's face points (nose, eyes, ears) in the frames without a detected face,
-        moving the neck and the face part's joints only: a turned head is what the face mesh
-        misses (taiji: 22% of the frames, mmpose: 70%), and these points, guessed by the pose model
-        when the face is turned away, must not bend the spine or shift the body (mmpose: body
-        reprojection error 3.1 -> 3.6 px when they did)."""
-        idx = self.face_missing
-        joints = params.joints[idx]
-        joints = torch.where(self.head_joints.to(joints.device), joints, joints.detach())
-        head_only = dataclasses.replace(params[idx].detach(), joints=joints)
-        kp, _ = self.model.posed_keypoints(head_only)
-        uv = project_points(to_camera(kp, self.viewmat[idx]), self.K[idx])
-        residual = (uv - self.targets.keypoints[idx, :, :2]) / self.scale[idx, None, None]
-        return weighted_gm(residual, self.group_mask["pose_face"] * self.conf[idx], sigma_2d)
 
     def params(self) -> BodyParams:
         v = self.values
@@ -437,10 +418,14 @@ class _Problem:
         # Each group is a robust mean over its own points, so the 16 face points weigh as much as
         # the body's joints when gamma says so. Until hands / face get their own weight, the
         # pose model's coarse hand and face points stand in for them.
+        # Frames without a detected face keep the coarse face points when the face group has its
+        # own weight: nothing else would turn their heads (a turned head is what the face mesh
+        # misses; taiji: 22% of the frames).
         coarse = stage.coarse_weight * stage.w_pose
+        face_frames = self.face_missing if stage.w_face > 0 else torch.ones_like(self.face_missing)
         groups = (
             (stage.w_pose, self.group_mask["pose"]),
-            (coarse * (stage.w_face == 0), self.group_mask["pose_face"]),
+            (coarse, self.group_mask["pose_face"] * face_frames[:, None]),
             (coarse * (stage.w_hand == 0), self.group_mask["pose_hand"]),
             (stage.w_hand, self.group_mask["hand"]),
             (stage.w_face, self.group_mask["face_rigid" if stage.rigid_face_only else "face"]),
@@ -449,9 +434,6 @@ class _Problem:
         for gamma, mask in groups:
             if gamma > 0:
                 total = total + gamma * weighted_gm(residual, mask * self.conf, sigma_2d)
-
-        if stage.w_face > 0 and coarse > 0 and "face" in stage.optimize and len(self.face_missing):
-            total = total + coarse * self._head_fallback_loss(params, sigma_2d)
 
         use_depth = stage.face_z > 0 and t.face_depth is not None
         if (stage.w_face_mesh > 0 or use_depth) and self.face_mesh is not None:
