@@ -93,15 +93,19 @@ class Detections:
             torch.from_numpy(self.face_depth) if self.face_depth is not None else None,
         )
 
+    def person_mask(self, row: int, shape: tuple[int, int]) -> np.ndarray:
+        """[H, W] float32 frame ``row``'s person mask; all ones (the whole frame may be the person)
+        where the segmenter gave none."""
+        m = self.masks[row]
+        return np.ones(shape, np.float32) if m is None else m.astype(np.float32, copy=False)
+
     def person_masks(self) -> torch.Tensor | None:
         """[F, H, W] the person masks, all ones where a frame has none (None without any mask)."""
         shapes = {m.shape for m in self.masks if m is not None}
         if len(shapes) != 1:
             return None
         (shape,) = shapes
-        return torch.from_numpy(
-            np.stack([np.ones(shape, np.float32) if m is None else m.astype(np.float32) for m in self.masks])
-        )
+        return torch.from_numpy(np.stack([self.person_mask(j, shape) for j in range(len(self.masks))]))
 
     def select(self, rows: list[int]) -> Detections:
         """The detections of frames ``rows``."""
@@ -259,7 +263,7 @@ def preprocess_video(
         from eva_engine.data.region_masks import region_masks
 
         started = time.perf_counter()
-        person = [np.ones((h, w), np.float32) if m is None else m for m in det.masks]
+        person = [det.person_mask(j, (h, w)) for j in range(len(det.masks))]
         # Scored where the detector found the region (a rejected hand was not found).
         present = det.regions_found()
         present[:, :2] &= ~fit.hands_rejected.numpy()
@@ -283,11 +287,9 @@ def preprocess_video(
     train = [i for i in range(n) if i not in set(test)]
     with DatasetWriter(out_dir, meta, overwrite=overwrite) as writer:
         for j, i in enumerate(keep):
-            mask = det.masks[j]
-            mask = np.ones((h, w), np.float32) if mask is None else mask
             writer.add_frame(
                 clip.frames[i],
-                mask,
+                det.person_mask(j, (h, w)),
                 K=K,
                 viewmat=viewmat,
                 time=float(clip.timestamps[i]),
