@@ -291,3 +291,19 @@ def test_a_frame_without_a_face_turns_its_head_to_the_pose_face_points(anny_mode
         r = anny_model(result.params).transforms[2, head, :3, :3]
         t = anny_model(clip).transforms[2, head, :3, :3]
     assert torch.rad2deg(roma.rotmat_to_rotvec(r @ t.T).norm()) < 5.0
+
+
+def test_the_body_stages_ignore_the_face_points_of_a_frame_without_a_face(anny_model, clip):
+    """Where no face was found the pose model's face points turn the head, in stages that move
+    it; in the body stages (head not free) they would bend the body toward guessed points."""
+    from eva_engine.align.fit import POSE_FACE, _Problem
+
+    targets = targets_from_params(anny_model, clip, K, VIEW)
+    targets.keypoints[2, KEYPOINT_GROUPS["face"], 2] = 0.0
+    moved = dataclasses.replace(targets, keypoints=targets.keypoints.clone())
+    moved.keypoints[2, list(POSE_FACE), :2] += 40.0  # guessed points far off
+    stages = {s.name: s for s in default_stages()}
+    for name, counts in (("body", False), ("refine", True)):
+        problems = [_Problem(anny_model, t, FitConfig(), clip) for t in (targets, moved)]
+        losses = [float(p.loss(stages[name])) for p in problems]
+        assert (losses[0] != losses[1]) == counts, (name, losses)

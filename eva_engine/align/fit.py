@@ -186,7 +186,7 @@ class FitStage:
     coarse_weight: float = 0.3
     """Weight (relative to ``w_pose``) of the pose model's coarse hand and face points while this
     stage gives the hand or face group no weight of its own (``w_hand`` or ``w_face`` 0); the face
-    points also in the frames where no face was detected."""
+    points also in the frames where no face was detected, in stages that move the face part."""
     rigid_face_only: bool = False
     """Use only the face points that no facial action moves (eye corners, nose): the head's pose
     is fitted before the expression, so the mouth's points must not turn the head."""
@@ -423,9 +423,12 @@ class _Problem:
         # misses; taiji: 22% of the frames).
         coarse = stage.coarse_weight * stage.w_pose
         face_frames = self.face_missing if stage.w_face > 0 else torch.ones_like(self.face_missing)
+        # Not in the body stages: there the guessed points of a turned-away head move the body
+        # alone (the head is not free), which costs mmpose's body fit (real_videos_fb).
+        fallback = stage.w_face == 0 or "face" in stage.optimize
         groups = (
             (stage.w_pose, self.group_mask["pose"]),
-            (coarse, self.group_mask["pose_face"] * face_frames[:, None]),
+            (coarse * fallback, self.group_mask["pose_face"] * face_frames[:, None]),
             (coarse * (stage.w_hand == 0), self.group_mask["pose_hand"]),
             (stage.w_hand, self.group_mask["hand"]),
             (stage.w_face, self.group_mask["face_rigid" if stage.rigid_face_only else "face"]),
