@@ -87,13 +87,9 @@ def _face_targets(model, correspondence, params, K, view, depth_scale):
 def _head_error_deg(model, a, b, view) -> torch.Tensor:
     """[F, 3] the rotation between the head's rotations of ``a`` and ``b`` as a rotation vector
     in camera axes, in degrees: x pitch, y yaw, z roll (about the optical axis)."""
-    import roma
+    from eva_engine.align.evaluate import head_rotation_delta
 
-    head = model.joint_names.index("head")
-    with torch.no_grad():
-        ra, rb = model(a).transforms[:, head, :3, :3], model(b).transforms[:, head, :3, :3]
-    r = view[:3, :3]
-    return torch.rad2deg(roma.rotmat_to_rotvec(r @ ra @ rb.transpose(1, 2) @ r.T))
+    return torch.rad2deg(head_rotation_delta(model, a, b) @ view[:3, :3].T)
 
 
 def test_face_depths_turn_a_head_back(anny_model, correspondence):

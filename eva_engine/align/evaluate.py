@@ -117,11 +117,17 @@ def expression_error(model: BodyModel, params: BodyParams, truth: BodyParams, mo
     return float((a - b).norm(dim=-1)[active].mean() * 1000)
 
 
-def head_rotation_error(model: BodyModel, params: BodyParams, truth: BodyParams) -> float:
-    """Mean angle (degrees) between the fitted and the true world rotation of the head joint, over
-    the frames: where the fit turned the head, whatever the joints that turned it."""
+def head_rotation_delta(model: BodyModel, params: BodyParams, truth: BodyParams) -> Tensor:
+    """[F, 3] per frame, the rotation from the true to the fitted world rotation of the head joint
+    as a rotation vector (radians, world axes): where the fit turned the head, whatever the joints
+    that turned it."""
     j = model.joint_names.index("head")
     with torch.no_grad():
         a = model(params).transforms[:, j, :3, :3]
         b = model(truth).transforms[:, j, :3, :3].to(a)
-    return float(torch.rad2deg(roma.rotmat_to_rotvec(a @ b.transpose(1, 2)).norm(dim=-1)).mean())
+    return roma.rotmat_to_rotvec(a @ b.transpose(1, 2))
+
+
+def head_rotation_error(model: BodyModel, params: BodyParams, truth: BodyParams) -> float:
+    """Mean angle (degrees) of :func:`head_rotation_delta` over the frames."""
+    return float(torch.rad2deg(head_rotation_delta(model, params, truth).norm(dim=-1)).mean())

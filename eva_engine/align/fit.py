@@ -23,7 +23,8 @@ Objective over all frames at once (batched body model, shape shared by the clip)
   landmarks, with a small sparsity prior and the model's valid range (``clip.fit_clip`` then
   smooths it over time). The face mesh's relative depths (``face_z``, MediaPipe's z as the hands'
   psi_z) turn the head: 2D landmarks leave its pitch and yaw loose. Frames where no face was
-  found keep the pose model's coarse face points (nose, eyes, ears).
+  found keep the pose model's coarse face points (nose, eyes, ears) in the stages that move the
+  head.
 - Outline (``align.silhouette``): a two-sided chamfer between the person mask's outline and the
   projected body, in the last, short stage (``outline``), where the targets carry masks.
 
@@ -420,11 +421,10 @@ class _Problem:
         # pose model's coarse hand and face points stand in for them.
         # Frames without a detected face keep the coarse face points when the face group has its
         # own weight: nothing else would turn their heads (a turned head is what the face mesh
-        # misses; taiji: 22% of the frames).
+        # misses; taiji: 22% of the frames). Not in the body stages, though: the head is not free
+        # there, so the body alone follows those guessed points (mmpose's body fit, real_videos_fb).
         coarse = stage.coarse_weight * stage.w_pose
         face_frames = self.face_missing if stage.w_face > 0 else torch.ones_like(self.face_missing)
-        # Not in the body stages: there the guessed points of a turned-away head move the body
-        # alone (the head is not free), which costs mmpose's body fit (real_videos_fb).
         fallback = stage.w_face == 0 or "face" in stage.optimize
         groups = (
             (stage.w_pose, self.group_mask["pose"]),
