@@ -97,12 +97,11 @@ def synthetic(model, frames: int, dataset: Path | None) -> dict:
     # counterpart).
     exact = targets_from_params(model, truth, K, view, ds.image_size)
     exact = dataclasses.replace(exact, face_mesh=targets.face_mesh, face_depth=targets.face_depth)
-    true_depths = FitConfig(hand_depth_scale=1.0, thumb_depth_ratio=1.0)
-    exact_fit = fit_clip(model, exact, ds.timestamps[order], true_depths)
+    exact_fit = fit_clip(model, exact, ds.timestamps[order], FitConfig(hand_depth_scale=1.0))  # true depths
 
     per_frame = {
         "detections": per_frame_hands(model, result, truth, FitConfig()),
-        "exact_targets": per_frame_hands(model, exact_fit, truth, true_depths),
+        "exact_targets": per_frame_hands(model, exact_fit, truth, FitConfig(hand_depth_scale=1.0)),
     }
 
     out = {

@@ -260,7 +260,7 @@ def test_hands_are_turned_to_the_detected_palm_again_after_the_body_stages(anny_
     assert hands.orient_hands_first
 
     def run(stage):
-        config = FitConfig(stages=(stage,), hand_depth_scale=1.0, thumb_depth_ratio=1.0)  # exact depths
+        config = FitConfig(stages=(stage,), hand_depth_scale=1.0)  # exact depths
         return fit_sequence(anny_model, targets, init=twisted, config=config).params
 
     kept = run(dataclasses.replace(hands, orient_hands_first=False))
@@ -302,15 +302,3 @@ def test_the_body_stages_ignore_the_face_points_of_a_frame_without_a_face(anny_m
         problems = [_Problem(anny_model, t, FitConfig(), clip) for t in (targets, moved)]
         losses = [float(p.loss(stages[name])) for p in problems]
         assert (losses[0] != losses[1]) == counts, (name, losses)
-
-
-def test_the_thumbs_depths_are_scaled_less_than_the_fingers():
-    """MediaPipe exaggerates the thumb's relative depths against the fingers' (measured on renders):
-    the four thumb points get ``thumb_depth_ratio`` of the fingers' scale, the wrist's is moot."""
-    config = FitConfig(hand_depth_scale=1.5, thumb_depth_ratio=0.6)
-    scales = config.hand_depth_scales()
-    assert scales.shape == (21,)
-    assert torch.allclose(scales[1:5], torch.full((4,), 0.9))
-    assert torch.allclose(scales[5:], torch.full((16,), 1.5))
-    exact = FitConfig(hand_depth_scale=1.0, thumb_depth_ratio=1.0)
-    assert torch.equal(exact.hand_depth_scales(), torch.ones(21))

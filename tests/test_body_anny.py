@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from eva_engine.body import KEYPOINT_NAMES, PART_NAMES, AnnyCacheError, ensure_anny_cache, load_body_model
-from eva_engine.body.anny_backend import ANNY_TO_WORLD, SEGMENT_LABELS, THUMB_TIP_ALONG, TIP_ALONG
+from eva_engine.body.anny_backend import ANNY_TO_WORLD, SEGMENT_LABELS
 from eva_engine.body.anny_cache import cache_is_valid, default_cache_dir, expected_cache_file
 
 
@@ -104,31 +104,6 @@ def test_keypoint_vertices_lie_on_their_parts(anny_model):
             assert (parts == PART_NAMES.index("face")).all(), name
         if "_hand_" in name and name.endswith("_tip"):
             assert (parts == PART_NAMES.index("hand")).all(), name
-
-
-def test_fingertips_sit_where_mediapipe_puts_them_and_bend_with_the_last_phalanx(anny_model):
-    """The tip keypoint lies on the segment from the DIP (thumb: IP) point to the mesh's end of
-    the finger, ``TIP_ALONG`` of the way: MediaPipe's fingertip is not at the end (measured on
-    renders). Curling the last joint carries it along."""
-    m = anny_model
-    w = m.keypoint_regressor.dense_vertex_weights(m.num_vertices)
-    for before, tip, t in (
-        ("left_hand_index_finger_dip", "left_hand_index_finger_tip", TIP_ALONG),
-        ("right_hand_pinky_dip", "right_hand_pinky_tip", TIP_ALONG),
-        ("left_hand_thumb_ip", "left_hand_thumb_tip", THUMB_TIP_ALONG),
-    ):
-        out = m(m.default_params(1))
-        kp = m.keypoints(out)[0]
-        (end,) = torch.nonzero(w[kp_index(tip)]).squeeze(1).tolist()
-        expected = kp[kp_index(before)] + t * (out.vertices[0, end] - kp[kp_index(before)])
-        assert torch.allclose(kp[kp_index(tip)], expected, atol=1e-5), tip
-        assert (out.vertices[0, end] - kp[kp_index(tip)]).norm() > 0.005  # short of the mesh's end
-
-    rest = m.keypoints(m(m.default_params(1)))[0]
-    curled = m.keypoints(m(m.params_from_pose({"joints": {"finger2-3.L": [0.0, 0.0, 1.2]}})))[0]
-    moved = (curled - rest).norm(dim=1)
-    assert moved[kp_index("left_hand_index_finger_tip")] > 0.005
-    assert moved[kp_index("left_hand_index_finger_pip")] < 1e-5
 
 
 def test_hand_keypoints_follow_the_wrist(anny_model):

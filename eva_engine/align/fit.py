@@ -325,11 +325,6 @@ class FitConfig:
     hand_depth_scale: float = 1.6
     """MediaPipe's relative hand depths are compressed: on rendered Anny hands (``bench/align.py``)
     the true depths are 1.6-1.7 x its values (correlation 0.8); they are scaled by this."""
-    thumb_depth_ratio: float = 0.6
-    """The thumb's depths (its four points) are exaggerated against the fingers': on the
-    ``controlled`` preset's renders (seeds 1 and 2, not the benchmark clip) the true depths are
-    0.66 x MediaPipe's on the thumb and 1.04 x on the fingers (correlation 0.79 and 0.71). The
-    thumb's scale is ``hand_depth_scale`` times this."""
     face_depth_scale: float = 0.9
     """MediaPipe's face-mesh depths are not: on rendered Anny faces the true relative depths are
     0.9 x its values (correlation 0.95, ``bench/align.py``'s synthetic clip)."""
@@ -342,13 +337,6 @@ class FitConfig:
     silhouette_points: int = 2500
     """How many of the body model's vertices stand for its outline in the silhouette terms."""
     history_size: int = 20
-
-    def hand_depth_scales(self) -> Tensor:
-        """[21]: the factor on MediaPipe's relative depth of each hand point (wrist, thumb x 4,
-        fingers x 16)."""
-        scales = torch.full((21,), self.hand_depth_scale)
-        scales[1:5] *= self.thumb_depth_ratio
-        return scales
 
 
 @dataclass
@@ -486,7 +474,7 @@ class _Problem:
                 sl = KEYPOINT_GROUPS[g]
                 hand = cam[:, sl]
                 wrist_z = hand[:, :1, 2].detach().clamp_min(MIN_DEPTH)
-                depth = cfg.hand_depth_scales().to(t.hand_depth) * t.hand_depth[:, offset : offset + 21]
+                depth = cfg.hand_depth_scale * t.hand_depth[:, offset : offset + 21]
                 target_z = depth * wrist_z / self.K[:, 0, 0, None]
                 target = torch.cat([hand[..., :2].detach(), target_z[..., None]], dim=-1)
                 total = total + stage.hand_z * z_only_gm(hand, target, self.conf[:, sl], cfg.sigma_z)

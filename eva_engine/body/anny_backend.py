@@ -39,9 +39,8 @@ Keypoints (layout in :mod:`eva_engine.body.keypoints`), all from the neutral res
   wrist = 0.85 wrist + 0.15 finger3-1; thumb CMC/IP = heads of finger1-1/1-3, thumb MCP = head
   of finger1-2 + 0.10 of its bone; finger MCP = head(finger{i}-1) - 0.10 palm; PIP = head of
   finger{i}-2 + 0.15 of its bone, DIP = head of finger{i}-3 + 0.10 of the middle phalanx
-  (both measured against MediaPipe on palm-facing renders, see the constants); tips = part of
-  the way from the DIP (thumb: IP) point to the vertex of the distal phalanx furthest along its
-  bone, where MediaPipe puts them (``TIP_ALONG``, ``THUMB_TIP_ALONG``).
+  (both measured against MediaPipe on palm-facing renders, see the constants); tips = the
+  vertex of the distal phalanx furthest along its bone (bone heads do not reach the tips).
 - Face, from the mesh's own features: eye corners = the medial/lateral extremes of the eyelid
   margin (the loop where head skin meets the eye cavity); lid centres = the margin vertices above
   and below the eye's mid-width; iris = the most forward vertex of each eyeball front; nose tip =
@@ -104,13 +103,6 @@ KNUCKLE_BACK = 0.10  # palm lengths (detection-notes.md)
 PIP_ALONG = 0.15  # fraction of the middle phalanx, from its head toward the DIP
 DIP_BEYOND = 0.10  # fraction of the middle phalanx, past the distal phalanx's head
 THUMB_MCP_ALONG = 0.10  # fraction of the thumb's proximal phalanx
-# Measured here (MediaPipe holistic on the `controlled` preset's renders, seeds 1 and 2, 155
-# frames, both hands): MediaPipe's fingertip lies part of the way from the DIP (thumb: IP) point
-# to the mesh's tip, not at the tip (median position along that segment in the image, per
-# finger 0.18-0.55, thumb 0.68-0.73). A tip at the mesh's end made the fit curl and tilt every
-# finger to reach it.
-TIP_ALONG = 0.4  # fraction of DIP point -> tip vertex (index .. pinky)
-THUMB_TIP_ALONG = 0.7  # fraction of IP point -> tip vertex
 
 
 @dataclasses.dataclass(frozen=True)
@@ -378,13 +370,7 @@ class AnnyBody(BodyModel):
                 middle_bone, distal = j[f"finger{i}-2.{s}"], j[f"finger{i}-3.{s}"]
                 bone_dir = heads[distal] - heads[middle_bone]
                 on_bone = torch.nonzero(dominant_bone == distal).squeeze(1)
-                end = int(on_bone[(rest[on_bone] @ bone_dir).argmax()])
-                if finger == "thumb":
-                    base, t = {j[f"finger1-3.{s}"]: 1.0}, THUMB_TIP_ALONG
-                else:
-                    base, t = along(distal, middle_bone, -DIP_BEYOND), TIP_ALONG
-                vt[h + f"{finger}_tip"] = {end: t}
-                jt[h + f"{finger}_tip"] = {k: (1.0 - t) * w for k, w in base.items()}
+                vertex(h + f"{finger}_tip", on_bone[(rest[on_bone] @ bone_dir).argmax()])
                 if finger == "thumb":
                     continue
                 mcp: dict[int, float] = {j[f"finger{i}-1.{s}"]: 1.0}

@@ -164,9 +164,6 @@ def _anatomy(
         return rest[np.intersect1d(verts(a), verts(b))]
 
     kp = {n: keypoints[i] for i, n in enumerate(model.keypoint_names)}
-    # The nails end at the mesh's fingertip vertex, not at the tip keypoint (where MediaPipe puts
-    # it, part of the way down the distal phalanx).
-    tip_vertex = model.keypoint_regressor.dense_vertex_weights(rest.shape[0]).numpy() > 0
     eye_margin, eye_centre, eye_forward, tip = {}, {}, {}, {}
     for s, side in (("L", "left"), ("R", "right")):
         eye_margin[s] = boundary("head", f"eye_cavity.{s}")
@@ -175,8 +172,7 @@ def _anatomy(
         fwd = kp[f"face_{side}_iris"] - eye_centre[s]
         eye_forward[s] = fwd / np.linalg.norm(fwd)
         for i, finger in enumerate(("thumb", "index_finger", "middle_finger", "ring_finger", "pinky"), 1):
-            (end,) = np.flatnonzero(tip_vertex[model.keypoint_names.index(f"{side}_hand_{finger}_tip")])
-            tip[f"{i}.{s}"] = rest[end]
+            tip[f"{i}.{s}"] = kp[f"{side}_hand_{finger}_tip"]
     return _Anatomy(
         heads, eye_margin, eye_centre, eye_forward, boundary("head", "mouth_cavity"), palm_dir, tip
     )
