@@ -192,7 +192,8 @@ def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
     return {k: sum(r[k] for r in rows) / len(rows) for k in rows[0] if all(k in r for r in rows)}
 
 
-def _box_side(mask: Tensor) -> int:
+def box_side(mask: Tensor) -> int:
+    """The longer side, in pixels, of a region mask's [H, W] bounding box (before the box rule)."""
     x0, y0, x1, y1 = (int(v) for v in mask_bbox(mask[None, None])[0])
     return max(x1 - x0, y1 - y0)
 
@@ -251,7 +252,7 @@ def evaluate_avatar(
                 continue
             rows[name] = metrics(pred, target, mask, alpha, frame.mask)
             crops[REGION_OF_MASK[name]].append(rows[name])
-            boxes[REGION_OF_MASK[name]].append(_box_side(mask))
+            boxes[REGION_OF_MASK[name]].append(box_side(mask))
         rows.update({region: _mean(found) for region, found in crops.items() if found})
         per_frame[i] = rows
     regions = {}
