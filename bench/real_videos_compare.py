@@ -7,6 +7,9 @@ to the engine), paired by seed.
         --after real_videos_expr_seed0 real_videos_expr_seed1 real_videos_expr_seed2 \\
         --name real_videos_expr
 
+Two methods on the same datasets: ``--before-method 3dgs+body --method eva`` reads the before
+runs' 3dgs+body rows and the after runs' eva rows.
+
 Each stem names a ``bench/results/<stem>.json`` written by ``bench/real_videos.py`` (one seed
 each; the seeds are read from the files and must match pairwise). The verdicts follow
 ``stats.compare_paired``: better / worse only when the mean per-seed gap exceeds its standard
@@ -64,9 +67,17 @@ def compare_runs(before: dict, after: dict) -> dict:
     return out
 
 
+def title(doc: dict) -> str:
+    """What is compared: one method before / after, or one method against another."""
+    before = doc.get("before_method", doc["method"])
+    if before == doc["method"]:
+        return f"{doc['method']}, before / after"
+    return f"{before} (before) / {doc['method']} (after)"
+
+
 def markdown(doc: dict) -> str:
     lines = [
-        f"# Real-video runs over seeds: {doc['method']}, before / after",
+        f"# Real-video runs over seeds: {title(doc)}",
         "",
         f"- date: {doc['date']}; command: `{doc['command']}`",
         f"- before: {', '.join(doc['before'])} (seeds {doc['seeds']})",
@@ -99,13 +110,15 @@ def markdown(doc: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--method", default="eva")
+    ap.add_argument("--method", default="eva", help="the method of the after runs (and of the before runs)")
+    ap.add_argument("--before-method", help="the method of the before runs, when it is another")
     ap.add_argument("--before", nargs="+", required=True, help="result stems, one per seed")
     ap.add_argument("--after", nargs="+", required=True, help="result stems, one per seed")
     ap.add_argument("--name", required=True, help="result file stem")
     ap.add_argument("--results", type=Path, default=RESULTS)
     args = ap.parse_args()
-    seeds_b, before = load_runs(args.before, args.method, args.results)
+    before_method = args.before_method or args.method
+    seeds_b, before = load_runs(args.before, before_method, args.results)
     seeds_a, after = load_runs(args.after, args.method, args.results)
     if seeds_b != seeds_a:
         raise SystemExit(
@@ -115,6 +128,7 @@ def main() -> None:
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "command": "python bench/real_videos_compare.py " + " ".join(sys.argv[1:]),
         "method": args.method,
+        "before_method": before_method,
         "before": args.before,
         "after": args.after,
         "seeds": seeds_a,
