@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from machine import describe
-from real_videos import DEFAULT_VIDEOS, frame_count, list_videos
+from real_videos import DEFAULT_VIDEOS, frame_count, videos_or_skip
 
 RESULTS = Path(__file__).resolve().parent / "results"
 PARTS = ("pose", "left_hand", "right_hand", "face")
@@ -68,9 +68,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--name", default="detection", help="result file stem")
     args = ap.parse_args()
-    videos = list_videos(args.videos)
+    videos = videos_or_skip(args.videos)
     if not videos:
-        print(f"skipping: no videos in {args.videos} (pass --videos DIR)", file=sys.stderr)
         return
     import torch
 

@@ -62,6 +62,18 @@ def list_videos(folder: Path) -> list[Path]:
     return sorted(p for p in folder.glob("*") if p.suffix.lower() in VIDEO_SUFFIXES)
 
 
+def videos_or_skip(folder: Path) -> list[Path]:
+    """``list_videos(folder)``; when there are none, says why the benchmark skips (stderr)."""
+    videos = list_videos(folder)
+    if not videos:
+        print(
+            f"skipping: no videos in {folder} (the reference videos sit in ../shared beside a "
+            "checkout; pass --videos DIR)",
+            file=sys.stderr,
+        )
+    return videos
+
+
 def frame_count(video: Path) -> int:
     import av
 
@@ -309,13 +321,8 @@ def main() -> None:
         "(train.with_overrides); the avatars are saved under avatar-<method>-<name>",
     )
     args = ap.parse_args()
-    videos = list_videos(args.videos)
+    videos = videos_or_skip(args.videos)
     if not videos:
-        print(
-            f"skipping: no videos in {args.videos} (the reference videos sit in ../shared beside a "
-            "checkout; pass --videos DIR)",
-            file=sys.stderr,
-        )
         return
 
     from eva_engine.data import load_dataset

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from machine import describe
-from real_videos import DEFAULT_VIDEOS, RESULTS, list_videos, preprocess
+from real_videos import DEFAULT_VIDEOS, RESULTS, preprocess, videos_or_skip
 
 SHIFTS_PX = (1, 2, 3, 4)
 BLURS_PX = (0.5, 1.0, 1.5, 2.0)
@@ -162,9 +162,8 @@ def main() -> None:
     ap.add_argument("--name", default="region_sensitivity")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
-    videos = list_videos(args.videos)
+    videos = videos_or_skip(args.videos)
     if not videos:
-        print(f"skipping: no videos in {args.videos} (pass --videos DIR)", file=sys.stderr)
         return
 
     from eva_engine.data import load_dataset
