@@ -62,14 +62,16 @@ def perturbations(target: torch.Tensor) -> dict[str, list[torch.Tensor]]:
     return out
 
 
-def sensitivity(dataset, metrics) -> dict[str, dict[str, dict[str, float]]]:
-    """{region: {label: {metric: mean over the frames of the frame's mean over its crops}}} on the
-    test frames (``evaluate_avatar``'s aggregation), plus each region's frame count."""
-    from eva_engine.eval.evaluate import REGION_MASKS, REGION_OF_MASK
+def sensitivity(dataset, metrics) -> tuple[dict, dict[str, float]]:
+    """({region: {label: {metric: mean over the frames of the frame's mean over its crops}}} on the
+    test frames (``evaluate_avatar``'s aggregation), plus each region's frame count; {region:
+    median box side in px}), from one pass over the test frames."""
+    from eva_engine.eval.evaluate import REGION_MASKS, REGION_OF_MASK, box_side
     from eva_engine.train.losses import composite_target
 
     background = torch.ones(3)
     per_frame: dict[str, list[dict[str, dict[str, float]]]] = {"hand": [], "face": []}
+    sides: dict[str, list[int]] = {"hand": [], "face": []}
     for i in dataset.splits["test_pose"]:
         frame = dataset[i]
         target = composite_target(frame.image.float(), frame.mask.float(), background)
@@ -84,6 +86,7 @@ def sensitivity(dataset, metrics) -> dict[str, dict[str, dict[str, float]]]:
                 rows = [metrics(img, target, mask) for img in images]
                 scores[label] = {m: statistics.mean(r[m] for r in rows) for m in REPORTED}
             crops[REGION_OF_MASK[name]].append(scores)
+            sides[REGION_OF_MASK[name]].append(box_side(mask))
         for region, found in crops.items():
             if found:
                 per_frame[region].append(
@@ -100,7 +103,7 @@ def sensitivity(dataset, metrics) -> dict[str, dict[str, dict[str, float]]]:
             label: {m: statistics.mean(f[label][m] for f in frames) for m in REPORTED} for label in frames[0]
         }
         out[region]["frames"] = len(frames)
-    return out
+    return out, {r: float(statistics.median(v)) for r, v in sides.items() if v}
 
 
 def method_scores(name: str | None, video: str) -> dict[str, dict[str, dict[str, float]]]:
@@ -168,7 +171,6 @@ def main() -> None:
 
     from eva_engine.data import load_dataset
     from eva_engine.eval import ImageMetrics
-    from eva_engine.eval.evaluate import REGION_MASKS, REGION_OF_MASK, box_side
     from eva_engine.paths import data_dir
 
     torch.set_num_threads(args.threads)
@@ -187,15 +189,10 @@ def main() -> None:
         print(f"{video.name} ...", file=sys.stderr, flush=True)
         folder = work / video.stem / "dataset"
         preprocess(video, folder, args.frames, args.max_size, args.detect_max_size)
-        ds = load_dataset(folder)
-        sides: dict[str, list[int]] = {"hand": [], "face": []}
-        for i in ds.splits["test_pose"]:
-            for name, mask in ds[i].regions.items():
-                if name in REGION_MASKS and bool((mask > 0.5).any()):
-                    sides[REGION_OF_MASK[name]].append(box_side(mask))
+        regions, box_px = sensitivity(load_dataset(folder), metrics)
         doc["videos"][video.name] = {
-            "regions": sensitivity(ds, metrics),
-            "box_px": {r: float(statistics.median(s)) for r, s in sides.items() if s},
+            "regions": regions,
+            "box_px": box_px,
             "methods": method_scores(args.scores, video.name),
         }
     args.out.mkdir(parents=True, exist_ok=True)
