@@ -28,9 +28,10 @@ class Method:
     control, §3.3), ``kl`` (GauHuman's KL-guided clone, split and merge) or ``gart`` (3DGS's with
     GART's thresholds, opacity pruning only). history: CADC's thresholds, ``per_gaussian`` (the
     paper's) or ``part_mean`` (the official code's). confidence: the confidence-aware loss (§3.4;
-    else plain L1). objective: ``full`` (mask, SSIM and LPIPS terms, eq. 11), ``gauhuman`` (the
-    same terms with GauHuman's LPIPS weight, 0.01), ``gart`` (L1 + 0.1 D-SSIM, and GART's
-    regularisers) or ``3dgs`` (3DGS's 0.8 L1 + 0.2 D-SSIM, and the mask term; no LPIPS).
+    else plain L1). objective: ``full`` (mask, SSIM and LPIPS terms, eq. 11, SSIM at 3DGS's weight
+    0.2), ``gauhuman`` (the same terms with GauHuman's SSIM and LPIPS weights, 0.01), ``gart``
+    (L1 + 0.1 D-SSIM, and GART's regularisers) or ``3dgs`` (3DGS's 0.8 L1 + 0.2 D-SSIM, and the
+    mask term; no LPIPS).
     skinning: ``mesh`` (the template's weights with the weight-offset MLP, and the pose refiner)
     or ``field`` (GART's learnable weight field and latent bones, no pose refiner).
     """

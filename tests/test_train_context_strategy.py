@@ -220,6 +220,8 @@ def test_selection_by_config_keeps_the_schedule():
         assert getattr(eva.strategy, field) == getattr(base.strategy, field)
     assert eva.loss.photometric == "confidence" and eva.loss.lambda_lpips == base.loss.lambda_lpips
     assert isinstance(AvatarLoss(eva.loss, lpips=object()).photometric, ConfidenceLoss)
+    # EVA's weights but 3DGS's SSIM weight (the paper's 0.01 measured worse: train/losses.py)
+    assert (eva.loss.lambda_photometric, eva.loss.lambda_ssim, eva.loss.lambda_lpips) == (1.0, 0.2, 0.04)
     baseline = with_method(eva, "3dgs+body")  # switching back needs no fresh preset
     assert type(baseline.strategy) is DefaultStrategy and baseline.loss.photometric == "l1"
     # 3DGS's own objective: 0.8 L1 + 0.2 D-SSIM (plus the mask term), no LPIPS

@@ -19,7 +19,8 @@
   L1 + 0.1 D-SSIM (no mask or LPIPS term) plus its regularisers (``regularizers.py``); its
   initial opacity 0.99. Schedule and learning rates are the preset's (``docs/baselines.md``).
 - ``eva``: context-aware density control (``ContextAwareStrategy``, per-Gaussian history) and the
-  confidence-aware loss, with the full objective (mask, SSIM, LPIPS; paper eq. 11).
+  confidence-aware loss, with the full objective (mask, SSIM, LPIPS; paper eq. 11), its
+  SSIM weight 3DGS's 0.2 rather than the paper's 0.01 (``train/losses.py``).
 - ``eva-no-cadc`` / ``eva-no-cl``: Table 2's ablations (``DefaultStrategy`` / plain L1).
 - ``eva-no-cadc-no-cl``: both contributions off (the full objective alone): what separates the
   baseline's objective from EVA's.
