@@ -105,7 +105,7 @@ def body_scene(n: int, size: int, seed: int = 0) -> dict:
         pts.append(p)
         nrm.append(q)
     means, normals = torch.cat(pts), torch.cat(nrm)
-    from eva_engine.demo import quat_from_z
+    from eva_engine.geometry import quat_from_z
 
     quats = quat_from_z(normals)  # flat discs tangent to the surface
     scales = torch.cat(

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from eva_engine.body import BodyModel
-from eva_engine.geometry import vertex_normals
+from eva_engine.geometry import quat_from_z, vertex_normals
 from eva_engine.render import intrinsics, orbit_camera, rasterize
 
 # Part colours (body, hand, face): distinct, so a wrong part id is visible at a glance.
@@ -48,18 +48,6 @@ class SurfaceGaussians:
     quats: Tensor
     scales: Tensor
     normals: Tensor
-
-
-def quat_from_z(directions: Tensor) -> Tensor:
-    """[N, 3] unit vectors -> [N, 4] (w, x, y, z) shortest rotations taking +z onto them."""
-    z = torch.zeros_like(directions)
-    z[:, 2] = 1.0
-    w = 1.0 + directions[:, 2:3]
-    q = torch.cat([w, torch.linalg.cross(z, directions)], dim=-1)
-    # Opposite to +z: any half turn about an axis orthogonal to z.
-    flip = w[:, 0] < 1e-6
-    q[flip] = torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=q.dtype)
-    return q / q.norm(dim=-1, keepdim=True)
 
 
 def surface_gaussians(vertices: Tensor, faces: Tensor, thickness: float = 0.15) -> SurfaceGaussians:

@@ -38,8 +38,9 @@ def project_points(points_cam: Tensor, K: Tensor, min_depth: float = MIN_DEPTH) 
 
 
 def camera_center(viewmat: Tensor) -> Tensor:
-    """[4, 4] world->camera -> [3] camera centre in world coordinates (-R^T t)."""
-    return -viewmat[:3, :3].T @ viewmat[:3, 3]
+    """[..., 4, 4] world->camera -> [..., 3] camera centres in world coordinates (-R^T t)."""
+    rot, t = viewmat[..., :3, :3], viewmat[..., :3, 3:]
+    return -(rot.transpose(-1, -2) @ t)[..., 0]
 
 
 def vertex_normals(vertices: np.ndarray | Tensor, faces: np.ndarray | Tensor) -> np.ndarray:
@@ -79,3 +80,15 @@ def mean_neighbour_distance(points: Tensor, k: int, chunk: int = 2048) -> Tensor
         d = torch.cdist(p, points).topk(k + 1, dim=1, largest=False).values
         out.append(d[:, 1:].mean(dim=1))
     return torch.cat(out)
+
+
+def quat_from_z(directions: Tensor) -> Tensor:
+    """[N, 3] unit vectors -> [N, 4] (w, x, y, z) shortest rotations taking +z onto them."""
+    z = torch.zeros_like(directions)
+    z[:, 2] = 1.0
+    w = 1.0 + directions[:, 2:3]
+    q = torch.cat([w, torch.linalg.cross(z, directions)], dim=-1)
+    # Opposite to +z: any half turn about an axis orthogonal to z.
+    flip = w[:, 0] < 1e-6
+    q[flip] = torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=q.dtype)
+    return q / q.norm(dim=-1, keepdim=True)

@@ -11,6 +11,7 @@ from __future__ import annotations
 SYNTH_PRESETS: dict[str, str] = {
     "controlled": "XHumans-like, thighs up, ground truth given, tested on other motion takes",
     "wild": "UPB-like waist-up signer, alternate frames tested",
+    "novel": "controlled's subject trained with the arms low; tested on raised arms and 35/70 deg views",
 }
 """Preset name -> what it shows."""
 

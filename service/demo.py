@@ -3,8 +3,9 @@
 A synthetic signer video (``eva_engine.demo.signer_video``) is uploaded to a real ``eva serve``
 with a real ``eva worker`` (both started here on a free loopback port, over a private service
 folder); the job is followed to the end with its progress, then the avatar is rendered through
-the API in a training frame's pose and in a new pose from the front and from the side. The PNG
-shows: input frame | avatar in that frame's pose | new pose | new pose from 35 degrees. With
+the API in a training frame's pose and in a new pose, framed as that frame's camera framed the
+signer (``{"camera": {"frame": i}}``), from the front and turned 35 degrees. The PNG shows:
+input frame | avatar in that frame's pose | new pose | new pose from 35 degrees. With
 ``out_mp4``, the avatar then performs a video of someone else (the synthetic signer with another
 seed: another body, face and motion) through ``POST /avatars/{id}/animations``: the mp4 shows
 that video beside the avatar.
@@ -24,9 +25,6 @@ from pathlib import Path
 import numpy as np
 
 from eva_engine.progress import Progress, ProgressEvent
-
-# The signer is filmed waist-up (the synthetic wild preset), so the new pose is framed the same way.
-UPPER_BODY = {"target": (0.0, 0.35, 0.0), "distance": 2.3, "fov_y": 35.0}
 
 
 class DemoError(RuntimeError):
@@ -134,10 +132,12 @@ def run_service_demo(
             info = _check(api.get(f"/avatars/{avatar_id}"), "avatar info").json()
             frame = info["num_frames"] // 2
             h, w = info["frame_size"]
+            # The new pose is framed as the video framed the signer: that frame's camera, placed
+            # where it was relative to the body, then turned 35 degrees about the body.
             requests = [
                 {"frame": frame},
-                {"pose": DEMO_POSE, "camera": {"yaw": 0.0, **UPPER_BODY}, "width": w, "height": h},
-                {"pose": DEMO_POSE, "camera": {"yaw": 35.0, **UPPER_BODY}, "width": w, "height": h},
+                {"pose": DEMO_POSE, "camera": {"frame": frame}},
+                {"pose": DEMO_POSE, "camera": {"frame": frame, "yaw": 35.0}},
             ]
             panels = [(frames[frame].numpy() * 255 + 0.5).astype(np.uint8)]
             say(ProgressEvent("render"))

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from eva_engine.avatar import Avatar, AvatarFileError, AvatarFrames, load_saved_avatar, read_avatar_meta
+from eva_engine.avatar.coverage import Coverage
 from eva_engine.avatar.render_spec import RenderInputError, RenderSpec, resolve_size
 from eva_engine.avatar.render_spec import render_image as _render_image
 from eva_engine.body import BodyModel, BodyParams, load_body_model
@@ -83,6 +84,7 @@ class LoadedAvatar:
 
     avatar: Avatar
     frames: AvatarFrames | None
+    coverage: Coverage | None = None
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
@@ -120,7 +122,7 @@ class AvatarCache:
                 if key in self._avatars:
                     return self._avatars[key]
             saved = load_saved_avatar(path, body=self.body(read_avatar_meta(path).body_model))
-            loaded = LoadedAvatar(saved.avatar.eval(), saved.frames)
+            loaded = LoadedAvatar(saved.avatar.eval(), saved.frames, saved.meta.coverage)
             with self._lock:
                 self.loads += 1
                 self._avatars[key] = loaded
@@ -139,7 +141,8 @@ class AvatarCache:
 def checked_size(spec: RenderSpec, folder: Path, max_side: int, max_pixels: int) -> tuple[int, int]:
     """The render's (width, height), from the request and the avatar's ``avatar.json`` (no model
     load), or ``RenderInputError`` when it is over ``max_side`` a side or ``max_pixels`` in all."""
-    frames = read_avatar_meta(folder).frames if spec.frame is not None else None
+    uses_frame = spec.frame is not None or (spec.camera is not None and spec.camera.frame is not None)
+    frames = read_avatar_meta(folder).frames if uses_frame else None
     width, height = resolve_size(spec, frames.image_size if frames is not None else None)
     if width > max_side or height > max_side or width * height > max_pixels:
         raise RenderInputError(

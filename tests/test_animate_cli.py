@@ -7,6 +7,7 @@ sizes, frame counts, that frames change exactly when the motion does, and every 
 from __future__ import annotations
 
 import json
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -17,7 +18,8 @@ from helpers.scenes import front_camera, random_params, teacher_avatar
 from PIL import Image
 from typer.testing import CliRunner
 
-from eva_engine.avatar import AvatarFrames, read_avatar_meta, save_avatar
+from eva_engine.avatar import AvatarFrames, TrainingRecord, read_avatar_meta, save_avatar
+from eva_engine.avatar.coverage import Coverage
 from eva_engine.cli import app
 from eva_engine.data import read_video, write_video
 
@@ -30,7 +32,8 @@ RAISED = {
 
 @pytest.fixture(scope="module")
 def avatar_dir(anny_model, tmp_path_factory):
-    """A saved avatar with 3 training frames (80 x 64 px, their poses and cameras)."""
+    """A saved avatar with 3 training frames (80 x 64 px, their poses and cameras) and the
+    coverage a training run records of them."""
     folder = tmp_path_factory.mktemp("cli") / "avatar"
     avatar = teacher_avatar(anny_model, n=3000)
     cam = front_camera(64)
@@ -42,7 +45,8 @@ def avatar_dir(anny_model, tmp_path_factory):
         image_size=(80, 64),
         fps=10.0,
     )
-    save_avatar(avatar, folder, frames=frames)
+    record = TrainingRecord(coverage=Coverage.of_frames(anny_model, frames.params, frames.viewmat))
+    save_avatar(avatar, folder, record, frames=frames)
     return folder
 
 
@@ -86,6 +90,21 @@ def test_render_a_pose_from_json(avatar_dir, tmp_path):
         == 0
     )
     assert np.array_equal(_png(inline), b)
+
+
+def test_render_beyond_the_training_range_warns_and_still_renders(avatar_dir, tmp_path):
+    """The training frames face the camera with the arms near rest: a raised arm seen from the
+    side renders, with a warning naming the joint and the camera; a training frame has none."""
+    out = tmp_path / "side.png"
+    res = _run("render", avatar_dir, "--pose", json.dumps(RAISED), "--camera", "left", "--out", out)
+    assert res.code == 0 and out.is_file(), res.out
+    # About 90 deg: the framed camera turns about the avatar's centre, not exactly about its root.
+    assert (
+        re.search(r"warning: the camera is at yaw (8[5-9]|9[0-5]) deg", res.out) and "upperarm01.L" in res.out
+    )
+    assert "jawOpen" in res.out  # the expression too: training kept a neutral face
+    res = _run("render", avatar_dir, "--pose", "frame:1", "--out", tmp_path / "frame.png")
+    assert res.code == 0 and "warning" not in res.out
 
 
 def test_render_frames_cameras_and_backgrounds(avatar_dir, tmp_path):

@@ -66,7 +66,10 @@ def test_compiled_matches_torch_in_float64(compiled, n, j):
 
 
 def test_compiled_matches_torch_in_float32(compiled):
-    assert_kernels_agree(random_inputs(300, 104, torch.float32), atol=5e-5, rtol=1e-4)
+    # -march=native lets GCC fuse multiply-adds where the CPU has FMA, so the last float32 bits
+    # differ by CPU: on an AMD EPYC one of 31,200 weight gradients (0.65) is 1.2e-4 off. The
+    # float64 tests above hold the kernels to 1e-8.
+    assert_kernels_agree(random_inputs(300, 104, torch.float32), atol=2e-4, rtol=1e-4)
 
 
 def test_compiled_matches_torch_on_degenerate_blends(compiled):

@@ -81,7 +81,13 @@ def test_round_trip(tmp_path):
     assert (
         ds.meta.extra == {"detector": "mediapipe"} and ds.meta.has_region_masks and ds.meta.has_ground_truth
     )
-    assert ds.splits == {"train": [0, 2, 4], "test_pose": [1, 3], "test_view": []}
+    assert ds.splits == {
+        "train": [0, 2, 4],
+        "test_pose": [1, 3],
+        "test_view": [],
+        "test_far_pose": [],
+        "test_far_view": [],
+    }
     torch.testing.assert_close(ds.K, K_)
     torch.testing.assert_close(ds.viewmat, view)
     torch.testing.assert_close(ds.timestamps, 0.5 * torch.arange(N, dtype=torch.float64))

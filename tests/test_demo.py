@@ -3,8 +3,8 @@
 import numpy as np
 import torch
 
-from eva_engine.demo import PART_COLORS, quat_from_z, render_demo, surface_gaussians
-from eva_engine.geometry import vertex_normals
+from eva_engine.demo import PART_COLORS, render_demo, surface_gaussians
+from eva_engine.geometry import quat_from_z, vertex_normals
 from eva_engine.render import quat_to_rotmat
 
 

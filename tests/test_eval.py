@@ -117,7 +117,7 @@ def test_table_in_the_papers_layout():
         render_fps=12.5,
         train_seconds=300.0,
         regions={
-            "full": RegionMetrics(28.88, 0.9609, 0.04493, 0.0321, 4, 4, 512.0),
+            "full": RegionMetrics(28.88, 0.9609, 0.04493, 0.0321, 4, 4, 512.0, debris=0.0123, holes=0.004),
             "hand": RegionMetrics(25.28, 0.9189, 0.09137, 0.0712, 3, 5, 21.0),
         },
         notes=["hand regions are small"],
@@ -129,7 +129,7 @@ def test_table_in_the_papers_layout():
     )
     assert lines[2] == (
         "| 3DGS + body | 19,458 | 28.88 | 0.9609 | 44.93 | 32.10 | 25.28 | 0.9189 | 91.37 | 71.20 | "
-        "– | – | – | – | 300 | 12.5 |"
+        "– | – | – | – | 1.23 | 0.40 | 300 | 12.5 |"
     )
     assert "held out" in table and "hand 3 frames / 5 crops" in table and "hand regions are small" in table
 
@@ -171,3 +171,54 @@ def test_placement_splits_region_scores_by_silhouette_overlap():
     assert p["iou_mean"] == pytest.approx(0.7)
     assert r.placement("face") is None  # no IoU measured
     assert r.placement("full") is None
+
+
+def test_debris_and_holes_on_hand_made_masks():
+    """Debris: alpha mass outside the person widened by 2 px, over all alpha; holes: the person's
+    pixels left below alpha 0.5. Exact on hand-made masks."""
+    from eva_engine.eval.evaluate import debris_and_holes
+
+    mask = torch.zeros(40, 40)
+    mask[10:30, 10:30] = 1.0  # 400 px
+    perfect = mask.clone()
+    assert debris_and_holes(perfect, mask) == (0.0, 0.0)
+    # A soft fringe within 2 px of the person is not debris.
+    fringe = mask.clone()
+    fringe[8:10, 10:30] = 0.5
+    assert debris_and_holes(fringe, mask)[0] == 0.0
+    # A spike 5 px away: 20 px of alpha 1 beyond the widened mask.
+    spike = mask.clone()
+    spike[35, 10:30] = 1.0
+    debris, holes = debris_and_holes(spike, mask)
+    assert debris == pytest.approx(20 / 420) and holes == 0.0
+    # A hole: 100 of the 400 person pixels at alpha 0.3.
+    holed = mask.clone()
+    holed[10:20, 10:20] = 0.3
+    debris, holes = debris_and_holes(holed, mask)
+    assert debris == 0.0 and holes == pytest.approx(100 / 400)
+    # Degenerate inputs: an empty render, an empty mask, alpha out of [0, 1].
+    assert debris_and_holes(torch.zeros(40, 40), mask) == (0.0, 1.0)
+    assert debris_and_holes(perfect, torch.zeros(40, 40)) == (1.0, 0.0)
+    assert debris_and_holes(mask * 7.0, mask) == (0.0, 0.0)
+
+
+def test_evaluation_reports_silhouette_errors_and_extra_regions(anny_model, metrics):
+    """Every split scored carries debris and holes on the full image; arm masks given by the
+    caller are scored like the hands, each arm on its own crop."""
+    ds, teacher = teacher_scene(anny_model, n_frames=3, size=48)
+    res = evaluate_avatar(teacher, ds, metrics=metrics)
+    full = res.regions["full"]
+    assert 0.0 <= full.debris < 0.05 and 0.0 <= full.holes < 0.2
+    assert "debris" in res.per_frame[2]["full"] and res.regions["hand"].debris is None
+    arm = torch.zeros(48, 48)
+    arm[5:20, 5:12] = 1.0
+    other = torch.zeros(48, 48)
+    other[5:20, 30:40] = 1.0
+    extra = {2: {"arm_left": arm, "arm_right": other}}
+    with_arms = evaluate_avatar(teacher, ds, metrics=metrics, extra_regions=extra)
+    assert with_arms.regions["arm"].crops == 2 and with_arms.regions["arm"].frames == 1
+    row = with_arms.per_frame[2]
+    assert row["arm"]["lpips_vgg"] == pytest.approx(
+        (row["arm_left"]["lpips_vgg"] + row["arm_right"]["lpips_vgg"]) / 2
+    )
+    assert with_arms.regions["full"].psnr == full.psnr  # the other regions are untouched

@@ -57,6 +57,25 @@ def test_a_seeded_avatar_renders(client, seeded):
     assert render(client, aid, {"frame": 1}).status_code == 200  # the frames' own 64x96 size
 
 
+def test_a_render_beyond_the_training_range_says_so(client, seeded):
+    """Trained on the rest pose from the front: a raised arm from the side is rendered all the
+    same, and the X-Render-Warnings header (a JSON list) says what lies outside; [] inside."""
+    _, aid = seeded
+    inside = render(client, aid, {"width": 64, "height": 64})
+    assert inside.status_code == 200 and json.loads(inside.headers["X-Render-Warnings"]) == []
+    body = {
+        "pose": {"joints": {"upperarm01.L": [0, 0, -1.2]}},
+        "camera": {"yaw": 90},
+        "width": 64,
+        "height": 64,
+    }
+    beyond = render(client, aid, body)
+    assert beyond.status_code == 200 and beyond.content[:4] == b"\x89PNG"
+    warnings = json.loads(beyond.headers["X-Render-Warnings"])
+    assert len(warnings) == 2 and "yaw 90 deg" in warnings[0] and "upperarm01.L" in warnings[1]
+    assert json.loads(render(client, aid, {"frame": 1}).headers["X-Render-Warnings"]) == []
+
+
 HUGE = [
     ('{"pose": {"transl": [1e300, 0, 0]}}', "transl"),
     ('{"pose": {"joints": {"upperarm01.L": [1e300, 0, 0]}}}', "joints"),

@@ -252,3 +252,46 @@ def test_held_out_view_and_contact_sheet(datasets):
     # Every close-up shows the person, not just background.
     tiles = sheet.reshape(2, 32, 4, 32, 3).transpose(0, 2, 1, 3, 4)
     assert (tiles.reshape(8, -1).astype(int) < 250).any(axis=1).all()
+
+
+def test_novel_preset_tests_beyond_the_training_range(datasets, anny_model):
+    """``novel``: training keeps the elbows below the shoulders, the far take raises them; held-out
+    views show training (or far) poses from 35 and 70 deg; every test frame records its novelty."""
+    ds = datasets["novel"]
+    s, extra = ds.splits, ds.meta.extra
+    takes, views, pose_of = extra["take_of_frame"], extra["view_deg_of_frame"], extra["pose_of_frame"]
+    assert {takes[i] for i in s["train"]} == {0} and {takes[i] for i in s["test_pose"]} == {1}
+    assert {takes[i] for i in s["test_far_pose"]} == {2}
+    assert {views[i] for i in s["test_view"]} == {35.0, 70.0} and {views[i] for i in s["test_far_view"]} == {
+        35.0
+    }
+    assert all(pose_of[i] in s["train"] for i in s["test_view"])
+    assert all(pose_of[i] in s["test_far_pose"] for i in s["test_far_view"])
+    assert all(views[i] == 0.0 for name in ("train", "test_pose", "test_far_pose") for i in s[name])
+    # Elbow height over the shoulder joint, both arms: always below in training, above in the far take.
+    joints = anny_model(ds.gt_params).joints
+    names = anny_model.joint_names
+    lift = torch.stack(
+        [
+            joints[:, names.index(f"lowerarm01.{side}"), 1] - joints[:, names.index(f"upperarm01.{side}"), 1]
+            for side in "LR"
+        ],
+        dim=1,
+    ).amax(dim=1)
+    assert (
+        lift[s["train"]].max() < 0 and lift[s["test_pose"]].max() < 0 and lift[s["test_far_pose"]].max() > 0
+    )
+    # Novelty: a held-out view shows its training pose exactly, its camera turned by the view angle.
+    novelty = {int(k): v for k, v in extra["novelty"].items()}
+    tested = [i for name in ("test_pose", "test_view", "test_far_pose", "test_far_view") for i in s[name]]
+    assert sorted(novelty) == sorted(tested)
+    for i in s["test_view"]:
+        src = pose_of[i]
+        assert novelty[i]["pose_deg"] == 0.0 and novelty[i]["nearest_train"] == src
+        body_yaw = float(torch.rad2deg(ds.gt_params.root_orient[src, 1]))
+        assert novelty[i]["yaw_deg"] == pytest.approx(views[i] - body_yaw, abs=3.0)
+    for i in s["test_far_view"]:
+        assert novelty[i]["pose_deg"] == novelty[pose_of[i]]["pose_deg"]
+    near = [novelty[i]["pose_deg"] for i in s["test_pose"]]
+    far = [novelty[i]["pose_deg"] for i in s["test_far_pose"]]
+    assert min(near) > 0 and max(far) > max(near) + 20

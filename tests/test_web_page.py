@@ -196,6 +196,9 @@ def test_move_sliders_and_the_avatar_changes(site, avatar):
     yaw.send_keys(*[Keys.ARROW_RIGHT] * 40)
     wait_for(lambda: _renders(d) > count and _idle(d), 60, "the render after turning the camera")
     assert np.abs(_image(d) - after).mean() > 1.0
+    # The signer faced the camera: from 40 deg aside the page says the view was never seen.
+    warnings = d.find_element(*_by("#pose-warnings"))
+    assert warnings.is_displayed() and "camera is at yaw" in warnings.text, warnings.text
     assert not [e for e in d.get_log("browser") if e["level"] == "SEVERE"]
 
 

@@ -71,6 +71,15 @@ class AnimationConfig(BaseModel):
     def _preset(cls, value):
         return value if value == "driving" else camera_preset(value)
 
+    @field_validator("camera")
+    @classmethod
+    def _not_a_frames(cls, value):
+        if isinstance(value, CameraSpec) and value.frame is not None:
+            raise ValueError(
+                "a training frame's camera is for a still render; animate with 'driving' or an orbit"
+            )
+        return value
+
 
 @dataclass
 class Animation:

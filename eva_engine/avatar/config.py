@@ -30,6 +30,12 @@ class AvatarConfig:
         ``avatar/skinning_field.py``; ``weight_offsets`` must then be off).
     field_resolution: the field's grid side in x and y (GART: 64; z has a quarter of it).
     latent_bones: GART's extra bones driven by the pose (field skinning only; GART: 4).
+    max_scale: the largest standard deviation a Gaussian may have, per part (body, hand, face),
+        in metres; training projects the scales back under it after every step (None: unbounded,
+        as 3DGS). A Gaussian stretched along the training camera's rays costs nothing in the
+        training images and becomes a spike from any other view (``docs/novel-views.md``).
+    init_normal_ratio: the initial Gaussians' extent along the body surface's normal, as a
+        fraction of their extent along it (1: isotropic, as 3DGS).
     """
 
     sh_degree: int = 3
@@ -46,6 +52,8 @@ class AvatarConfig:
     skinning: str = "mesh"
     field_resolution: int = 64
     latent_bones: int = 0
+    max_scale: tuple[float, float, float] | None = None
+    init_normal_ratio: float = 1.0
 
     def __post_init__(self) -> None:
         if not 0 <= self.sh_degree <= 3:
@@ -62,6 +70,10 @@ class AvatarConfig:
             raise ValueError("field skinning learns its own weights: turn weight_offsets off")
         if self.latent_bones < 0 or (self.latent_bones and self.skinning != "field"):
             raise ValueError("latent_bones must be >= 0, and > 0 only with field skinning")
+        if self.max_scale is not None and (len(self.max_scale) != 3 or min(self.max_scale) <= 0):
+            raise ValueError("max_scale must be three positive lengths (body, hand, face) or None")
+        if not 0.0 < self.init_normal_ratio <= 1.0:
+            raise ValueError(f"init_normal_ratio must be in (0, 1], got {self.init_normal_ratio}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -72,4 +84,6 @@ class AvatarConfig:
         unknown = set(data) - known
         if unknown:
             raise ValueError(f"unknown AvatarConfig field(s) {sorted(unknown)}")
+        if data.get("max_scale") is not None:  # a list in JSON
+            data = {**data, "max_scale": tuple(data["max_scale"])}
         return cls(**data)

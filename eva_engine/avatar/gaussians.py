@@ -21,7 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from eva_engine.body.model import nearest_vertex_index
-from eva_engine.geometry import mean_neighbour_distance
+from eva_engine.geometry import mean_neighbour_distance, quat_from_z
 from eva_engine.render.sh import num_sh_bases
 
 PER_GAUSSIAN_BUFFERS = ("part_ids", "vertex_ids")
@@ -75,10 +75,14 @@ class CanonicalGaussians(nn.Module):
         init_opacity: float = 0.1,
         max_gaussians: int | None = None,
         generator: torch.Generator | None = None,
+        normals: Tensor | None = None,
+        normal_ratio: float = 1.0,
     ) -> CanonicalGaussians:
         """One Gaussian per template vertex (those in ``seed_mask [V]``; at most ``max_gaussians``
-        of them, a random subset drawn with ``generator``), isotropic with the 3DGS initial scale
-        (mean distance to the 3 nearest seeds), identity rotation, mid-grey colour."""
+        of them, a random subset drawn with ``generator``) with the 3DGS initial scale (mean
+        distance to the 3 nearest seeds) and a mid-grey colour: isotropic with the identity
+        rotation, or with ``normals [V, 3]`` (unit vertex normals) and ``normal_ratio`` < 1 a
+        disc: its local z on the normal, ``normal_ratio`` times thinner along it."""
         v = template_vertices.shape[0]
         ids = torch.arange(v) if seed_mask is None else torch.nonzero(seed_mask.cpu()).squeeze(1)
         if max_gaussians is not None and ids.numel() > max_gaussians:
@@ -89,10 +93,15 @@ class CanonicalGaussians(nn.Module):
         scale = mean_neighbour_distance(means, 3).clamp(1e-4, 0.05)
         n = means.shape[0]
         k = num_sh_bases(sh_degree)
+        log_scales = torch.log(scale)[:, None].expand(n, 3).clone()
+        quats = means.new_tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).clone()
+        if normals is not None and normal_ratio < 1.0:
+            quats = quat_from_z(normals[ids].to(means))
+            log_scales[:, 2] += math.log(normal_ratio)
         splats = {
             "means": means,
-            "scales": torch.log(scale)[:, None].expand(n, 3).clone(),
-            "quats": means.new_tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).clone(),
+            "scales": log_scales,
+            "quats": quats,
             "opacities": means.new_full((n,), math.log(init_opacity / (1.0 - init_opacity))),
             "sh0": means.new_zeros(n, 1, 3),  # rgb_to_sh(0.5) == 0: mid-grey
             "shN": means.new_zeros(n, k - 1, 3),
@@ -115,6 +124,14 @@ class CanonicalGaussians(nn.Module):
     def scales(self) -> Tensor:
         """[N, 3] standard deviations (exp of the log-scales)."""
         return torch.exp(self.splats["scales"])
+
+    @torch.no_grad()
+    def clamp_scales(self, max_per_part: Tensor) -> None:
+        """Project every standard deviation under its part's bound: ``max_per_part [P]`` metres
+        per ``part_ids`` value (in place: the optimizer keeps its state)."""
+        bound = torch.log(max_per_part.to(self.splats["scales"]))[self.part_ids]
+        scales = self.splats["scales"]
+        scales.copy_(torch.minimum(scales, bound[:, None]))
 
     def opacities(self) -> Tensor:
         """[N] opacities in (0, 1)."""

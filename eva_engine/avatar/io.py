@@ -10,7 +10,8 @@
   ``timestamps [F]``;
 - ``avatar.json``: :class:`AvatarMeta`: the format, the body model, the avatar config, the Gaussian
   count, the training frames' count, size and rate, and how the avatar was made
-  (:class:`TrainingRecord`: training config and time, metrics, where the data came from).
+  (:class:`TrainingRecord`: training config and time, metrics, where the data came from, and the
+  views and poses training showed: ``coverage``).
 
 No pickle anywhere. ``load_avatar(path)`` rebuilds an :class:`Avatar` ready to ``render``;
 ``load_saved_avatar(path)`` reads the whole directory (:class:`SavedAvatar`).
@@ -30,6 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from safetensors.torch import load_file, save_file
 
 from eva_engine.avatar.config import AvatarConfig
+from eva_engine.avatar.coverage import Coverage
 from eva_engine.avatar.frames import AvatarFrames
 from eva_engine.avatar.gaussians import CanonicalGaussians
 from eva_engine.avatar.model import Avatar, template_vertices
@@ -138,6 +140,8 @@ class TrainingRecord(BaseModel):
     refinements: list[dict[str, Any]] = Field(default_factory=list)
     gaussians_per_part: dict[str, dict[str, int]] = Field(default_factory=dict)
     pose_correction: dict[str, float] = Field(default_factory=dict)
+    coverage: Coverage | None = None
+    """The views and poses the training frames showed (``avatar.coverage``)."""
     metrics: dict[str, Any] = Field(default_factory=dict)
     dataset: str | None = None
     source_video: str | None = None

@@ -29,6 +29,7 @@ from eva_engine.avatar.skinning import skin_gaussians
 from eva_engine.avatar.skinning_field import LatentBones, SkinningField
 from eva_engine.body.model import BodyModel
 from eva_engine.body.params import BodyParams
+from eva_engine.geometry import vertex_normals
 from eva_engine.render import RasterConfig, RenderOutput, eval_sh, rasterize
 from eva_engine.render.camera import Camera
 
@@ -39,7 +40,8 @@ class PosedGaussians:
 
     means: [N, 3]; quats: [N, 4]; scales: [N, 3] (linear); opacities: [N]; sh: [N, K, 3];
     rotations: [N, 3, 3] canonical -> world rotation of each Gaussian; params: the refined
-    body parameters used.
+    body parameters used; weights: [N, J] the skinning weights used (J joints, plus any latent
+    bones).
     """
 
     means: Tensor
@@ -49,6 +51,7 @@ class PosedGaussians:
     sh: Tensor
     rotations: Tensor
     params: BodyParams
+    weights: Tensor | None = None
 
 
 class Avatar(nn.Module):
@@ -112,6 +115,12 @@ class Avatar(nn.Module):
         self.register_buffer(
             "log_body_weights", torch.log(body.skinning_weights + config.lbs_eps), persistent=False
         )
+        # Unit normals of the subject's rest surface [V, 3] (the regularisers' "thin along the
+        # normal"): derived from the template, so not saved.
+        normals = vertex_normals(gaussians.template_vertices.detach().cpu(), body.faces.cpu())
+        self.register_buffer(
+            "template_normals", torch.from_numpy(normals).to(gaussians.template_vertices), persistent=False
+        )
         self.active_sh_degree = gaussians.sh_degree
         self._weights_cache: tuple[list[Tensor], list[int], Tensor] | None = None
 
@@ -130,6 +139,9 @@ class Avatar(nn.Module):
         generator seeded ``seed``; pass one to draw further initial weights after them)."""
         config = config or AvatarConfig()
         template = template_vertices(body, shape)
+        normals = None
+        if config.init_normal_ratio < 1.0:
+            normals = torch.from_numpy(vertex_normals(template.cpu(), body.faces.cpu())).to(template)
         gaussians = CanonicalGaussians.from_template(
             template,
             body.part_ids,
@@ -138,6 +150,8 @@ class Avatar(nn.Module):
             init_opacity=config.init_opacity,
             max_gaussians=config.init_max_gaussians,
             generator=torch.Generator().manual_seed(seed),
+            normals=normals,
+            normal_ratio=config.init_normal_ratio,
         )
         generator = generator if generator is not None else torch.Generator().manual_seed(seed)
         return cls(body, gaussians, shape, config, generator)
@@ -223,7 +237,7 @@ class Avatar(nn.Module):
         offsets = (rest - g.template_vertices)[g.vertex_ids]
         weights = self.skinning_weights()
         means, quats, rot = skin_gaussians(g.means + offsets, g.splats["quats"], weights, transforms)
-        return PosedGaussians(means, quats, g.scales(), g.opacities(), g.sh(), rot, refined)
+        return PosedGaussians(means, quats, g.scales(), g.opacities(), g.sh(), rot, refined, weights)
 
     # -- rendering ---------------------------------------------------------------------------
     def forward(

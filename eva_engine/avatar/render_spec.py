@@ -5,6 +5,9 @@ schema, so both validate a pose and a camera the same way, within the same physi
 
     spec = RenderSpec.model_validate({"pose": {...}, "camera": "left", "width": 256, "height": 256})
     image = render_spec(avatar, spec, load_avatar_frames(folder))   # [H, W, 3] uint8
+
+A request outside what the training frames showed still renders; ``coverage_warnings`` says what
+lies outside (``avatar.coverage``).
 """
 
 from __future__ import annotations
@@ -24,14 +27,17 @@ from pydantic import (
     model_validator,
 )
 
+from eva_engine.avatar.coverage import Coverage, rest_root
 from eva_engine.avatar.frames import AvatarFrames
 from eva_engine.avatar.model import Avatar
+from eva_engine.body.kinematics import axis_angle_to_matrix
 from eva_engine.body.model import BodyModel
 from eva_engine.body.params import BodyParams, BodyPose
 from eva_engine.render.camera import Camera
 from eva_engine.render.view import (
     CAMERA_PRESETS,
     DEFAULT_SIZE,
+    MAX_FRAME_INDEX,
     CameraSpec,
     Position,
     camera_from_spec,
@@ -46,7 +52,6 @@ MAX_ROTATION = 2.0 * math.pi  # radians: every rotation has an axis-angle of nor
 EXPRESSION_RANGE = 3.0  # SMPL-X's coefficients are standard deviations; Anny's [0, 1] is the model's own
 SHAPE_RANGE = 5.0
 MAX_SIDE = 4096
-MAX_FRAME_INDEX = 100_000
 
 
 def _rotation(value: tuple[float, float, float]) -> tuple[float, float, float]:
@@ -138,12 +143,18 @@ class RenderSpec(BaseModel):
         return self
 
 
+def _frame_sized(spec: RenderSpec) -> bool:
+    """Whether ``spec`` takes its default size from a training frame (its pose or its camera)."""
+    return spec.frame is not None or (spec.camera is not None and spec.camera.frame is not None)
+
+
 def resolve_size(spec: RenderSpec, frames: AvatarFrames | tuple[int, int] | None) -> tuple[int, int]:
-    """(width, height): as asked, else the training frame's (for ``frame``; one side given keeps
-    the frame's aspect), else ``DEFAULT_SIZE``. ``frames``: the avatar's training frames, or just
-    their (height, width) (e.g. from ``AvatarMeta.frames``, without loading them)."""
+    """(width, height): as asked, else the training frame's (for ``frame`` or a frame's camera; one
+    side given keeps the frame's aspect), else ``DEFAULT_SIZE``. ``frames``: the avatar's training
+    frames, or just their (height, width) (e.g. from ``AvatarMeta.frames``, without loading
+    them)."""
     size = frames.image_size if isinstance(frames, AvatarFrames) else frames
-    if spec.frame is not None and size is not None and size[0] > 0 and size[1] > 0:
+    if _frame_sized(spec) and size is not None and size[0] > 0 and size[1] > 0:
         h, w = size
         if spec.width is not None and spec.height is None:
             return spec.width, max(16, round(spec.width * h / w))
@@ -173,17 +184,99 @@ def spec_params(avatar: Avatar, spec: RenderSpec, frames: AvatarFrames | None) -
     return avatar.body.params_from_pose(pose)
 
 
-def spec_camera(spec: RenderSpec, width: int, height: int, frames: AvatarFrames | None) -> Camera:
+def spec_camera(
+    spec: RenderSpec,
+    width: int,
+    height: int,
+    frames: AvatarFrames | None,
+    avatar: Avatar | None = None,
+    params: BodyParams | None = None,
+) -> Camera:
     """The camera ``spec`` asks for; a training frame without ``camera`` uses that frame's own
-    camera, with K scaled to the requested size."""
+    camera, with K scaled to the requested size. A frame's camera (``camera.frame``) needs the
+    ``avatar`` and the ``params`` rendered (``frame_camera``)."""
     if spec.camera is None and spec.frame is not None and frames is not None and spec.frame < len(frames):
-        h0, w0 = frames.image_size
-        K = frames.K[spec.frame].clone().float()
-        if h0 > 0 and w0 > 0:
-            K[0] *= width / w0
-            K[1] *= height / h0
-        return Camera(K, frames.viewmat[spec.frame].float(), width, height)
+        return Camera(
+            _scaled_K(frames, spec.frame, width, height), frames.viewmat[spec.frame].float(), width, height
+        )
+    if spec.camera is not None and spec.camera.frame is not None:
+        if avatar is None or params is None:
+            raise ValueError("a training frame's camera needs the avatar and the params rendered")
+        cam = spec.camera
+        return frame_camera(
+            avatar, frames, cam.frame, params, cam.yaw or 0.0, cam.pitch or 0.0, width, height
+        )
     return camera_from_spec(spec.camera, width, height)
+
+
+def _scaled_K(frames: AvatarFrames, index: int, width: int, height: int) -> torch.Tensor:
+    h0, w0 = frames.image_size
+    K = frames.K[index].clone().float()
+    if h0 > 0 and w0 > 0:
+        K[0] *= width / w0
+        K[1] *= height / h0
+    return K
+
+
+def _body_to_world(params: BodyParams, root: torch.Tensor) -> torch.Tensor:
+    """[4, 4] float64: the body's root frame (its root rotation about its rest root position, then
+    ``transl``) into the world, for ``params`` with batch 1."""
+    rot = axis_angle_to_matrix(params.root_orient[0].detach().double())
+    out = torch.eye(4, dtype=torch.float64)
+    out[:3, :3] = rot
+    out[:3, 3] = params.transl[0].detach().double() + root.double()
+    return out
+
+
+def _turn(yaw_deg: float, pitch_deg: float) -> torch.Tensor:
+    """[4, 4] float64: raise by ``pitch_deg`` (about the body's x axis), then turn by ``yaw_deg``
+    about its up axis (positive: toward the subject's left, as ``orbit_camera``)."""
+    up = axis_angle_to_matrix(torch.tensor([0.0, math.radians(yaw_deg), 0.0], dtype=torch.float64))
+    raise_ = axis_angle_to_matrix(torch.tensor([-math.radians(pitch_deg), 0.0, 0.0], dtype=torch.float64))
+    out = torch.eye(4, dtype=torch.float64)
+    out[:3, :3] = up @ raise_
+    return out
+
+
+def frame_camera(
+    avatar: Avatar,
+    frames: AvatarFrames | None,
+    index: int,
+    params: BodyParams,
+    yaw_deg: float,
+    pitch_deg: float,
+    width: int,
+    height: int,
+) -> Camera:
+    """Training frame ``index``'s camera placed where it was relative to the body in that frame,
+    for a body posed by ``params`` (batch 1), then turned by ``yaw_deg`` and ``pitch_deg`` about
+    the body's root: a new pose is framed the way the video framed the person."""
+    if frames is None:
+        raise RenderInputError("this avatar keeps no training frames, so no frame's camera")
+    if index >= len(frames):
+        raise RenderInputError(
+            f"camera frame {index} is out of range: the avatar has {len(frames)} training frames"
+        )
+    root = rest_root(avatar.body, avatar.shape[None])
+    to_camera = frames.viewmat[index].double() @ _body_to_world(frames.params[index], root)  # body -> camera
+    view = (
+        to_camera
+        @ torch.linalg.inv(_turn(yaw_deg, pitch_deg))
+        @ torch.linalg.inv(_body_to_world(params, root))
+    )
+    view[3] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+    return Camera(_scaled_K(frames, index, width, height), view.float(), width, height)
+
+
+def coverage_warnings(
+    coverage: Coverage | None, avatar: Avatar, spec: RenderSpec, params: BodyParams, camera: Camera
+) -> list[str]:
+    """What the render of ``spec`` (its ``params`` and ``camera``) asks for beyond what the avatar's
+    training frames showed (``Coverage.warnings``); none for a training frame through its own
+    camera, or an avatar that recorded no coverage."""
+    if coverage is None or (spec.frame is not None and spec.camera is None):
+        return []
+    return coverage.warnings(avatar.body, params, camera.viewmat)
 
 
 def render_image(avatar: Avatar, params: BodyParams, camera: Camera, background) -> np.ndarray:
@@ -197,4 +290,6 @@ def render_spec(avatar: Avatar, spec: RenderSpec, frames: AvatarFrames | None = 
     """[H, W, 3] uint8: the still ``spec`` describes (no size limit is applied here)."""
     width, height = resolve_size(spec, frames)
     params = spec_params(avatar, spec, frames)
-    return render_image(avatar, params, spec_camera(spec, width, height, frames), spec.background)
+    return render_image(
+        avatar, params, spec_camera(spec, width, height, frames, avatar, params), spec.background
+    )

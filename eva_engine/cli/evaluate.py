@@ -16,7 +16,11 @@ def evaluate(
     avatar_dir: Path = typer.Argument(..., help="Avatar directory written by `eva train`."),
     dataset: Path = typer.Argument(..., help="Dataset folder with the test frames."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the metrics as JSON here."),
-    split: str = typer.Option("test_pose", help="Split to evaluate: test_pose or test_view."),
+    split: str = typer.Option(
+        "test_pose",
+        help="Split to evaluate: test_pose, test_view, test_far_pose or test_far_view (the last two: "
+        "the synthetic `novel` preset's poses beyond the training range).",
+    ),
     name: str | None = typer.Option(None, help="Row name in the table (default: the avatar folder)."),
     refine_poses: int = typer.Option(
         0,
@@ -26,7 +30,8 @@ def evaluate(
         "the avatar frozen, before scoring (0: the fitted poses, the main protocol).",
     ),
 ) -> None:
-    """PSNR / SSIM / LPIPS on full image, hands and face; Gaussian count, training time, FPS."""
+    """PSNR / SSIM / LPIPS on full image, hands and face; debris and holes of the silhouette;
+    Gaussian count, training time, FPS."""
     from eva_engine.avatar import AvatarFileError, load_saved_avatar
     from eva_engine.data import DatasetError, load_dataset
     from eva_engine.eval import PoseRefinement, evaluate_avatar, metrics_table

@@ -27,7 +27,8 @@ def render(
     camera: str | None = typer.Option(
         None,
         help="A preset (front, back, left, right, front_left, front_right, above) or a camera as "
-        "JSON (file or inline: orbit yaw/pitch/distance/target/fov_y, or K and viewmat).",
+        "JSON (file or inline: orbit yaw/pitch/distance/target/fov_y, K and viewmat, or "
+        '{"frame": N, "yaw": 35}: training frame N\'s camera relative to the body, turned by yaw/pitch).',
     ),
     width: int | None = typer.Option(None, min=16, max=4096, help="Pixels (default 512, or the frame's)."),
     height: int | None = typer.Option(None, min=16, max=4096, help="Pixels (default 512, or the frame's)."),
@@ -39,13 +40,21 @@ def render(
         "Gaussians (--origin: the API's default, the world origin from 2.6 m).",
     ),
 ) -> None:
-    """Render the avatar in a pose, expression and view: the same JSON as `POST /avatars/{id}/render`."""
+    """Render the avatar in a pose, expression and view: the same JSON as `POST /avatars/{id}/render`.
+    A pose or view beyond what the training video showed is rendered with a warning saying so."""
     from PIL import Image
     from pydantic import ValidationError
 
     from eva_engine.avatar import AvatarFileError, RenderInputError, load_saved_avatar
     from eva_engine.avatar.framing import framed_camera
-    from eva_engine.avatar.render_spec import RenderSpec, render_spec, resolve_size
+    from eva_engine.avatar.render_spec import (
+        RenderSpec,
+        coverage_warnings,
+        render_image,
+        resolve_size,
+        spec_camera,
+        spec_params,
+    )
     from eva_engine.body import InvalidPoseError
 
     console = Console(stderr=True)
@@ -75,10 +84,15 @@ def render(
         w, h = resolve_size(spec, frames)
         spec = spec.model_copy(update={"camera": framed_camera(model, spec.camera, w, h)})
     try:
-        image = render_spec(model, spec, frames)
+        w, h = resolve_size(spec, frames)
+        params = spec_params(model, spec, frames)
+        cam = spec_camera(spec, w, h, frames, model, params)
     except (InvalidPoseError, RenderInputError) as err:
         console.print(f"[red]error:[/] {err}")
         raise typer.Exit(2) from err
+    image = render_image(model, params, cam, spec.background)
+    for warning in coverage_warnings(saved.meta.coverage, model, spec, params, cam):
+        console.print(f"[yellow]warning:[/] {warning}", highlight=False)
     out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(image).save(out, **({} if out.suffix.lower() == ".png" else {"quality": 92}))
     h, w = image.shape[:2]

@@ -28,7 +28,8 @@ from eva_engine.body.params import BodyParams
 
 FORMAT = "eva-dataset"
 VERSION = 2
-SPLITS = ("train", "test_pose", "test_view")
+SPLITS = ("train", "test_pose", "test_view", "test_far_pose", "test_far_view")
+"""Frame sets (``docs/dataset-format.md``); the last two only the novel-pose benchmark fills."""
 REGION_MASKS = ("hand_left", "hand_right", "face")
 """Per-frame region masks (the subject's left and right hand, the face): version 2 and later."""
 REGIONS = ("person", *REGION_MASKS)

@@ -25,6 +25,12 @@ Protocol (documented choices, ``docs/evaluation.md``):
 - placement: ``silhouette_iou``, the intersection over union of the render's alpha and the
   person mask (both > 0.5) in the same crop. Not a quality metric: it tells whether a poor
   region score comes from where the avatar is drawn (the test pose) or from how it looks.
+- silhouette errors, on the full image (``debris_and_holes``): ``debris``, the share of the
+  render's alpha that falls outside the person mask widened by ``DEBRIS_WIDEN_PX`` (spikes,
+  smears and floaters a new pose or view reveals), and ``holes``, the share of the person mask
+  the render covers with alpha < 0.5.
+- extra regions: a caller with more region masks (e.g. the novel-pose benchmark's arms,
+  ``extra_regions``) gets them scored like the hands, each on its own crop.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ from __future__ import annotations
 import dataclasses
 import statistics
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import torch
@@ -39,7 +46,7 @@ from torch import Tensor
 
 from eva_engine.avatar import Avatar, Camera
 from eva_engine.body import BodyParams
-from eva_engine.data.dataset import REGION_MASKS, DatasetLike
+from eva_engine.data.dataset import DatasetLike
 from eva_engine.data.resampled import ResampledDataset
 from eva_engine.metrics import LPIPS, crop_box, mask_bbox, psnr, ssim
 
@@ -47,6 +54,9 @@ REGIONS = ("full", "hand", "face")
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
 PLACEMENT = "silhouette_iou"
 REGION_OF_MASK = {"hand_left": "hand", "hand_right": "hand", "face": "face"}
+EXTRA_REGION_OF_MASK = {"arm_left": "arm", "arm_right": "arm"}
+"""Region masks a caller may add (``extra_regions``) and the region they are scored as."""
+DEBRIS_WIDEN_PX = 2
 PAD = 4
 MIN_CROP = 32
 SMALL_REGION_PX = 32
@@ -114,6 +124,22 @@ class ImageMetrics:
         return out
 
 
+def debris_and_holes(alpha: Tensor, mask: Tensor, widen: int = DEBRIS_WIDEN_PX) -> tuple[float, float]:
+    """(debris, holes) of a render's ``alpha [H, W]`` against the true person ``mask [H, W]``
+    (module docstring): debris = alpha mass outside the mask (> 0.5) widened by ``widen`` pixels
+    over all the alpha mass (0 when the render is empty); holes = the mask's pixels with alpha
+    < 0.5 over the mask's pixels (0 when the mask is empty)."""
+    person = (mask > 0.5).float()[None, None]
+    near = torch.nn.functional.max_pool2d(person, 2 * widen + 1, stride=1, padding=widen)[0, 0] > 0
+    alpha = alpha.float().clamp(0.0, 1.0)
+    total = float(alpha.sum())
+    debris = float(alpha[~near].sum()) / total if total > 0 else 0.0
+    inside = person[0, 0] > 0
+    n = int(inside.sum())
+    holes = float((alpha[inside] < 0.5).sum()) / n if n else 0.0
+    return debris, holes
+
+
 def silhouette_iou(alpha: Tensor, mask: Tensor) -> float:
     """Intersection over union of two coverages [H, W] thresholded at 0.5 (1 when both are empty)."""
     p, q = alpha > 0.5, mask > 0.5
@@ -126,7 +152,8 @@ class RegionMetrics:
     """Means over the frames that show the region. frames: frames scored; crops: crops scored
     (a frame with both hands gives two hand crops); box_px: median longer side of the region's
     box (before growing to ``MIN_CROP``); silhouette_iou: the placement diagnostic (module
-    docstring), absent where it was not measured."""
+    docstring), absent where it was not measured; debris, holes: the silhouette errors (the full
+    image only)."""
 
     psnr: float
     ssim: float
@@ -136,13 +163,16 @@ class RegionMetrics:
     crops: int = 0
     box_px: float = 0.0
     silhouette_iou: float | None = None
+    debris: float | None = None
+    holes: float | None = None
 
 
 @dataclass
 class EvalResult:
-    """One avatar on one split. regions: "full", "hand", "face" -> metrics (a region no frame
-    shows is absent); per_frame: frame index -> region ("full", "hand", "face" and each of
-    ``REGION_MASKS``) -> {metric: value}; notes: warnings a reader of the numbers needs."""
+    """One avatar on one split. regions: "full", "hand", "face" (and "arm" with the arm masks)
+    -> metrics (a region no frame shows is absent); per_frame: frame index -> region ("full",
+    "hand", "face" and each of ``REGION_MASKS``) -> {metric: value}; notes: warnings a reader of
+    the numbers needs."""
 
     split: str
     num_frames: int
@@ -161,7 +191,8 @@ class EvalResult:
         crops: the mean and median ``silhouette_iou``, the mean LPIPS-VGG of the crops at or above
         the median IoU and of those below, and the rank correlation of IoU and LPIPS-VGG (None
         with fewer than 4 crops or without the IoU)."""
-        names = [n for n, r in REGION_OF_MASK.items() if r == region] if region != "full" else ["full"]
+        of_mask = {**REGION_OF_MASK, **EXTRA_REGION_OF_MASK}
+        names = [n for n, r in of_mask.items() if r == region] if region != "full" else ["full"]
         rows = [f[n] for f in self.per_frame.values() for n in names if n in f and PLACEMENT in f[n]]
         if len(rows) < 4:
             return None
@@ -214,11 +245,17 @@ def evaluate_avatar(
     background: Tensor | None = None,
     train_seconds: float | None = None,
     refinement: PoseRefinement | None = None,
+    extra_regions: Mapping[int, Mapping[str, Tensor]] | None = None,
+    every: int = 1,
 ) -> EvalResult:
-    """Evaluate ``avatar`` on ``dataset.splits[split]`` (see the module docstring)."""
+    """Evaluate ``avatar`` on ``dataset.splits[split]`` (see the module docstring).
+    extra_regions: frame index -> {``EXTRA_REGION_OF_MASK`` name: [H, W] coverage}; every: score
+    every k-th frame of the split only (its first, then every k-th)."""
     from eva_engine.train.losses import composite_target
 
-    indices = list(dataset.splits.get(split, []))
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    indices = list(dataset.splits.get(split, []))[::every]
     if not indices:
         raise ValueError(f"the dataset has no frames in split {split!r}")
     params = _eval_params(dataset)
@@ -232,7 +269,7 @@ def evaluate_avatar(
         with torch.enable_grad():
             params = refined_params(avatar, dataset, indices, params, background, refinement)
     per_frame: dict[int, dict[str, dict[str, float]]] = {}
-    boxes: dict[str, list[int]] = {"hand": [], "face": []}
+    boxes: dict[str, list[int]] = {}
     render_time = 0.0
     for i in indices:
         frame = dataset[i]
@@ -245,26 +282,26 @@ def evaluate_avatar(
         alpha = render.alpha.reshape(h, w).cpu()
         target = composite_target(frame.image, frame.mask, background)
         rows: dict[str, dict[str, float]] = {"full": metrics(pred, target, None, alpha, frame.mask)}
-        crops: dict[str, list[dict[str, float]]] = {"hand": [], "face": []}
-        for name in REGION_MASKS:
-            mask = frame.regions.get(name)
+        rows["full"]["debris"], rows["full"]["holes"] = debris_and_holes(alpha, frame.mask)
+        crops: dict[str, list[dict[str, float]]] = {}
+        masks = {**frame.regions, **(extra_regions or {}).get(i, {})}
+        for name, region in {**REGION_OF_MASK, **EXTRA_REGION_OF_MASK}.items():
+            mask = masks.get(name)
             if mask is None or not bool((mask > 0.5).any()):
                 continue
             rows[name] = metrics(pred, target, mask, alpha, frame.mask)
-            crops[REGION_OF_MASK[name]].append(rows[name])
-            boxes[REGION_OF_MASK[name]].append(box_side(mask))
+            crops.setdefault(region, []).append(rows[name])
+            boxes.setdefault(region, []).append(box_side(mask))
         rows.update({region: _mean(found) for region, found in crops.items() if found})
         per_frame[i] = rows
     regions = {}
-    for region in REGIONS:
+    of_mask = {**REGION_OF_MASK, **EXTRA_REGION_OF_MASK}
+    for region in (*REGIONS, *dict.fromkeys(EXTRA_REGION_OF_MASK.values())):
         found = [r[region] for r in per_frame.values() if region in r]
         if not found:
             continue
         n_crops = sum(
-            1
-            for r in per_frame.values()
-            for name, reg in REGION_OF_MASK.items()
-            if reg == region and name in r
+            1 for r in per_frame.values() for name, reg in of_mask.items() if reg == region and name in r
         )
         regions[region] = RegionMetrics(
             **_mean(found),
@@ -331,12 +368,13 @@ def refined_params(
 
 def metrics_table(results: dict[str, EvalResult]) -> str:
     """A markdown table in the layout of the paper's Table 1: method, N-GS, then PSNR / SSIM /
-    LPIPS-VGG ×1000 / LPIPS-Alex ×1000 for full, hand and face; training time and render FPS."""
+    LPIPS-VGG ×1000 / LPIPS-Alex ×1000 for full, hand and face; the silhouette errors (debris
+    and holes, % of the full image's: ``debris_and_holes``), training time and render FPS."""
     cols = ("PSNR↑", "SSIM↑", "LPIPS-VGG↓", "LPIPS-Alex↓")
     head = "| Method | N-GS | " + " | ".join(f"{r.capitalize()} {c}" for r in REGIONS for c in cols)
     lines = [
-        head + " | Train (s) | FPS |",
-        "|---|---:|" + "---:|" * (len(cols) * len(REGIONS)) + "---:|---:|",
+        head + " | Debris %↓ | Holes %↓ | Train (s) | FPS |",
+        "|---|---:|" + "---:|" * (len(cols) * len(REGIONS)) + "---:|---:|---:|---:|",
     ]
     for name, res in results.items():
         cells = [name, f"{res.num_gaussians:,}"]
@@ -347,6 +385,12 @@ def metrics_table(results: dict[str, EvalResult]) -> str:
                 if m
                 else ["–"] * len(cols)
             )
+        full = res.regions.get("full")
+        cells += (
+            [f"{100 * v:.2f}" if v is not None else "–" for v in (full.debris, full.holes)]
+            if full
+            else ["–"] * 2
+        )
         cells += [
             f"{res.train_seconds:.0f}" if res.train_seconds is not None else "–",
             f"{res.render_fps:.1f}",

@@ -1,9 +1,10 @@
 """``CameraSpec``: a camera as JSON, the one schema the API, the CLI and the web page share.
 
 Either an orbit around a target (yaw, pitch in degrees, distance in metres, vertical field of
-view) or explicit OpenCV ``K`` and world->camera ``viewmat`` matrices; a string names one of
-:data:`CAMERA_PRESETS` instead. ``camera_from_spec`` turns it into a :class:`Camera` for an
-image size.
+view), explicit OpenCV ``K`` and world->camera ``viewmat`` matrices, or a training frame's camera
+(``frame``; yaw and pitch then turn it about the body: ``avatar.render_spec``); a string names one
+of :data:`CAMERA_PRESETS` instead. ``camera_from_spec`` turns an orbit or K/viewmat into a
+:class:`Camera` for an image size.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from eva_engine.render.camera import Camera, intrinsics, orbit_camera
 MAX_TRANSLATION_M = 10.0  # a target (and a pose's root translation) within 10 m of the origin
 MAX_CAMERA_DISTANCE_M = 100.0
 MAX_PIXELS_COORD = 1e5  # K's entries
+MAX_FRAME_INDEX = 100_000
 
 Metres = Annotated[float, Field(ge=-MAX_TRANSLATION_M, le=MAX_TRANSLATION_M)]
 Position = tuple[Metres, Metres, Metres]
@@ -44,8 +46,10 @@ DEFAULT_DISTANCE, DEFAULT_FOV_Y, DEFAULT_SIZE = 2.6, 40.0, 512
 
 class CameraSpec(BaseModel):
     """Either an orbit around ``target`` (yaw, pitch in degrees; distance in metres; vertical field
-    of view ``fov_y`` in degrees) or explicit OpenCV ``K`` [3x3] (pixels, for the requested size)
-    and world->camera ``viewmat`` [4x4]. A JSON string names a preset view instead."""
+    of view ``fov_y`` in degrees), explicit OpenCV ``K`` [3x3] (pixels, for the requested size)
+    and world->camera ``viewmat`` [4x4], or ``frame``: training frame i's camera where it was
+    relative to the body (so a new pose is framed as the video framed the person), turned by
+    ``yaw`` and ``pitch`` about the body. A JSON string names a preset view instead."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
@@ -56,9 +60,23 @@ class CameraSpec(BaseModel):
     fov_y: float | None = Field(None, gt=1.0, lt=170.0)
     K: tuple[Vec3, Vec3, Vec3] | None = None
     viewmat: tuple[Vec4, Vec4, Vec4, Vec4] | None = None
+    frame: int | None = Field(
+        None,
+        ge=0,
+        le=MAX_FRAME_INDEX,
+        description="Training frame i's camera, placed relative to the body as it was in that frame; "
+        "yaw and pitch (degrees) turn it about the body.",
+    )
 
     @model_validator(mode="after")
     def _one_kind(self) -> CameraSpec:
+        if self.frame is not None:
+            other = [
+                k for k in ("distance", "target", "fov_y", "K", "viewmat") if getattr(self, k) is not None
+            ]
+            if other:
+                raise ValueError(f"{other} cannot be combined with 'frame' (only yaw and pitch turn it)")
+            return self
         orbit = [k for k in ("yaw", "pitch", "distance", "target", "fov_y") if getattr(self, k) is not None]
         if self.K is None and self.viewmat is None:
             return self
@@ -82,7 +100,7 @@ class CameraSpec(BaseModel):
 
     @property
     def is_orbit(self) -> bool:
-        return self.K is None
+        return self.K is None and self.frame is None
 
 
 def camera_preset(value):
@@ -100,6 +118,10 @@ def camera_from_spec(spec: CameraSpec | None, width: int, height: int) -> Camera
     default to the front view (yaw 0, pitch 0) from ``DEFAULT_DISTANCE`` m at the world origin
     with ``DEFAULT_FOV_Y`` degrees."""
     spec = spec or CameraSpec()
+    if spec.frame is not None:
+        raise ValueError(
+            "a training frame's camera needs the avatar's frames (avatar.render_spec.spec_camera)"
+        )
     if spec.K is not None and spec.viewmat is not None:
         return Camera(torch.tensor(spec.K), torch.tensor(spec.viewmat), width, height)
     view = orbit_camera(

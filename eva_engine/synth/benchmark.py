@@ -13,12 +13,19 @@ Presets (modelled on the paper's data):
 - ``wild`` (UPB-like): a waist-up signer; the pipeline gets only images (it must detect and
   align); the ground truth is kept under ``ground_truth/`` for evaluation. Split as UPB:
   alternate frames of one take train and test.
+- ``novel`` (novel poses and views): ``controlled``'s subject, framing and ground truth, but the
+  training take keeps both arms below the shoulders, so the test splits can go beyond it:
+  ``test_pose`` ("near": other takes of the same generator), ``test_far_pose`` ("far": a take that
+  raises the arms above the shoulders), ``test_view`` (training poses from 35 and 70 deg) and
+  ``test_far_view`` (far poses from 35 deg). ``extra["novelty"]`` records, per test frame, how
+  far its pose is from the nearest training pose and where its camera is relative to the body
+  (``novelty``).
 
 Appearance: a procedural albedo and gloss texture (``synth.texture``) with millimetre-scale
 detail on the hands, face and clothing, lit by a light fixed in the world with Lambert diffuse and a
 Blinn-Phong highlight, so shading changes with the pose and with the view. ``test_view`` frames
-show training poses from a camera turned 35 deg about the subject. Everything is deterministic
-given the seed (which picks the subject and its motions).
+show training poses from a camera turned 35 deg (``novel``: and 70 deg) about the subject.
+Everything is deterministic given the seed (which picks the subject and its motions).
 
 Sizes: ``tiny`` (96 px, for tests), ``small`` (256 px, large enough for MediaPipe) and ``bench``
 (512 px, 150 training frames).
@@ -43,7 +50,7 @@ from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
 from eva_engine.synth.motion import FACE_ACTIONS, HELD_OUT_FACE_ACTIONS, MotionConfig, sign_motion
 from eva_engine.synth.texture import Look, apply_look
 
-SPLIT_STYLES = ("takes", "interleaved")
+SPLIT_STYLES = ("takes", "interleaved", "novel")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,10 +67,16 @@ class Preset:
     give_ground_truth: bool
     """Write the ground-truth parameters and keypoints as pipeline inputs too."""
     split: str
-    """"takes" (train on one take, test on others: XHumans) or "interleaved" (alternate frames
-    of one take: UPB)."""
-    view_angle_deg: float = 35.0
-    """The held-out camera, turned about the vertical axis through the target."""
+    """"takes" (train on one take, test on others: XHumans), "interleaved" (alternate frames
+    of one take: UPB) or "novel" (takes, plus a take beyond the training range: module
+    docstring)."""
+    view_angles_deg: tuple[float, ...] = (35.0,)
+    """The held-out cameras, turned about the vertical axis through the target."""
+    arm_raise_probability: float = MotionConfig.arm_raise_probability
+    """Chance that a keyframe of the training take (and of the "near" test takes) raises an arm
+    above the shoulder."""
+    far_arm_raise_probability: float = 0.9
+    """The same for the "novel" split's far take."""
     light: tuple[float, float, float] = (-0.35, 0.55, 1.0)
     """Direction towards the light in the world (above, in front, to the subject's right)."""
 
@@ -97,6 +110,17 @@ PRESETS: dict[str, Preset] = {
     "wild": Preset(
         "wild", (0.0, 0.42, 0.0), 2.45, 30.0, body_turn=0.15, give_ground_truth=False, split="interleaved"
     ),
+    "novel": Preset(
+        "novel",
+        (0.0, 0.22, 0.0),
+        2.0,
+        40.0,
+        body_turn=0.5,
+        give_ground_truth=True,
+        split="novel",
+        view_angles_deg=(35.0, 70.0),
+        arm_raise_probability=0.0,
+    ),
 }
 SIZES: dict[str, Size] = {
     "tiny": Size("tiny", 96, 12, 3, supersample=3, texture_size=512),
@@ -112,58 +136,121 @@ TRAIN_FACE_ACTIONS = tuple(a for a in FACE_ACTIONS if a not in HELD_OUT_FACE_ACT
 
 
 @dataclasses.dataclass(frozen=True)
-class Layout:
-    """Which motion sample every dataset frame shows. frames: per frame (take, time in seconds);
-    splits: the dataset's splits; views: per ``test_view`` frame, the training frame whose pose
-    it shows."""
+class Shot:
+    """One dataset frame: motion ``take`` at ``time`` seconds, seen by the camera turned
+    ``view_deg`` about the subject (0: the training camera)."""
 
-    frames: list[tuple[int, float]]
+    take: int
+    time: float
+    view_deg: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """Which motion sample every dataset frame shows. frames: one ``Shot`` per frame; splits:
+    the dataset's splits; pose_of_frame: per frame, the frame whose motion sample it shows (itself,
+    or for a held-out view, the frame it sees again from elsewhere)."""
+
+    frames: list[Shot]
     splits: dict[str, list[int]]
-    views: list[int]
+    pose_of_frame: list[int]
 
 
 def layout(preset: Preset, size: Size) -> Layout:
     """The frames and splits of ``preset`` at ``size`` (module docstring)."""
     fps = size.num_frames / MOTION_SECONDS
-    seq = [(0, i / fps) for i in range(size.num_frames)]
-    if preset.split == "takes":
-        train = list(range(len(seq)))
-        test = []
-        for take in range(1, size.test_takes + 1):
-            for j in range(size.test_frames):
-                test.append(len(seq))
-                seq.append((take, j * size.test_stride / fps))
+    shots = [Shot(0, i / fps) for i in range(size.num_frames)]
+
+    def add_take(take: int) -> list[int]:
+        ids = list(range(len(shots), len(shots) + size.test_frames))
+        shots.extend(Shot(take, j * size.test_stride / fps) for j in range(size.test_frames))
+        return ids
+
+    far: list[int] = []
+    if preset.split in ("takes", "novel"):
+        train = list(range(len(shots)))
+        test = [i for take in range(1, size.test_takes + 1) for i in add_take(take)]
+        if preset.split == "novel":
+            far = add_take(size.test_takes + 1)
     elif preset.split == "interleaved":
-        test = [i for i in range(len(seq)) if i % size.test_every == size.test_every - 1]
-        train = [i for i in range(len(seq)) if i % size.test_every != size.test_every - 1]
+        test = [i for i in range(len(shots)) if i % size.test_every == size.test_every - 1]
+        train = [i for i in range(len(shots)) if i % size.test_every != size.test_every - 1]
     else:
         raise ValueError(f"unknown split style {preset.split!r}; choose one of {SPLIT_STYLES}")
-    picks = np.linspace(0, len(train) - 1, size.num_view_frames).round().astype(int)
-    views = [train[i] for i in picks] if size.num_view_frames else []
-    n = len(seq)
-    splits = {"train": train, "test_pose": test, "test_view": list(range(n, n + len(views)))}
-    return Layout(seq + [seq[i] for i in views], splits, views)
+    pose_of = list(range(len(shots)))
+
+    def views(sources: list[int], count: int, angle: float) -> list[int]:
+        picks = np.linspace(0, len(sources) - 1, count).round().astype(int) if count else []
+        ids = []
+        for k in picks:
+            src = sources[k]
+            ids.append(len(shots))
+            shots.append(dataclasses.replace(shots[src], view_deg=angle))
+            pose_of.append(src)
+        return ids
+
+    per_angle = size.num_view_frames // len(preset.view_angles_deg)
+    test_view = [i for a in preset.view_angles_deg for i in views(train, per_angle, a)]
+    splits = {"train": train, "test_pose": test, "test_view": test_view}
+    if preset.split == "novel":
+        splits["test_far_pose"] = far
+        splits["test_far_view"] = views(far, max(len(far) // 2, 1), preset.view_angles_deg[0])
+    return Layout(shots, splits, pose_of)
 
 
 def take_motion(
-    model, shape: torch.Tensor, preset: Preset, seed: int, take: int, times: list[float]
+    model,
+    shape: torch.Tensor,
+    preset: Preset,
+    seed: int,
+    take: int,
+    times: list[float],
+    far_take: int | None = None,
 ) -> tuple[BodyParams, dict]:
     """Body parameters [T] at ``times`` of motion ``take``, and its settings. The training take
-    of a "takes" preset keeps the held-out facial actions out; every other take draws from all."""
-    held_out = preset.split == "takes" and take == 0
+    of a "takes" or "novel" preset keeps the held-out facial actions out; every other take draws
+    from all. A "novel" preset's far take (``far_take``) raises the arms more often."""
+    held_out = preset.split in ("takes", "novel") and take == 0
     actions = TRAIN_FACE_ACTIONS if held_out else FACE_ACTIONS
-    cfg = MotionConfig(duration=MOTION_SECONDS, body_turn=preset.body_turn, face_actions=actions)
+    far = preset.split == "novel" and take == far_take
+    cfg = MotionConfig(
+        duration=MOTION_SECONDS,
+        body_turn=preset.body_turn,
+        face_actions=actions,
+        arm_raise_probability=preset.far_arm_raise_probability if far else preset.arm_raise_probability,
+    )
     times_ = np.asarray(times, dtype=np.float64)
     return sign_motion(model, shape, times_, seed, cfg, take=take), dataclasses.asdict(cfg)
 
 
-def cameras(preset: Preset, size: Size) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """K [3, 3], the training viewmat [4, 4] and the held-out viewmat [4, 4]."""
+def cameras(preset: Preset, size: Size, view_deg: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """K [3, 3] and the viewmat [4, 4] of the camera turned ``view_deg`` about the vertical axis
+    through the target from the training camera (0: the training camera)."""
     target = np.asarray(preset.camera_target)
-    a = math.radians(preset.view_angle_deg)
-    main = look_at(target + (0.0, 0.0, preset.distance), target)
-    side = look_at(target + preset.distance * np.array([math.sin(a), 0.0, math.cos(a)]), target)
-    return intrinsics(size.image_size, size.image_size, preset.fov_y_deg), main, side
+    a = math.radians(view_deg)
+    eye = target + preset.distance * np.array([math.sin(a), 0.0, math.cos(a)])
+    return intrinsics(size.image_size, size.image_size, preset.fov_y_deg), look_at(eye, target)
+
+
+def novelty(model, params: BodyParams, viewmats: torch.Tensor, train: list[int], test: list[int]) -> dict:
+    """{frame: {"pose_deg", "nearest_train", "yaw_deg", "pitch_deg"}} for the ``test`` frames:
+    the largest joint angle to the nearest training pose (body joints, the fingers left out), that
+    pose's frame, and the camera's direction seen from the body (``avatar.coverage``)."""
+    from eva_engine.avatar.coverage import nearest_pose_distance, rest_root, view_angles
+
+    body_joints = model.joint_part_ids[1:] == 0
+    joints = params.joints.double()
+    dist, nearest = nearest_pose_distance(joints[test], joints[train], body_joints)
+    yaw, pitch = view_angles(params[test], viewmats[test], rest_root(model, params.shape[:1]))
+    return {
+        int(i): {
+            "pose_deg": round(math.degrees(float(dist[k])), 2),
+            "nearest_train": int(train[int(nearest[k])]),
+            "yaw_deg": round(float(yaw[k]), 2),
+            "pitch_deg": round(float(pitch[k]), 2),
+        }
+        for k, i in enumerate(test)
+    }
 
 
 def random_shape(model, rng: np.random.Generator) -> torch.Tensor:
@@ -211,7 +298,7 @@ def generate(
     rng = np.random.default_rng([seed, 1])
     shape = random_shape(model, rng)
     look = Look.random(rng)
-    K, view_main, view_side = cameras(p, s)
+    K, _ = cameras(p, s)
     meta = DatasetMeta(
         source="synthetic",
         fps=fps,
@@ -222,23 +309,24 @@ def generate(
         camera_source="ground_truth",
     )
     # Each take's motion at its frames' times, then every frame's row in the plan's order.
+    far_take = s.test_takes + 1 if p.split == "novel" else None
     motions, rows = {}, {}
-    for take in sorted({k for k, _ in plan.frames}):
-        times = [t for k, t in plan.frames if k == take]
-        rows[take], motions[take] = take_motion(model, shape, p, seed, take, times)
+    for take in sorted({shot.take for shot in plan.frames}):
+        times = [shot.time for shot in plan.frames if shot.take == take]
+        rows[take], motions[take] = take_motion(model, shape, p, seed, take, times, far_take)
     seen = dict.fromkeys(rows, 0)
     frame_rows = []
-    for take, _ in plan.frames:
-        frame_rows.append(rows[take][seen[take]])
-        seen[take] += 1
+    for shot in plan.frames:
+        frame_rows.append(rows[shot.take][seen[shot.take]])
+        seen[shot.take] += 1
     params = BodyParams.cat(frame_rows)
+    views = [cameras(p, s, shot.view_deg)[1] for shot in plan.frames]
+    viewmats = torch.stack(views)
+    tested = [i for name, ids in plan.splits.items() if name != "train" for i in ids]
     with DatasetWriter(out, meta, overwrite=overwrite) as writer:
         with torch.no_grad():
             posed = model(params)
             keypoints3d = model.keypoints(posed)
-        n_seq = len(plan.frames) - len(plan.views)
-        views = [view_main if i < n_seq else view_side for i in range(len(plan.frames))]
-        viewmats = torch.stack(views)
         cam = to_camera(keypoints3d, viewmats.to(keypoints3d.dtype))
         uv, depth = project_points(cam, K.to(keypoints3d.dtype)), cam[..., 2]
         h = w = s.image_size
@@ -256,20 +344,19 @@ def generate(
         with MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer:
             apply_look(renderer, model, params[0], look, s.texture_size, seed=seed)
             total = len(plan.frames)
-            for i, (_, t) in enumerate(plan.frames):
+            for i, shot in enumerate(plan.frames):
                 r = renderer.render(posed.vertices[i], views[i], K)
                 writer.add_frame(
                     r.rgb.numpy(),
                     r.alpha.numpy(),
                     K=K,
                     viewmat=views[i],
-                    time=float(t),
+                    time=float(shot.time),
                     regions=coverage_by_region(r, regions),
                 )
                 if progress is not None:
                     progress(ProgressEvent("render", i + 1, total, f"rendering frame {i + 1}/{total}"))
         give = p.give_ground_truth
-        pose_of_frame = list(range(n_seq)) + plan.views
         return writer.finish(
             plan.splits,
             params=params if give else None,
@@ -286,12 +373,15 @@ def generate(
                 "size": size,
                 "seed": seed,
                 "split_style": p.split,
-                "take_of_frame": [k for k, _ in plan.frames],
-                "pose_of_frame": pose_of_frame,
+                "take_of_frame": [shot.take for shot in plan.frames],
+                "pose_of_frame": plan.pose_of_frame,
+                "view_deg_of_frame": [shot.view_deg for shot in plan.frames],
                 "look": dataclasses.asdict(look),
-                "view_angle_deg": p.view_angle_deg,
+                "view_angle_deg": p.view_angles_deg[0],
+                "view_angles_deg": list(p.view_angles_deg),
+                "novelty": novelty(model, params, viewmats, plan.splits["train"], tested),
                 "motion": [motions[k] for k in sorted(motions)],
-                "held_out_face_actions": list(HELD_OUT_FACE_ACTIONS) if p.split == "takes" else [],
+                "held_out_face_actions": list(HELD_OUT_FACE_ACTIONS) if p.split != "interleaved" else [],
                 "renderer": "moderngl/llvmpipe textured mesh, Lambert + Blinn-Phong, world light",
                 "supersample": s.supersample,
             },

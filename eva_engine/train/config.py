@@ -68,9 +68,16 @@ class TrainConfig:
     """Everything one training run needs besides the data.
 
     iterations: optimisation steps, one training frame each (EVA: 2,000).
-    regularizers: weights of the avatar's own regularisers (GART's; all 0 by default).
+    regularizers: weights of the avatar's own regularisers (GART's, 0 by default; the
+        thin-along-the-normal term, on: ``train/regularizers.py``).
     sh_degree_interval: raise the active SH degree every this many steps (3DGS: 1,000).
     background: render/target background [3]; None: the dataset's (meta.background) or white.
+    random_background: each step renders on, and composites its target over, a random colour
+        instead (the person mask decides the target's pixels): a Gaussian can no longer hide
+        against the background's colour, so the alpha must be right everywhere.
+    pose_noise: standard deviation (radians) of a noise added to every body joint's rotation
+        (not the fingers' or the face's) of a step's frame, drawn anew each step: the avatar
+        learns its shape near each pose, not only at it.
     image_scale: resample frames (and intrinsics) by this factor before training.
     seed: the initial weights, the seed vertices and the frame order (the density-control strategy
     has its own ``seed``). Runs on one CPU thread are bit-identical given it; with more threads,
@@ -88,6 +95,8 @@ class TrainConfig:
     regularizers: RegularizerConfig = field(default_factory=RegularizerConfig)
     sh_degree_interval: int = 1000
     background: tuple[float, float, float] | None = None
+    random_background: bool = False
+    pose_noise: float = 0.0
     image_scale: float = 1.0
     seed: int = 0
     device: str = "cpu"
@@ -98,6 +107,8 @@ class TrainConfig:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         if not 0.0 < self.image_scale <= 4.0:
             raise ValueError(f"image_scale must be in (0, 4], got {self.image_scale}")
+        if not 0.0 <= self.pose_noise <= 1.0:
+            raise ValueError(f"pose_noise must be in [0, 1] radians, got {self.pose_noise}")
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)

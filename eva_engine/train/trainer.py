@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from eva_engine.avatar import Avatar, AvatarFrames, Camera, TrainingRecord
+from eva_engine.avatar.coverage import Coverage
 from eva_engine.body.model import PART_NAMES, BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.data.dataset import Dataset, DatasetLike
@@ -76,6 +77,7 @@ class TrainResult:
     train_indices: list[int] = field(default_factory=list)
     train_params: BodyParams | None = None
     pose_correction: dict[str, float] = field(default_factory=dict)
+    coverage: Coverage | None = None
 
     def frame_params(self, fitted: BodyParams) -> BodyParams:
         """The dataset's ``fitted`` params (batch F) with the trained frames' rows replaced by
@@ -106,6 +108,7 @@ class TrainResult:
             refinements=self.refinements,
             gaussians_per_part=self.gaussians_per_part,
             pose_correction=self.pose_correction,
+            coverage=self.coverage,
             **provenance,
         )
 
@@ -191,6 +194,22 @@ def means_lr(config: TrainConfig, step: int) -> float:
     return math.exp((1 - t) * math.log(o.means_lr) + t * math.log(o.means_lr_final)) * o.spatial_scale
 
 
+def with_pose_noise(
+    params: BodyParams, joints: Tensor, sigma: float, generator: torch.Generator
+) -> BodyParams:
+    """``params`` (batch 1) with Gaussian noise of std ``sigma`` (radians) added to the axis-angles
+    of the pose joints in ``joints [P]`` (bool)."""
+    noise = torch.randn(params.joints.shape, generator=generator).to(params.joints) * sigma
+    noise = noise * joints[None, :, None].to(noise)
+    return BodyParams(
+        root_orient=params.root_orient,
+        transl=params.transl,
+        joints=params.joints + noise,
+        expression=params.expression,
+        shape=params.shape,
+    )
+
+
 def train_avatar(
     dataset: DatasetLike,
     config: TrainConfig | None = None,
@@ -264,6 +283,13 @@ def train_avatar(
     )
 
     frame_order = torch.Generator().manual_seed(config.seed)
+    # Draws of the options that perturb a step (their own generator: turning one on leaves the
+    # frame order and the initial weights as they were).
+    perturb = torch.Generator().manual_seed(config.seed + 1)
+    body_joints = (body.joint_part_ids[1:] == 0).to(device)
+    max_scale = (
+        torch.tensor(config.avatar.max_scale, device=device) if config.avatar.max_scale is not None else None
+    )
     order: list[int] = []
     timings = dict.fromkeys(STAGES, 0.0)
     losses: list[float] = []
@@ -292,20 +318,29 @@ def train_avatar(
 
         correcting = correction is not None and step >= config.pose_correction.start_iter
         frame_params = correction.apply(params[i], i) if correcting else params[i]
+        if config.pose_noise > 0:
+            frame_params = with_pose_noise(frame_params, body_joints, config.pose_noise, perturb)
+        if config.random_background:
+            bg = torch.rand(3, generator=perturb).to(device)
+            target, key = composite_target(frames.images[i].to(device), masks[i], bg), None
+        else:
+            bg, target, key = background, targets[i], i
         posed = avatar.pose(frame_params)
         t = tick("skinning", t)
-        render = avatar.rasterize_posed(posed, cam, background)
+        render = avatar.rasterize_posed(posed, cam, bg)
         t = tick("rasterize", t)
-        terms = loss_fn(render, targets[i], masks[i], key=i, step=step)
+        terms = loss_fn(render, target, masks[i], key=key, step=step)
         total = (terms["total"] + correction.prior(i)) if correcting else terms["total"]
         if config.regularizers.active:
-            total = total + regularization(avatar, config.regularizers)
+            total = total + regularization(avatar, config.regularizers, posed)
         t = tick("losses", t)
         total.backward()
         t = tick("backward", t)
         for opt in (*optimizers.values(), *extra, *([correction_opt] if correcting else [])):
             opt.step()
             opt.zero_grad(set_to_none=True)
+        if max_scale is not None:
+            avatar.gaussians.clamp_scales(max_scale)
         t = tick("optimizer", t)
         stats = strategy.step_post_backward(avatar.gaussians, optimizers, state, step, render)
         if stats:
@@ -341,6 +376,8 @@ def train_avatar(
         progress(_train_event("done", n, n, losses[-1], len(avatar.gaussians), train_seconds, 0.0))
     per_part = {"before": parts_before, "after": part_counts(avatar.gaussians.part_ids)}
     trained = (correction.corrected(params) if correction is not None else params).to("cpu")
+    viewmats = torch.stack([c.viewmat for c in frames.cameras])
+    coverage = Coverage.of_frames(avatar.body, trained, viewmats)
     return TrainResult(
         avatar,
         losses,
@@ -351,4 +388,5 @@ def train_avatar(
         train_ids,
         trained,
         correction.magnitudes() if correction is not None else {},
+        coverage,
     )

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Annotated, BinaryIO, Literal
 
@@ -8,7 +9,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
 from eva_engine.avatar import read_avatar_meta
-from eva_engine.avatar.render_spec import frame_params, spec_camera, spec_params
+from eva_engine.avatar.render_spec import coverage_warnings, frame_params, spec_camera, spec_params
 from jobs.options import JobOptions
 from jobs.store import JobRecord, new_id
 from service import rendering
@@ -25,6 +26,7 @@ from service.schemas import AvatarCreated, AvatarForm, AvatarInfo, AvatarList, R
 from service.uploads import check_video, queued_job, safe_suffix, save_upload
 
 router = APIRouter(prefix="/avatars", tags=["avatars"])
+WARNINGS_HEADER = "X-Render-Warnings"
 NOT_FOUND = error(404, "Unknown or malformed avatar id")
 
 
@@ -127,10 +129,22 @@ def delete_avatar(
     response_class=Response,
     summary="Render the avatar in a pose, expression and view",
     description="The body is the request's `pose` (or training frame `frame`), seen through `camera`; "
-    "the answer is the image's bytes (PNG or JPEG). At most a few renders run at once: past them, 503 "
-    "with `Retry-After`.",
+    "the answer is the image's bytes (PNG or JPEG). A pose or view beyond what the training video "
+    f"showed is still rendered; the header `{WARNINGS_HEADER}` (a JSON list of sentences, empty when "
+    "none) says what lies outside it. At most a few renders run at once: past them, 503 with "
+    "`Retry-After`.",
     responses={
-        200: {"content": {"image/png": {}, "image/jpeg": {}}, "description": "The rendered image"},
+        200: {
+            "content": {"image/png": {}, "image/jpeg": {}},
+            "description": "The rendered image",
+            "headers": {
+                WARNINGS_HEADER: {
+                    "description": "JSON list: what the request asks for beyond the training range "
+                    "(camera yaw or pitch, joints, facial actions); [] when it stays inside",
+                    "schema": {"type": "string"},
+                }
+            },
+        },
         **NOT_FOUND,
         **AVATAR_NOT_READY,
         **BUSY,
@@ -148,18 +162,20 @@ async def render_avatar(
     limits = ctx.settings.max_render_side, ctx.settings.max_render_pixels
     width, height = await run_in_threadpool(rendering.checked_size, req, folder, *limits)  # before loading
     async with ctx.renders.slot():
-        data = await run_in_threadpool(_render, ctx, job.avatar_id, folder, req, width, height)
-    return Response(data, media_type="image/png" if req.format == "png" else "image/jpeg")
+        data, warnings = await run_in_threadpool(_render, ctx, job.avatar_id, folder, req, width, height)
+    media_type = "image/png" if req.format == "png" else "image/jpeg"
+    return Response(data, media_type=media_type, headers={WARNINGS_HEADER: json.dumps(warnings)})
 
 
 def _render(
     ctx: ServiceContext, avatar_id: str, folder: Path, req: RenderRequest, width: int, height: int
-) -> bytes:
+) -> tuple[bytes, list[str]]:
     loaded = ctx.avatars.get(avatar_id, folder)
     params = spec_params(loaded.avatar, req, loaded.frames)  # checked against the body model's ranges
-    camera = spec_camera(req, width, height, loaded.frames)
+    camera = spec_camera(req, width, height, loaded.frames, loaded.avatar, params)
     image = rendering.render_image(loaded, params, camera, req.background)
-    return rendering.encode_image(image, req.format)
+    warnings = coverage_warnings(loaded.coverage, loaded.avatar, req, params, camera)
+    return rendering.encode_image(image, req.format), warnings
 
 
 @router.get(

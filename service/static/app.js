@@ -333,6 +333,23 @@ function scheduleRender() {
   state.renderTimer = setTimeout(renderPose, RENDER_DEBOUNCE_MS);
 }
 
+// A pose or view beyond what the training video showed still renders; the service says so.
+function showWarnings(header) {
+  const list = $("pose-warnings");
+  let warnings = [];
+  try {
+    warnings = header ? JSON.parse(header) : [];
+  } catch {
+    warnings = [];
+  }
+  list.replaceChildren(...warnings.map((text) => {
+    const li = document.createElement("li");
+    li.textContent = `Outside what the video showed: ${text}.`;
+    return li;
+  }));
+  list.hidden = warnings.length === 0;
+}
+
 async function renderPose() {
   if (!state.selected) return;
   if (state.rendering) { // one request at a time; the latest sliders win
@@ -354,6 +371,7 @@ async function renderPose() {
       $("pose-status").textContent = await errorText(res);
       return;
     }
+    showWarnings(res.headers.get("X-Render-Warnings"));
     const url = URL.createObjectURL(await res.blob());
     await new Promise((resolve) => {
       img.onload = resolve;

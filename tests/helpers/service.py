@@ -122,11 +122,13 @@ def log_tail(log: Path, chars: int = 3000) -> str:
 
 def publish_seeded_avatar(queue, model, frames: int = 3, size: tuple[int, int] = (96, 64)):
     """A succeeded job whose avatar is a freshly seeded (untrained) Gaussian avatar with
-    ``frames`` training frames of ``size`` (height, width), published the way a worker publishes
-    one: the render and export endpoints work on it in milliseconds, without a training run."""
+    ``frames`` training frames of ``size`` (height, width) in the rest pose seen from the front,
+    and their coverage, published the way a worker publishes one: the render and export
+    endpoints work on it in milliseconds, without a training run."""
     import torch
 
-    from eva_engine.avatar import Avatar, AvatarConfig, AvatarFrames, save_avatar
+    from eva_engine.avatar import Avatar, AvatarConfig, AvatarFrames, TrainingRecord, save_avatar
+    from eva_engine.avatar.coverage import Coverage
     from eva_engine.render.camera import intrinsics, orbit_camera
     from jobs import JobOptions
 
@@ -144,7 +146,8 @@ def publish_seeded_avatar(queue, model, frames: int = 3, size: tuple[int, int] =
         image_size=size,
         fps=10.0,
     )
-    save_avatar(avatar, folder, frames=kept)
+    record = TrainingRecord(coverage=Coverage.of_frames(model, kept.params, kept.viewmat))
+    save_avatar(avatar, folder, record, frames=kept)
     assert queue.store.finish(job.id, "succeeded", owner=worker)
     return queue.store.get(job.id)
 

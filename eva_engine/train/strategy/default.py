@@ -18,6 +18,13 @@ removed: a video that never shows the hands must not spend Gaussians on untraine
 is decided at the end, not at a refinement, because a part may first appear late in the frame
 order.
 
+**A final prune** (``prune_extent``, ``prune_never_seen``; off by default, as 3DGS): after the last
+step, Gaussians whose 3-sigma ellipsoid reaches farther than ``prune_extent`` from the template
+(centre distance + 3 x largest standard deviation) go, and so do Gaussians that no step ever
+saw (no screen-space gradient in any training frame: hidden or off-screen in all of them, so
+nothing fitted their colour or opacity). Pruning during training looks at the centre alone and
+stops at ``refine_stop_iter``; a Gaussian may grow for the rest of the run.
+
 Subclasses change the policy through the three hooks (``densify_thresholds``,
 ``prune_distance_thresholds``, ``end_window``) and extra per-Gaussian entries in ``state``, which
 the ops keep aligned; e.g. the context-aware strategy keeps the previous window's gradient
@@ -57,6 +64,9 @@ class DefaultStrategy(Strategy):
     max_gaussians: optional budget: above it, only the candidates furthest above their
         threshold (gradient / threshold) are densified.
     prune_unseen_parts: remove, after training, the Gaussians of parts no step ever saw.
+    prune_extent: after training, remove Gaussians whose 3-sigma extent reaches farther than this
+        from the template (None: off).
+    prune_never_seen: after training, remove Gaussians that no step saw.
     seed: for the split samples.
     """
 
@@ -71,6 +81,8 @@ class DefaultStrategy(Strategy):
     reset_every: int = 3000
     max_gaussians: int | None = None
     prune_unseen_parts: bool = True
+    prune_extent: float | None = None
+    prune_never_seen: bool = False
     seed: int = 0
 
     @classmethod
@@ -84,6 +96,7 @@ class DefaultStrategy(Strategy):
         return {
             "grad2d": None,  # [N] summed gradient norms of the current window
             "count": None,  # [N] steps each Gaussian was visible in the window
+            "seen": None,  # [N] steps in which each Gaussian received a gradient (whole run)
             # Steps in which each part was seen: a list (not a per-Gaussian tensor the ops edit).
             "part_seen": [0] * len(PART_NAMES),
             "generator": torch.Generator().manual_seed(self.seed),
@@ -115,6 +128,9 @@ class DefaultStrategy(Strategy):
         seen = torch.bincount(gaussians.part_ids[reached], minlength=len(PART_NAMES))
         for part, n in enumerate(seen.tolist()[: len(PART_NAMES)]):
             state["part_seen"][part] += int(n > 0)
+        if state.get("seen") is None or state["seen"].shape[0] != len(gaussians):
+            state["seen"] = torch.zeros(len(gaussians), device=gaussians.means.device)
+        state["seen"] += reached.to(state["seen"])
 
     @torch.no_grad()
     def update_state(self, gaussians: CanonicalGaussians, state: dict, render: RenderOutput) -> None:
@@ -197,18 +213,26 @@ class DefaultStrategy(Strategy):
 
     @torch.no_grad()
     def finalize(self, gaussians: CanonicalGaussians, optimizers: Optimizers, state: dict) -> dict:
-        """Remove the Gaussians of parts never seen (``prune_unseen_parts``); returns what it did
-        (empty when nothing changed)."""
+        """After the last step: remove the Gaussians of parts never seen (``prune_unseen_parts``),
+        then the final prune (``prune_extent``, ``prune_never_seen``); returns what it did (empty
+        when nothing changed). Never removes every Gaussian."""
+        out: dict = {}
         unseen = [p for p, n in enumerate(state.get("part_seen", [])) if n == 0]
-        if not self.prune_unseen_parts or not unseen:
-            return {}
-        drop = torch.isin(gaussians.part_ids, torch.tensor(unseen, device=gaussians.part_ids.device))
-        if bool(drop.all()) or not bool(drop.any()):  # nothing seen at all, or nothing to drop
-            return {}
-        ops.remove(gaussians, optimizers, state, drop)
-        gaussians.refresh_vertex_ids()
-        return {
-            "unseen_parts": [PART_NAMES[p] for p in unseen],
-            "pruned": int(drop.sum()),
-            "gaussians": len(gaussians),
-        }
+        if self.prune_unseen_parts and unseen:
+            drop = torch.isin(gaussians.part_ids, torch.tensor(unseen, device=gaussians.part_ids.device))
+            if bool(drop.any()) and not bool(drop.all()):  # nothing seen at all, or nothing to drop
+                ops.remove(gaussians, optimizers, state, drop)
+                out |= {"unseen_parts": [PART_NAMES[p] for p in unseen], "pruned": int(drop.sum())}
+        drop = torch.zeros(len(gaussians), dtype=torch.bool, device=gaussians.means.device)
+        if self.prune_extent is not None:
+            reach = gaussians.template_distance() + 3.0 * gaussians.scales().amax(dim=-1)
+            drop |= reach > self.prune_extent
+        if self.prune_never_seen and state.get("seen") is not None and len(state["seen"]) == len(drop):
+            drop |= state["seen"] == 0
+        if bool(drop.any()) and not bool(drop.all()):
+            out["pruned_final"] = int(drop.sum())
+            ops.remove(gaussians, optimizers, state, drop)
+        if out:
+            gaussians.refresh_vertex_ids()
+            out["gaussians"] = len(gaussians)
+        return out
