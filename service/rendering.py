@@ -18,7 +18,7 @@ import torch
 
 from eva_engine.avatar import Avatar, AvatarFileError, AvatarFrames, load_saved_avatar, read_avatar_meta
 from eva_engine.avatar.coverage import Coverage
-from eva_engine.avatar.render_spec import RenderInputError, RenderSpec, resolve_size
+from eva_engine.avatar.render_spec import RenderInputError, RenderSpec, resolve_size, uses_training_frame
 from eva_engine.avatar.render_spec import render_image as _render_image
 from eva_engine.body import BodyModel, BodyParams, load_body_model
 from eva_engine.render.camera import Camera
@@ -141,8 +141,7 @@ class AvatarCache:
 def checked_size(spec: RenderSpec, folder: Path, max_side: int, max_pixels: int) -> tuple[int, int]:
     """The render's (width, height), from the request and the avatar's ``avatar.json`` (no model
     load), or ``RenderInputError`` when it is over ``max_side`` a side or ``max_pixels`` in all."""
-    uses_frame = spec.frame is not None or (spec.camera is not None and spec.camera.frame is not None)
-    frames = read_avatar_meta(folder).frames if uses_frame else None
+    frames = read_avatar_meta(folder).frames if uses_training_frame(spec) else None
     width, height = resolve_size(spec, frames.image_size if frames is not None else None)
     if width > max_side or height > max_side or width * height > max_pixels:
         raise RenderInputError(

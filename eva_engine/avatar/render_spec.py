@@ -143,8 +143,9 @@ class RenderSpec(BaseModel):
         return self
 
 
-def _frame_sized(spec: RenderSpec) -> bool:
-    """Whether ``spec`` takes its default size from a training frame (its pose or its camera)."""
+def uses_training_frame(spec: RenderSpec) -> bool:
+    """Whether ``spec`` reads a training frame (its pose or its camera), and so takes its default
+    size from it."""
     return spec.frame is not None or (spec.camera is not None and spec.camera.frame is not None)
 
 
@@ -154,7 +155,7 @@ def resolve_size(spec: RenderSpec, frames: AvatarFrames | tuple[int, int] | None
     frames, or just their (height, width) (e.g. from ``AvatarMeta.frames``, without loading
     them)."""
     size = frames.image_size if isinstance(frames, AvatarFrames) else frames
-    if _frame_sized(spec) and size is not None and size[0] > 0 and size[1] > 0:
+    if uses_training_frame(spec) and size is not None and size[0] > 0 and size[1] > 0:
         h, w = size
         if spec.width is not None and spec.height is None:
             return spec.width, max(16, round(spec.width * h / w))
