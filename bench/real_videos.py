@@ -3,6 +3,7 @@ with the paper's UPB protocol, for 3dgs+body and EVA, and a contact sheet per vi
 
     .venv/bin/python bench/real_videos.py                    # ../shared/reference/videos (skips if absent)
     .venv/bin/python bench/real_videos.py --videos DIR --preset fast --name real_videos_fast
+    .venv/bin/python bench/real_videos.py --only latentsync_demo3_gesturing --max-size 960 ...
 
 Protocol (the paper's UPB split): each video is sampled to about ``--frames`` frames (every k-th
 frame), scaled so its long side is ``--max-size`` px, and alternate frames train and test
@@ -296,6 +297,7 @@ def placement_lines(methods: dict) -> list[str]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--videos", type=Path, default=DEFAULT_VIDEOS, help="folder of videos")
+    ap.add_argument("--only", nargs="+", metavar="STEM", help="only the videos of these file stems")
     ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), choices=list(METHODS))
     ap.add_argument("--preset", default="default", choices=list(PRESETS))
     ap.add_argument("--frames", type=int, default=280, help="frames to sample per video (train + test)")
@@ -313,6 +315,11 @@ def main() -> None:
     )
     ap.add_argument("--reuse", action="store_true", help="score the avatars saved in --work (same settings)")
     ap.add_argument(
+        "--sheet-only",
+        action="store_true",
+        help="only the contact sheets, of the avatars saved in --work (no training, no scores)",
+    )
+    ap.add_argument(
         "--set",
         nargs="+",
         default=[],
@@ -322,6 +329,11 @@ def main() -> None:
     )
     args = ap.parse_args()
     videos = videos_or_skip(args.videos)
+    if args.only:
+        missing = set(args.only) - {v.stem for v in videos}
+        if missing:
+            raise SystemExit(f"no video {sorted(missing)} in {args.videos}")
+        videos = [v for v in videos if v.stem in args.only]
     if not videos:
         return
 
@@ -365,7 +377,17 @@ def main() -> None:
             "methods": {},
         }
         avatars, poses = {}, {}
-        for method in args.methods:
+        if args.sheet_only:
+            from eva_engine.avatar import load_saved_avatar
+
+            for method in args.methods:
+                tag = method.replace("+", "_") + (f"-{args.name}" if args.set else "")
+                saved = folder / f"avatar-{tag}"
+                if not (saved / "avatar.json").is_file():
+                    raise SystemExit(f"no saved avatar {saved}: train it first (drop --sheet-only)")
+                avatars[method], poses[method] = load_saved_avatar(saved).avatar, ds.params
+            entry.pop("methods")
+        for method in args.methods if not args.sheet_only else ():
             print(f"{video.name}: {method} ...", file=sys.stderr, flush=True)
             tag = method.replace("+", "_") + (f"-{args.name}" if args.set else "")
             entry["methods"][method], avatars[method], ev = train_and_eval(
@@ -386,14 +408,18 @@ def main() -> None:
         name = f"{args.name}_{video.stem}.jpg"
         from PIL import Image
 
+        args.out.mkdir(parents=True, exist_ok=True)
         Image.fromarray(sheet).save(args.out / name, quality=82, optimize=True)
+        print(f"wrote {args.out / name}", file=sys.stderr)
         entry["contact_sheet"] = name
         entry["contact_sheet_frames"] = picks
+        if args.sheet_only:
+            continue
         doc["videos"][video.name] = entry
-        args.out.mkdir(parents=True, exist_ok=True)
         (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1, default=str))
         (args.out / f"{args.name}.md").write_text(markdown(doc))
-    print(markdown(doc))
+    if doc["videos"]:
+        print(markdown(doc))
 
 
 if __name__ == "__main__":

@@ -34,6 +34,9 @@ class Method:
     mask term; no LPIPS).
     skinning: ``mesh`` (the template's weights with the weight-offset MLP, and the pose refiner)
     or ``field`` (GART's learnable weight field and latent bones, no pose refiner).
+    recipe: ``project`` (the preset's schedule and rates, the project's forms of CADC and CL) or
+    ``official`` (the official EVA code's: its densification, its confidence form, LPIPS-VGG as
+    the loss network, its constants: ``eva_engine.train.methods.OFFICIAL``).
     """
 
     summary: str
@@ -42,6 +45,7 @@ class Method:
     history: Literal["per_gaussian", "part_mean"] = "per_gaussian"
     objective: Literal["full", "gauhuman", "gart", "3dgs"] = "full"
     skinning: Literal["mesh", "field"] = "mesh"
+    recipe: Literal["project", "official"] = "project"
 
 
 METHODS: dict[str, Method] = {
@@ -56,6 +60,12 @@ METHODS: dict[str, Method] = {
     "eva-no-cadc-no-cl": Method("eva without CADC and CL", density="3dgs", confidence=False),
     "eva-part-mean": Method(
         "eva, per-part-mean thresholds", density="cadc", confidence=True, history="part_mean"
+    ),
+    "eva-official": Method(
+        "eva as the authors' code has it", density="cadc", confidence=True, recipe="official"
+    ),
+    "eva-official-no-cadc": Method(
+        "eva-official without CADC", density="3dgs", confidence=True, recipe="official"
     ),
 }
 """Method name -> its switches (Tables 1 and 2 of the paper: ``eva_engine.train.methods``)."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 SYNTH_PRESETS: dict[str, str] = {
     "controlled": "XHumans-like, thighs up, ground truth given, tested on other motion takes",
     "wild": "UPB-like waist-up signer, alternate frames tested",
+    "wild-gt": "wild's framing and split, ground truth given (the paper's regime)",
     "novel": "controlled's subject trained with the arms low; tested on raised arms and 35/70 deg views",
 }
 """Preset name -> what it shows."""

@@ -295,3 +295,15 @@ def test_novel_preset_tests_beyond_the_training_range(datasets, anny_model):
     near = [novelty[i]["pose_deg"] for i in s["test_pose"]]
     far = [novelty[i]["pose_deg"] for i in s["test_far_pose"]]
     assert min(near) > 0 and max(far) > max(near) + 20
+
+
+def test_wild_gt_is_wild_with_the_ground_truth_given(datasets):
+    """The paper's regime benchmark: wild's frames and split, with the ground truth as inputs."""
+    wild, given = datasets["wild"], datasets["wild-gt"]
+    assert wild.params is None and given.params is not None
+    assert given.splits == wild.splits and len(given) == len(wild)
+    for i in (0, len(wild) - 1):
+        assert torch.equal(given[i].image, wild[i].image) and torch.equal(given[i].K, wild[i].K)
+    for name, value in given.params.tensors().items():
+        assert torch.equal(value, getattr(given.gt_params, name)), name
+    assert given.meta.params_source == "ground_truth"

@@ -5,6 +5,7 @@ optimizers."""
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import pytest
@@ -19,6 +20,7 @@ from eva_engine.train import (
     LossConfig,
     TrainConfig,
 )
+from eva_engine.train.confidence import OfficialConfidenceLoss
 from eva_engine.train.trainer import make_extra_optimizers
 
 H = W = 16
@@ -179,7 +181,7 @@ def test_invalid_config_is_refused():
 
 def test_trainer_optimises_the_network():
     avatar_loss = AvatarLoss(LossConfig(photometric="confidence", lambda_lpips=0.0))
-    no_mlps = SimpleNamespace(mlp_parameters=lambda: [])  # only the loss's parameters here
+    no_mlps = SimpleNamespace(networks=lambda: {})  # only the loss's parameters here
     extra = make_extra_optimizers(no_mlps, TrainConfig(), avatar_loss)
     held = {id(p) for opt in extra for group in opt.param_groups for p in group["params"]}
     assert held == {id(p) for p in avatar_loss.photometric.parameters()}
@@ -193,3 +195,77 @@ def test_render_output_inputs_work_through_avatar_loss():
     terms = AvatarLoss(LossConfig(photometric="confidence", lambda_lpips=0.0))(render, target, mask)
     terms["total"].backward()
     assert torch.isfinite(terms["total"]) and torch.isfinite(image.grad).all()
+
+
+# -- the official code's form ---------------------------------------------------------------
+def test_official_form_is_the_authors_confidence():
+    """C = (1 + exp(E)) / 2 with E = conv2([x, leaky_relu(conv1(x), 0.2)]) of x = [I_r, D_r]
+    (1x1 convolutions), the term mean(C |r|) with no log term, Kaiming-normal x 0.1 weights."""
+    assert PHOTOMETRIC_LOSSES["confidence_official"] is OfficialConfidenceLoss
+    loss = OfficialConfidenceLoss(generator=torch.Generator().manual_seed(3))
+    net = loss.net
+    assert torch.all(net.conv1.bias == 0) and torch.all(net.conv2.bias == 0)
+    # Kaiming normal (fan_in 4 and 7, gain sqrt 2) x 0.1: std 0.1 * sqrt(2 / fan_in).
+    assert float(net.conv1.weight.detach().abs().max()) < 0.1 * math.sqrt(2 / 4) * 5
+    image, target, alpha, depth, mask = inputs(1)
+    value = loss(image, target, alpha, depth, mask).detach()
+    image = image.detach()
+    x = torch.cat([image, depth], dim=-1).reshape(-1, 4)
+    w1, w2 = net.conv1.weight[:, :, 0, 0], net.conv2.weight[:, :, 0, 0]
+    hidden = torch.nn.functional.leaky_relu(x @ w1.T + net.conv1.bias, 0.2)
+    e = (torch.cat([x, hidden], dim=-1) @ w2.T + net.conv2.bias).reshape(H, W)
+    conf = ((1 + torch.exp(e)) / 2).detach()
+    assert loss.last_confidence == pytest.approx(conf, rel=1e-5)
+    assert float(value) == pytest.approx(float(((image - target).abs() * conf[..., None]).mean()), rel=1e-5)
+    # Zero weights: C = 1 (plain L1); the floor is 0.5, where E -> -inf.
+    loss.requires_grad_(False)
+    with torch.no_grad():
+        net.conv2.weight.zero_()
+    assert float(loss(image, target, alpha, depth, mask)) == pytest.approx(
+        float((image - target).abs().mean())
+    )
+    with torch.no_grad():
+        net.conv2.bias.fill_(-50.0)
+    assert float(loss(image, target, alpha, depth, mask)) == pytest.approx(
+        0.5 * float((image - target).abs().mean()), rel=1e-5
+    )
+
+
+def test_official_form_passes_gradient_to_the_render_through_the_confidence():
+    loss = OfficialConfidenceLoss()
+    image, target, alpha, depth, mask = inputs(2)
+    depth = depth.clone().requires_grad_(True)
+    loss(image, target, alpha, depth, mask).backward()
+    assert depth.grad is not None and float(depth.grad.abs().sum()) > 0  # depth only acts through C
+    plain = image.detach().clone().requires_grad_(True)
+    conf = loss.last_confidence
+    ((plain - target).abs() * conf[..., None]).mean().backward()
+    assert not torch.allclose(image.grad, plain.grad)  # C's own gradient reaches the image
+    # Its network learns by lowering C (nothing stops it: the official code's choice).
+    loss = OfficialConfidenceLoss()
+    opt = torch.optim.Adam(loss.parameters(), lr=1e-2)
+    image, target, alpha, depth, mask = inputs(3, requires_grad=False)
+    first = float(loss(image, target, alpha, depth, mask).detach())
+    for _ in range(50):
+        opt.zero_grad()
+        loss(image, target, alpha, depth, mask).backward()
+        opt.step()
+    last = float(loss(image, target, alpha, depth, mask).detach())
+    assert float(loss.last_confidence.mean()) < 1.0 and last < first
+
+
+@pytest.mark.parametrize("case", ["huge_depth", "zero_image", "saturated"])
+def test_official_form_degenerate_inputs_stay_finite(case):
+    loss = OfficialConfidenceLoss()
+    image, target, alpha, depth, mask = inputs(4)
+    if case == "huge_depth":
+        depth = torch.full((H, W, 1), 1e6)
+    elif case == "zero_image":
+        image = torch.zeros(H, W, 3, requires_grad=True)
+    else:
+        with torch.no_grad():
+            loss.net.conv2.bias.fill_(1e4)  # exp would overflow without the cap
+    value = loss(image, target, alpha, depth, mask)
+    value.backward()
+    assert math.isfinite(float(value.detach())) and torch.isfinite(image.grad).all()
+    assert all(torch.isfinite(p.grad).all() for p in loss.parameters())

@@ -9,6 +9,7 @@ import pytest
 import torch
 from helpers.scenes import teacher_scene
 
+from eva_engine.avatar import Avatar
 from eva_engine.eval import ImageMetrics, evaluate_avatar, metrics_table
 from eva_engine.metrics import LPIPS, psnr
 from eva_engine.render import RenderOutput
@@ -23,6 +24,8 @@ from eva_engine.train import (
     with_method,
     with_overrides,
 )
+from eva_engine.train.config import OptimConfig
+from eva_engine.train.trainer import make_extra_optimizers, means_lr
 
 
 @pytest.fixture(scope="module")
@@ -240,3 +243,33 @@ def test_lpips_every_k_steps_keeps_its_expected_weight(lpips):
     torch.testing.assert_close(every(render, target, mask)["total"], reference["total"])  # no step: always
     with pytest.raises(ValueError, match="lpips_every"):
         LossConfig(lpips_every=0)
+
+
+def test_the_lpips_loss_network_is_chosen_by_config(lpips):
+    assert AvatarLoss(LossConfig(lpips_net="vgg")).lpips.net == "vgg"
+    assert AvatarLoss(LossConfig(), lpips=lpips).lpips.net == "alex"
+    with pytest.raises(ValueError, match="LPIPS-vgg"):
+        AvatarLoss(LossConfig(lpips_net="vgg"), lpips=lpips)  # a metric network of the wrong kind
+    with pytest.raises(ValueError, match="lpips_net"):
+        LossConfig(lpips_net="squeeze")
+
+
+def test_official_rates_per_network_and_the_means_decay_horizon(anny_model):
+    """The official recipe's rates: the weight-offset MLP 5e-5, the pose refiner 5e-6 for the
+    body and 0.05 x that for hands and face; the means decay over 30,000 steps, not the run."""
+    config = with_method(preset("default"), "eva-official")
+    avatar = Avatar.create(anny_model, anny_model.shape_defaults, config.avatar)
+    loss = AvatarLoss(dataclasses.replace(config.loss, lambda_lpips=0.0))
+    mlps = make_extra_optimizers(avatar, config, loss)[0]
+    rates = {id(p): g["lr"] for g in mlps.param_groups for p in g["params"]}
+    refiner = avatar.pose_refiner.mlps
+    assert {rates[id(p)] for p in refiner["body"].parameters()} == {5e-6}
+    for part in ("hand", "face"):
+        got = [rates[id(p)] for p in refiner[part].parameters()]
+        assert got == pytest.approx([2.5e-7] * len(got))
+    assert {rates[id(p)] for p in avatar.weight_offsets.parameters()} == {5e-5}
+    # 3DGS's horizon: a 2,000-step run ends at 1.6e-4 * 0.01^(2000/30000) ~ 1.18e-4.
+    assert means_lr(config, 2000) == pytest.approx(1.6e-4 * 0.01 ** (2000 / 30000), rel=1e-6)
+    assert means_lr(preset("default"), 1999) == pytest.approx(1.6e-6, rel=1e-6)  # the run's own
+    with pytest.raises(ValueError, match="means_lr_steps"):
+        OptimConfig(means_lr_steps=0)

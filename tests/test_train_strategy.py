@@ -142,7 +142,11 @@ def test_default_strategy_densifies_and_prunes():
     stats = {}
     for step in (1, 2):
         stats = strategy.step_post_backward(gs, opts, state, step, fake_render(len(gs), grad.clone()))
+    parts = stats.pop("parts")
     assert stats == {"cloned": 2, "split": 2, "pruned": 2, "gaussians": N + 2 + 2 - 2}
+    # Per part: the same counts, split by part, and the (constant) threshold.
+    assert sum(p["cloned"] for p in parts.values()) == 2 and sum(p["split"] for p in parts.values()) == 2
+    assert all(p["eps_clone"] in (None, pytest.approx(strategy.grow_grad2d)) for p in parts.values())
     assert len(gs) == N + 2 and gs.part_ids.shape == (N + 2,)
     assert torch.all(state["grad2d"] == 0) and state["grad2d"].shape == (N + 2,)
     for k, p in gs.splats.items():

@@ -21,6 +21,14 @@ Our choice, so that C means something and cannot collapse:
 E sees its inputs detached (the render should fit the frame, not steer its own weights); its
 parameters are trained by the trainer's loss optimizer (``OptimConfig.loss_lr``). Registered as
 ``PHOTOMETRIC_LOSSES["confidence"]``; select it with ``LossConfig(photometric="confidence")``.
+
+**The official code's form** (``OfficialConfidenceLoss``, ``PHOTOMETRIC_LOSSES
+["confidence_official"]``; ``nets/refine_sr.py``, ``train.py`` of kolassa-tema/EVA_Official):
+C = (1 + exp(E)) / 2 with E two 1×1 convolutions of [I_r, D_r] (4 -> 3, LeakyReLU 0.2, then
+[input, hidden] 7 -> 1), Kaiming-normal weights ×0.1 and zero biases; the term is mean(C ⊙ |r|)
+with the log term's weight 0, and the inputs are **not** detached: the render gets gradient
+through C as well. Nothing stops E from lowering its loss by driving C to its floor 0.5 (a
+plain L1 at half weight); the official runs train it anyway, and so does this form.
 """
 
 from __future__ import annotations
@@ -148,3 +156,46 @@ class ConfidenceLoss(PhotometricLoss):
 
 
 PHOTOMETRIC_LOSSES["confidence"] = ConfidenceLoss
+
+
+class OfficialConfidenceNet(nn.Module):
+    """The official E and C (module docstring): image [H, W, 3], depth [H, W, 1] -> C [H, W],
+    C = (1 + exp(E)) / 2 >= 0.5. E is capped at ``max_log`` before the exp (the official code has
+    no cap: exp overflows to inf there long before a pixel could matter)."""
+
+    def __init__(self, generator: torch.Generator | None = None, max_log: float = 30.0) -> None:
+        super().__init__()
+        g = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.max_log = max_log
+        self.conv1 = nn.utils.skip_init(nn.Conv2d, 4, 3, 1)
+        self.conv2 = nn.utils.skip_init(nn.Conv2d, 7, 1, 1)
+        with torch.no_grad():
+            for conv in (self.conv1, self.conv2):  # refine_sr.default_init_weights(scale=0.1)
+                nn.init.kaiming_normal_(conv.weight, generator=g)
+                conv.weight.mul_(0.1)
+                nn.init.zeros_(conv.bias)
+
+    def forward(self, image: Tensor, depth: Tensor) -> Tensor:
+        x = torch.cat([image, depth], dim=-1).permute(2, 0, 1)[None]  # [1, 4, H, W]
+        hidden = F.leaky_relu(self.conv1(x), 0.2)
+        e = self.conv2(torch.cat([x, hidden], dim=1))[0, 0]
+        return (1.0 + torch.exp(e.clamp_max(self.max_log))) / 2.0
+
+
+class OfficialConfidenceLoss(PhotometricLoss):
+    """The official confidence-weighted L1 (module docstring): mean(C ⊙ |I_r − I|) over pixels
+    and channels, C from the rendered image and depth with their gradients kept. Inputs as
+    ``PhotometricLoss``."""
+
+    def __init__(self, generator: torch.Generator | None = None) -> None:
+        super().__init__()
+        self.net = OfficialConfidenceNet(generator)
+        self.last_confidence: Tensor | None = None
+
+    def forward(self, image: Tensor, target: Tensor, alpha: Tensor, depth: Tensor, mask: Tensor) -> Tensor:
+        conf = self.net(image, depth)
+        self.last_confidence = conf.detach()
+        return ((image - target).abs() * conf[..., None]).mean()
+
+
+PHOTOMETRIC_LOSSES["confidence_official"] = OfficialConfidenceLoss

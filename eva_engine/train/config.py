@@ -23,9 +23,12 @@ from eva_engine.train.strategy import DefaultStrategy, Strategy
 class OptimConfig:
     """Adam learning rates (3DGS's, with lengths in metres: a person is a ~1 m scene).
 
-    The means' rate decays exponentially from ``means_lr`` to ``means_lr_final`` over the run.
-    ``mlp_lr`` is for the weight-offset and pose-refinement MLPs, ``loss_lr`` for learnable
-    parts of the loss (e.g. a confidence network).
+    The means' rate decays exponentially from ``means_lr`` to ``means_lr_final`` over the run, or
+    over ``means_lr_steps`` steps when set (3DGS and the official EVA code: 30,000, so a
+    2,000-step run ends at 1.18e-4). ``mlp_lr`` is for the weight-offset and pose-refinement
+    MLPs unless ``weight_offsets_lr`` / ``pose_refine_lr`` set their own (the official code: 5e-5
+    and 5e-6, the latter times ``pose_refine_part_scale`` per part, 0.05 for hands and face);
+    ``loss_lr`` is for learnable parts of the loss (e.g. a confidence network).
     """
 
     means_lr: float = 1.6e-4
@@ -38,6 +41,16 @@ class OptimConfig:
     mlp_lr: float = 1e-4
     loss_lr: float = 1e-3
     spatial_scale: float = 1.0
+    means_lr_steps: int | None = None
+    weight_offsets_lr: float | None = None
+    pose_refine_lr: float | None = None
+    pose_refine_part_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+    def __post_init__(self) -> None:
+        if self.means_lr_steps is not None and self.means_lr_steps < 1:
+            raise ValueError(f"means_lr_steps must be >= 1 or None, got {self.means_lr_steps}")
+        if len(self.pose_refine_part_scale) != 3:
+            raise ValueError(f"pose_refine_part_scale needs 3 values, got {self.pose_refine_part_scale}")
 
     def faster(self, factor: float) -> OptimConfig:
         """Rates for a schedule ``factor`` times shorter than the paper's: colours x factor,

@@ -4,9 +4,10 @@
   module ships ``"l1"`` (mean |I_r - I|, the 3DGS baseline); EVA's confidence-aware loss registers
   itself there as another entry (a module that may have parameters: the trainer optimises them).
 - L_mask: mean squared error between the rendered alpha and the person mask (GauHuman's choice).
-- L_SSIM = 1 - SSIM and L_LPIPS (AlexNet), both on the crop to the person's box (its mask's
-  bounding box grown by ``crop_pad``, then to at least ``min_crop`` pixels per side), as the
-  official code does: the background would otherwise dominate both.
+- L_SSIM = 1 - SSIM and L_LPIPS (AlexNet; ``lpips_net="vgg"`` is the official code's), both on
+  the crop to the person's box (its mask's bounding box grown by ``crop_pad``, then to at least
+  ``min_crop`` pixels per side), as the official code does: the background would otherwise
+  dominate both.
 - Pixel normalisation (``pixel_norm``): the official code averages L_photo and L_mask over the
   person's box, not the frame, and the densification thresholds (3DGS's 2e-4, EVA's per-part e)
   were tuned with gradients of that size. With ``"person_box"`` (the default) the two pixel terms
@@ -33,6 +34,7 @@ from eva_engine.metrics import LPIPS, crop_box, ssim
 from eva_engine.render import RenderOutput
 
 PIXEL_NORMS = ("person_box", "frame")
+LPIPS_NETS = ("alex", "vgg")
 
 
 @dataclass(frozen=True)
@@ -54,12 +56,18 @@ class LossConfig:
     lpips_every: int = 1
     """The LPIPS term on every k-th step only, weighted k λ_l there (the same expected gradient):
     its network's forward and backward are the costliest part of the loss on CPU."""
+    lpips_net: str = "alex"
+    """The LPIPS term's network. "alex" keeps LPIPS-VGG, the paper's metric, one no method trains
+    on; "vgg" is the official code's loss (``loss_fn_vgg``): a row trained on it is trained on
+    the metric it is scored with, and the tables mark it so."""
 
     def __post_init__(self) -> None:
         if self.pixel_norm not in PIXEL_NORMS:
             raise ValueError(f"pixel_norm must be one of {PIXEL_NORMS}, got {self.pixel_norm!r}")
         if self.lpips_every < 1:
             raise ValueError(f"lpips_every must be >= 1, got {self.lpips_every}")
+        if self.lpips_net not in LPIPS_NETS:
+            raise ValueError(f"lpips_net must be one of {LPIPS_NETS}, got {self.lpips_net!r}")
 
 
 class PhotometricLoss(nn.Module):
@@ -98,7 +106,9 @@ class AvatarLoss(nn.Module):
             )
         self.config = config
         self.photometric = PHOTOMETRIC_LOSSES[config.photometric](generator=generator)
-        self.lpips = lpips if lpips is not None or config.lambda_lpips == 0 else LPIPS()
+        if lpips is not None and getattr(lpips, "net", config.lpips_net) != config.lpips_net:
+            raise ValueError(f"the loss asks for LPIPS-{config.lpips_net}, got an LPIPS-{lpips.net} network")
+        self.lpips = lpips if lpips is not None or config.lambda_lpips == 0 else LPIPS(config.lpips_net)
         self._target_features: dict[Hashable, tuple[tuple[int, int, int, int], list[Tensor]]] = {}
         self._cached_bytes = 0
 

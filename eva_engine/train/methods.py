@@ -25,6 +25,14 @@
 - ``eva-no-cadc-no-cl``: both contributions off (the full objective alone): what separates the
   baseline's objective from EVA's.
 - ``eva-part-mean``: EVA with the official code's per-part-mean thresholds.
+- ``eva-official``: EVA as the authors' code (kolassa-tema/EVA_Official) runs it: its
+  densification (``ContextAwareStrategy(history="official")``: part means with clones as zeros,
+  no history at the first event, λ on splits only, no floor; events one interval later, as its
+  ``iteration > densify_from_iter``), its confidence form (``confidence_official``), its loss
+  weights (SSIM 0.01) with LPIPS-**VGG** as the loss network (trained on the metric: the tables
+  mark it), and its constants (``OFFICIAL``): learning rates, initial opacity 0.004, every
+  template vertex as a seed, a black background, SH degree +1 every 1,000 steps.
+  ``eva-official-no-cadc``: the same with 3DGS's density control.
 
 None of them has the product's thin-along-the-normal regulariser (``PAPER_REGULARIZERS``), the
 novel-pose fix of ``docs/novel-views.md``: the paper's rows stay the published methods.
@@ -40,7 +48,7 @@ import dataclasses
 
 from eva_engine.avatar.config import AvatarConfig
 from eva_engine.recipes import METHODS
-from eva_engine.train.config import TrainConfig
+from eva_engine.train.config import OptimConfig, TrainConfig
 from eva_engine.train.regularizers import RegularizerConfig
 from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy, KLStrategy
 
@@ -68,6 +76,35 @@ GART_REGULARIZERS = RegularizerConfig(
     lambda_small_scale=0.05,
 )
 GART_LATENT_BONES = 4
+
+
+@dataclasses.dataclass(frozen=True)
+class OfficialRecipe:
+    """The official EVA code's constants (``arguments/__init__.py``, ``scene/gaussian_model.py``,
+    ``train.py``), what ``recipe="official"`` methods set on a preset. Its splat rates (features
+    2.5e-3, opacity 0.05, scaling 5e-3, rotation 1e-3) are ``OptimConfig``'s defaults.
+
+    The pose refiner's rate is constant here; the official one starts 200 steps at 1% and decays
+    from 5e-6 towards 1e-7 over 30,000 steps (3.9e-6 at step 2,000).
+    """
+
+    optim: OptimConfig = OptimConfig(
+        means_lr=1.6e-4,
+        means_lr_final=1.6e-6,
+        means_lr_steps=30_000,
+        weight_offsets_lr=5e-5,
+        pose_refine_lr=5e-6,
+        pose_refine_part_scale=(1.0, 0.05, 0.05),
+        loss_lr=1e-3,
+    )
+    init_opacity: float = 0.004
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    sh_degree_interval: int = 1000
+    lambda_ssim: float = 0.01
+    lpips_net: str = "vgg"
+
+
+OFFICIAL = OfficialRecipe()
 
 
 def with_method(config: TrainConfig, method: str) -> TrainConfig:
@@ -111,4 +148,38 @@ def with_method(config: TrainConfig, method: str) -> TrainConfig:
         init_opacity=0.99 if field else AvatarConfig.init_opacity,
     )
     regularizers = GART_REGULARIZERS if switches.objective == "gart" else PAPER_REGULARIZERS
-    return dataclasses.replace(config, strategy=strategy, loss=loss, avatar=avatar, regularizers=regularizers)
+    config = dataclasses.replace(
+        config, strategy=strategy, loss=loss, avatar=avatar, regularizers=regularizers
+    )
+    return with_official_recipe(config, switches.density) if switches.recipe == "official" else config
+
+
+def with_official_recipe(config: TrainConfig, density: str) -> TrainConfig:
+    """``config`` (a method's, on a preset) with the official code's densification, confidence
+    form, loss and constants (module docstring, ``OfficialRecipe``); its schedule (iterations,
+    densification window) stays the preset's."""
+    r = OFFICIAL
+    strategy = config.strategy
+    # The official events come at iteration > densify_from_iter (1-based): one interval later.
+    strategy = dataclasses.replace(
+        strategy, refine_start_iter=strategy.refine_start_iter + strategy.refine_every
+    )
+    if density == "cadc":
+        strategy = dataclasses.replace(strategy, history="official", min_threshold_ratio=0.0)
+    photometric = (
+        "confidence_official" if config.loss.photometric == "confidence" else config.loss.photometric
+    )
+    loss = dataclasses.replace(
+        config.loss, photometric=photometric, lambda_ssim=r.lambda_ssim, lpips_net=r.lpips_net
+    )
+    avatar = dataclasses.replace(config.avatar, init_opacity=r.init_opacity, init_max_gaussians=None)
+    optim = dataclasses.replace(r.optim, spatial_scale=config.optim.spatial_scale)
+    return dataclasses.replace(
+        config,
+        strategy=strategy,
+        loss=loss,
+        avatar=avatar,
+        optim=optim,
+        background=r.background,
+        sh_degree_interval=r.sh_degree_interval,
+    )

@@ -176,11 +176,27 @@ def make_optimizers(avatar: Avatar, config: TrainConfig) -> dict[str, torch.opti
 def make_extra_optimizers(
     avatar: Avatar, config: TrainConfig, loss: AvatarLoss
 ) -> list[torch.optim.Optimizer]:
-    """Adam for the MLPs, and for the loss's own parameters if it has any."""
+    """Adam for the MLPs (one parameter group per network, the pose refiner's per part, each
+    at its rate: ``OptimConfig``), and for the loss's own parameters if it has any."""
+    o = config.optim
     out = []
-    mlp = avatar.mlp_parameters()
-    if mlp:
-        out.append(torch.optim.Adam(mlp, lr=config.optim.mlp_lr))
+    groups = []
+    for name, net in avatar.networks().items():
+        if name == "pose_refiner":
+            base = o.pose_refine_lr if o.pose_refine_lr is not None else o.mlp_lr
+            for part, mlp in net.mlps.items():
+                scale = o.pose_refine_part_scale[PART_NAMES.index(part)]
+                groups.append({"params": list(mlp.parameters()), "lr": base * scale})
+        else:
+            lr = (
+                o.weight_offsets_lr
+                if name == "weight_offsets" and o.weight_offsets_lr is not None
+                else o.mlp_lr
+            )
+            groups.append({"params": list(net.parameters()), "lr": lr})
+    groups = [g for g in groups if g["params"]]
+    if groups:
+        out.append(torch.optim.Adam(groups, lr=o.mlp_lr))
     loss_params = [p for p in loss.parameters() if p.requires_grad]
     if loss_params:
         out.append(torch.optim.Adam(loss_params, lr=config.optim.loss_lr))
@@ -188,9 +204,11 @@ def make_extra_optimizers(
 
 
 def means_lr(config: TrainConfig, step: int) -> float:
-    """Exponential decay of the means' learning rate from init to final over the run (3DGS)."""
+    """Exponential decay of the means' learning rate from init to final over the run, or over
+    ``means_lr_steps`` (3DGS)."""
     o = config.optim
-    t = min(step / max(config.iterations - 1, 1), 1.0)
+    horizon = o.means_lr_steps if o.means_lr_steps is not None else max(config.iterations - 1, 1)
+    t = min(step / horizon, 1.0)
     return math.exp((1 - t) * math.log(o.means_lr) + t * math.log(o.means_lr_final)) * o.spatial_scale
 
 

@@ -23,6 +23,19 @@ Gaussian whose gradient keeps rising gets a lower threshold and densifies sooner
   code writes it as w_part (τ + λ Δ_part) with w = 1.0 / 0.5 / 0.7, τ = 2e-4, λ = -9: the paper's
   e and λ above are exactly w·τ and w·λ, so both forms share ``part_grad_base`` and
   ``part_grad_lambda``.
+- ``history="official"``: the official code's densification as it runs, which differs from
+  ``part_mean`` in four ways (``densify_and_clone`` / ``densify_and_split`` /
+  ``densify_and_prune``):
+  1. ḡ is a part's mean over *all* its Gaussians of the mean gradient since the last event,
+     unseen ones counted as 0 (its ``grads[grads.isnan()] = 0``), and the previous value is that
+     of the Gaussians the part had at the last event, before it densified.
+  2. At the first event there is no history: ``prev = 0`` and Δ is the mean over every Gaussian
+     of every part, so the thresholds fall by λ times the whole mean gradient and the first
+     event densifies in a burst.
+  3. λ applies to splits only (``lamda_clone_pos_grad = 0``): clones use e_part. The split's
+     part mean is taken after the clones are appended, and they count as zeros in it.
+  4. No floor: a threshold may go below 0 (every split-sized Gaussian of the part splits).
+  The accumulators run from step 0 to the first event, then over each interval, as 3DGS's.
 - Windows: the last two windows of R steps ending at the refinement step are tracked (from step
   0, so the first refinement at ``refine_start_iter`` >= 2R already has a previous window).
 - λ is large against e (a change of 2.2e-5 in the mean gradient of a body Gaussian moves its
@@ -51,7 +64,7 @@ from eva_engine.render import RenderOutput
 from eva_engine.train.strategy.default import DefaultStrategy
 from eva_engine.train.strategy.ops import Optimizers
 
-HISTORY_FORMS = ("per_gaussian", "part_mean")
+HISTORY_FORMS = ("per_gaussian", "part_mean", "official")
 
 
 @dataclass
@@ -61,8 +74,9 @@ class ContextAwareStrategy(DefaultStrategy):
 
     part_grad_base: e per part (the threshold without history).
     part_grad_lambda: λ per part (negative: a rising gradient lowers the threshold).
-    history: "per_gaussian" (paper eq. 8) or "part_mean" (official code).
-    min_threshold_ratio: floor of the threshold as a fraction of e_part.
+    history: "per_gaussian" (paper eq. 8), "part_mean" (the official code's part means on the
+        project's windows) or "official" (the official code's densification exactly).
+    min_threshold_ratio: floor of the threshold as a fraction of e_part ("official": none).
     part_prune_dist: same-part template distance limits (metres); None: the baseline's
         ``prune_template_dist`` to any part.
     """
@@ -88,6 +102,7 @@ class ContextAwareStrategy(DefaultStrategy):
             win_count=None,  # [N] visible steps in the current window
             prev_mean=None,  # [N] mean gradient of the previous window
             prev_seen=None,  # [N] 1 where the previous window saw the Gaussian
+            part_prev=None,  # "official": ḡ per part at the last event (None before the first)
         )
         return state
 
@@ -138,8 +153,33 @@ class ContextAwareStrategy(DefaultStrategy):
                 delta[in_part] = cur[now].mean() - prev[before].mean()
         return delta
 
+    def official_thresholds(self, state: dict, gaussians: CanonicalGaussians) -> Tensor:
+        """[N] the official code's thresholds (module docstring, ``history="official"``): e_part
+        for clone-sized Gaussians, e_part + λ_part Δ_part for split-sized ones. Stores this
+        event's ḡ per part in ``state["part_now"]`` (``refine`` makes it the previous one)."""
+        grads = state["grad2d"] / state["count"].clamp_min(1)  # unseen: 0
+        parts = gaussians.part_ids
+        e = self._per_part(self.part_grad_base, gaussians)
+        lam = self._per_part(self.part_grad_lambda, gaussians)
+        small = gaussians.scales().amax(dim=-1) <= self.grow_scale3d
+        in_part = [parts == p for p in range(len(PART_NAMES))]
+        state["part_now"] = [float(grads[sel].mean()) if bool(sel.any()) else 0.0 for sel in in_part]
+        if state["part_prev"] is None:
+            delta = grads.mean().expand_as(grads)
+        else:
+            clones = small & (grads > e)
+            delta = torch.zeros_like(grads)
+            for p, sel in enumerate(in_part):
+                n = int(sel.sum()) + int((clones & sel).sum())
+                if n:
+                    delta[sel] = grads[sel].sum() / n - state["part_prev"][p]
+        return torch.where(small, e, e + lam * delta)
+
     def densify_thresholds(self, state: dict, gaussians: CanonicalGaussians) -> Tensor:
-        """[N] ε_i = max(e_part + λ_part Δ_i, min_threshold_ratio e_part)."""
+        """[N] ε_i = max(e_part + λ_part Δ_i, min_threshold_ratio e_part); "official": its own
+        (``official_thresholds``)."""
+        if self.history == "official":
+            return self.official_thresholds(state, gaussians)
         e = self._per_part(self.part_grad_base, gaussians)
         lam = self._per_part(self.part_grad_lambda, gaussians)
         eps = e + lam * self.history_delta(state, gaussians)
@@ -176,6 +216,8 @@ class ContextAwareStrategy(DefaultStrategy):
         stats = super().refine(gaussians, optimizers, state)
         parent = self.parents(gaussians, state.pop("origin"), means, parts)
         self.roll_window(state, cur[parent], seen[parent])
+        if "part_now" in state:
+            state["part_prev"] = state.pop("part_now")
         return stats
 
     @staticmethod

@@ -184,6 +184,7 @@ class DefaultStrategy(Strategy):
         small = gaussians.scales().amax(dim=-1) <= self.grow_scale3d
         is_clone, is_split = candidates & small, candidates & ~small
         n_clone, n_split = int(is_clone.sum()), int(is_split.sum())
+        parts = self.part_report(gaussians.part_ids, grads, thresholds, small, is_clone, is_split)
         if n_clone:
             ops.duplicate(gaussians, optimizers, state, is_clone)
             is_split = torch.cat([is_split, is_split.new_zeros(n_clone)])
@@ -192,7 +193,41 @@ class DefaultStrategy(Strategy):
         n_prune = self.prune(gaussians, optimizers, state)
         gaussians.refresh_vertex_ids()
         self.end_window(state)
-        return {"cloned": n_clone, "split": n_split, "pruned": n_prune, "gaussians": len(gaussians)}
+        return {
+            "cloned": n_clone,
+            "split": n_split,
+            "pruned": n_prune,
+            "gaussians": len(gaussians),
+            "parts": parts,
+        }
+
+    @staticmethod
+    def part_report(
+        part_ids: Tensor, grads: Tensor, thresholds: Tensor, small: Tensor, is_clone: Tensor, is_split: Tensor
+    ) -> dict[str, dict[str, float]]:
+        """What a refinement did per part: its Gaussians ``n``, their mean gradient ``g_mean``
+        (unseen ones as 0), the mean threshold of the clone-sized (``eps_clone``) and split-sized
+        (``eps_split``) ones (None when there are none), and how many were cloned and split.
+        All inputs [N] (``thresholds`` may be a scalar)."""
+        thresholds = thresholds.expand_as(grads)
+        out = {}
+        for part, name in enumerate(PART_NAMES):
+            sel = part_ids == part
+            if not bool(sel.any()):
+                continue
+
+            def mean(values: Tensor) -> float | None:
+                return float(values.mean()) if values.numel() else None
+
+            out[name] = {
+                "n": int(sel.sum()),
+                "g_mean": float(grads[sel].mean()),
+                "eps_clone": mean(thresholds[sel & small]),
+                "eps_split": mean(thresholds[sel & ~small]),
+                "cloned": int((is_clone & sel).sum()),
+                "split": int((is_split & sel).sum()),
+            }
+        return out
 
     @torch.no_grad()
     def prune(self, gaussians: CanonicalGaussians, optimizers: Optimizers, state: dict) -> int:
