@@ -155,15 +155,14 @@ class ContextAwareStrategy(DefaultStrategy):
 
     def official_thresholds(self, state: dict, gaussians: CanonicalGaussians) -> Tensor:
         """[N] the official code's thresholds (module docstring, ``history="official"``): e_part
-        for clone-sized Gaussians, e_part + λ_part Δ_part for split-sized ones. Stores this
-        event's ḡ per part in ``state["part_now"]`` (``refine`` makes it the previous one)."""
+        for clone-sized Gaussians, e_part + λ_part Δ_part for split-sized ones (``refine`` keeps
+        this event's ḡ per part, from its per-part report, as the next one's history)."""
         grads = state["grad2d"] / state["count"].clamp_min(1)  # unseen: 0
         parts = gaussians.part_ids
         e = self._per_part(self.part_grad_base, gaussians)
         lam = self._per_part(self.part_grad_lambda, gaussians)
         small = gaussians.scales().amax(dim=-1) <= self.grow_scale3d
         in_part = [parts == p for p in range(len(PART_NAMES))]
-        state["part_now"] = [float(grads[sel].mean()) if bool(sel.any()) else 0.0 for sel in in_part]
         if state["part_prev"] is None:
             delta = grads.mean().expand_as(grads)
         else:
@@ -216,8 +215,8 @@ class ContextAwareStrategy(DefaultStrategy):
         stats = super().refine(gaussians, optimizers, state)
         parent = self.parents(gaussians, state.pop("origin"), means, parts)
         self.roll_window(state, cur[parent], seen[parent])
-        if "part_now" in state:
-            state["part_prev"] = state.pop("part_now")
+        if self.history == "official":  # ḡ per part before densifying, unseen Gaussians as 0
+            state["part_prev"] = [stats["parts"].get(name, {}).get("g_mean", 0.0) for name in PART_NAMES]
         return stats
 
     @staticmethod
