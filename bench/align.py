@@ -42,7 +42,13 @@ from eva_engine.align import (
     reprojection_error,
 )
 from eva_engine.align.clip import fit_clip
-from eva_engine.align.evaluate import expression_error, head_rotation_error, targets_from_params
+from eva_engine.align.evaluate import (
+    EXPRESSION_GROUPS,
+    expression_error,
+    expression_error_by_group,
+    head_rotation_error,
+    targets_from_params,
+)
 from eva_engine.align.fit import POSE_BODY, FitConfig, fit_sequence, reprojection_distances
 from eva_engine.body import BodyParams, load_body_model
 from eva_engine.data import load_dataset
@@ -86,6 +92,7 @@ def synthetic(model, frames: int, dataset: Path | None) -> dict:
         return {
             "mpjpe_mm": mpjpe(model, params, truth, visible),
             "expression_mm": expression_error(model, params, truth),
+            "expression_mm_by_group": expression_error_by_group(model, params, truth),
             "head_deg": head_rotation_error(model, params, truth),
             "px_vs_ground_truth": reprojection_error(model, params, truth_2d),
             "px_vs_detections": reprojection_error(model, params, targets),
@@ -121,10 +128,32 @@ def synthetic(model, frames: int, dataset: Path | None) -> dict:
             "filled_frames": int(((result.hand_confidence > 0) & (result.hand_confidence < 1)).sum()),
         },
     }
+    out["openings"] = opening_agreement(model, targets, result.params, truth, K, view)
     before = out["initial"]["px_vs_ground_truth"]["hands"]
     after = out["fitted"]["px_vs_ground_truth"]["hands"]
     out["hand_px_reduction"] = 1.0 - after / before
     return out
+
+
+def opening_agreement(model, targets, fitted, truth, K, view) -> dict:
+    """Mouth and eye opening (``eval.expression_fidelity``) of the detected face mesh and of the
+    fitted face surface, each against the true face surface's: {stage: {measure: Agreement}}."""
+    from eva_engine.align.face_mesh import load_correspondence
+    from eva_engine.eval.expression_fidelity import MEASURES, agreement, fitted_landmarks, openings
+
+    corr = load_correspondence(model)
+    if corr is None or targets.face_mesh is None:
+        return {}
+    reg, ids = corr.regressor(model)
+    f = truth.batch_size
+    Ks, views = K.expand(f, 3, 3), view.expand(f, 4, 4)
+    true = openings(fitted_landmarks(model, truth, reg, ids, Ks, views))
+    detected = openings(targets.face_mesh, targets.face_mesh[:, :468, 2].amax(1) > 0)
+    fit = openings(fitted_landmarks(model, fitted, reg, ids, Ks, views))
+    return {
+        stage: {m: agreement(true[m], got[m]).to_json() for m in MEASURES}
+        for stage, got in (("detected", detected), ("fitted", fit))
+    }
 
 
 def per_frame_hands(model, fit, truth, config: FitConfig, every: int = 10, iterations: int = 200) -> dict:
@@ -369,6 +398,42 @@ def markdown(report: dict) -> str:
             f"| {px['body']:.2f} | {px['hands']:.2f} "
             f"| {px['face']:.2f} | {fm_cell} |"
         )
+    groups = [
+        n
+        for n in ("initial", "fitted", "fitted_to_exact_targets")
+        if "expression_mm_by_group" in s.get(n, {})
+    ]
+    if groups:
+        lines += [
+            "",
+            "Expression error per facial-action group (mm; only that group's actions kept in the fit "
+            "and the truth; neutral: the same for a face with no expression):",
+            "",
+            "| estimate | " + " | ".join(EXPRESSION_GROUPS) + " |",
+            "|---|" + "---:|" * len(EXPRESSION_GROUPS),
+        ]
+        for name in groups:
+            g = s[name]["expression_mm_by_group"]
+            lines.append(f"| {name} | " + " | ".join(f"{g[k]:.2f}" for k in EXPRESSION_GROUPS) + " |")
+        g = s[groups[0]]["expression_mm_by_group"]
+        lines.append(
+            "| neutral face | " + " | ".join(f"{g[k + '_neutral']:.2f}" for k in EXPRESSION_GROUPS) + " |"
+        )
+    if s.get("openings"):
+        lines += [
+            "",
+            "Mouth and eye opening (`eva_engine.eval.expression_fidelity`: inner-lip and lid gaps over "
+            "the eye-corner distance) against the true face's, per frame: Pearson r, and the 5-95 "
+            "percentile range's width over the truth's:",
+            "",
+            "| stage | mouth r | mouth range ratio | eyes r | eyes range ratio |",
+            "|---|---:|---:|---:|---:|",
+        ]
+        for stage, a in s["openings"].items():
+            lines.append(
+                f"| {stage} | {a['mouth']['r']:.2f} | {a['mouth']['range_ratio']:.2f} "
+                f"| {a['eyes']['r']:.2f} | {a['eyes']['range_ratio']:.2f} |"
+            )
     sec = s["seconds"]
     lines += [
         "",

@@ -74,3 +74,34 @@ def test_facial_actions_in_a_pose_json_change_the_face_where_they_act(anny_model
         assert "jawOpen" in str(err)
     else:
         raise AssertionError("an unknown facial action was accepted")
+
+
+def test_a_fitted_blink_closes_the_rendered_eye(anny_model):
+    """An avatar with dark eyeballs and light skin, rendered with the blink a fit reports: the
+    lids' Gaussians follow the blendshape down over the eyeballs, so the dark pixels go."""
+    from eva_engine.align.face_mesh import skin_faces
+
+    avatar = teacher_avatar(anny_model, n=anny_model.num_vertices)
+    g = avatar.gaussians
+    faces = anny_model.faces.cpu().numpy()
+    skin = torch.zeros(anny_model.num_vertices, dtype=torch.bool)
+    skin[torch.from_numpy(faces[skin_faces(faces, anny_model.num_vertices)]).flatten()] = True
+    eyeball = ~skin[g.vertex_ids] & (g.part_ids == 2)  # the face's other pieces: eyes (and mouth)
+    assert int(eyeball.sum()) > 50
+    rgb = torch.where(eyeball[:, None], torch.full((1, 3), 0.02), torch.full((1, 3), 0.9))
+    with torch.no_grad():
+        g.splats["sh0"][:, 0] = (rgb - 0.5) / 0.28209479177387814
+        g.splats["scales"][:] -= 0.5
+    size = 160
+    cam = face_camera(anny_model, size)
+    eye_y = project_y(anny_model, cam, "face_left_iris")
+
+    def dark_eye_pixels(blink: float) -> int:
+        pose = {"expression": {"eyeBlinkLeft": blink, "eyeBlinkRight": blink}}
+        img = avatar.render(anny_model.params_from_pose(pose), cam, torch.ones(3))
+        band = img[max(int(eye_y) - 12, 0) : int(eye_y) + 12]  # the rows of the eyes
+        return int((band.mean(-1) < 0.3).sum())
+
+    open_eyes, closed = dark_eye_pixels(0.0), dark_eye_pixels(1.0)
+    assert open_eyes > 20, open_eyes
+    assert closed < 0.3 * open_eyes, (open_eyes, closed)

@@ -117,6 +117,43 @@ def expression_error(model: BodyModel, params: BodyParams, truth: BodyParams, mo
     return float((a - b).norm(dim=-1)[active].mean() * 1000)
 
 
+EXPRESSION_GROUPS: dict[str, tuple[str, ...]] = {
+    "jaw": ("jaw",),
+    "lips": ("mouth",),
+    "lids": ("eyeBlink", "eyeSquint", "eyeWide"),
+    "brows": ("brow",),
+}
+"""Facial-action groups by name prefix (ARKit names): what :func:`expression_error_by_group` splits."""
+
+
+def expression_error_by_group(model: BodyModel, params: BodyParams, truth: BodyParams) -> dict[str, float]:
+    """{group: mm} :func:`expression_error` with only one ``EXPRESSION_GROUPS`` group's actions
+    kept in both the fitted and the true expression (the others zeroed), and {group + "_neutral":
+    mm} the same for a neutral fit: how much of each group's motion the fit recovers. NaN for a
+    group the true expression never moves (or a model without such actions)."""
+    out: dict[str, float] = {}
+    names = list(model.expression_names)
+    for group, prefixes in EXPRESSION_GROUPS.items():
+        keep = torch.tensor([n.startswith(prefixes) for n in names], dtype=torch.bool)
+        if not bool(keep.any()):
+            out[group] = out[f"{group}_neutral"] = float("nan")
+            continue
+
+        def only(p: BodyParams, keep: Tensor = keep) -> BodyParams:
+            e = p.expression * keep.to(p.expression)
+            return BodyParams(p.root_orient, p.transl, p.joints, e, p.shape)
+
+        t = only(truth)
+        fitted = only(params.to(truth.expression))
+        if float(t.expression.abs().max()) == 0.0:
+            out[group] = out[f"{group}_neutral"] = float("nan")
+            continue
+        zero = BodyParams(t.root_orient, t.transl, t.joints, torch.zeros_like(t.expression), t.shape)
+        out[group] = expression_error(model, fitted, t)
+        out[f"{group}_neutral"] = expression_error(model, zero, t)
+    return out
+
+
 def head_rotation_delta(model: BodyModel, params: BodyParams, truth: BodyParams) -> Tensor:
     """[F, 3] per frame, the rotation from the true to the fitted world rotation of the head joint
     as a rotation vector (radians, world axes): where the fit turned the head, whatever the joints

@@ -13,6 +13,14 @@ landmark is kept (``valid``) when it was found in most views, the views agree to
 (those points slide along the outline as the head turns, so no surface point matches them), and
 it is not one of the ten iris points (gaze is not what the painted eyes pin down).
 
+Two places where the pixel alone picks the wrong surface (version 2): the lid landmarks sit on
+the edge of the lid, where the pixel often shows the eyeball, a separate mesh that no blink
+moves; and with the mouth closed the inner-lip landmarks of both lips meet on one seam, so the
+lower lip's points landed on the upper lip and no jaw opening moved them apart. So a landmark
+only takes skin (the mesh's largest connected piece): on another piece it takes the nearest
+skin pixel; and the inner-lip landmarks come from renders with the jaw open
+(``INNER_LIP_EXPRESSION``), where each lip shows its own edge.
+
 Fitting then uses, per frame, the detected landmarks against the projected correspondence
 points (``BodyModel.posed_points``), which moves the expression (jaw, lips, lids, brows through
 the facial actions) where 16 sparse points could not.
@@ -38,9 +46,16 @@ logger = logging.getLogger(__name__)
 
 NUM_LANDMARKS = 478
 IRIS_START = 468  # the refined iris points: gaze, which the painted eyes do not pin down
-VERSION = 1
+VERSION = 2
 FILE_NAME = "face_mesh_correspondence.json"
 VIEWS_DEG = tuple((yaw, pitch) for yaw in (-20.0, -10.0, 0.0, 10.0, 20.0) for pitch in (-10.0, 0.0, 10.0))
+INNER_LIPS = (78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308, 324, 318, 402, 317, 14, 87, 178, 88, 95)
+"""MediaPipe's inner-lip contour (upper: 191 ... 415; lower: 324 ... 95; corners 78 and 308)."""
+INNER_LIP_EXPRESSION = {"jawOpen": 0.35}
+"""The facial actions of the renders the inner-lip landmarks come from: lips apart, the mouth's
+inside still shadowed enough for the face mesh to find both edges."""
+SKIN_SEARCH_PX = 12
+"""How far (pixels of the 512 px render) a landmark on a non-skin piece looks for skin."""
 
 
 @dataclass(frozen=True)
@@ -118,15 +133,28 @@ def head_camera(model: BodyModel, yaw_deg: float, pitch_deg: float, size: int) -
     return intrinsics(size, size, 28.0), look_at(eye.tolist(), centre.tolist())
 
 
-def render_face(model: BodyModel, views: tuple[tuple[float, float], ...], size: int = 512) -> list[dict]:
-    """The painted neutral face from each (yaw, pitch) view: dicts with rgb [H, W, 3] uint8,
-    face_id [H, W], K, viewmat and the rest vertices [V, 3]."""
+def render_face(
+    model: BodyModel,
+    views: tuple[tuple[float, float], ...],
+    size: int = 512,
+    expression: dict[str, float] | None = None,
+) -> list[dict]:
+    """The painted face from each (yaw, pitch) view, neutral or with ``expression`` ({facial
+    action: value}): dicts with rgb [H, W, 3] uint8, face_id [H, W], K, viewmat, the rendered
+    vertices [V, 3] and the neutral ones, ``rest`` [V, 3] (the same without an expression)."""
     from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
     from eva_engine.synth.texture import Look, apply_look
 
     params = model.default_params(1)
     with torch.no_grad():
-        vertices = model(params).vertices[0]
+        rest = model(params).vertices[0]
+        if expression:
+            names = list(model.expression_names)
+            for name, value in expression.items():
+                params.expression[0, names.index(name)] = value
+            vertices = model(params).vertices[0]
+        else:
+            vertices = rest
     look = Look.random(np.random.default_rng([0, 1]))
     config = MeshRenderConfig(width=size, height=size, supersample=2)
     out = []
@@ -136,8 +164,56 @@ def render_face(model: BodyModel, views: tuple[tuple[float, float], ...], size: 
             K, view = head_camera(model, yaw, pitch, size)
             r = renderer.render(vertices, view, K)
             rgb = (r.rgb.numpy() * 255 + 0.5).astype(np.uint8)
-            out.append({"rgb": rgb, "face_id": r.face_id, "K": K, "viewmat": view, "vertices": vertices})
+            out.append(
+                {
+                    "rgb": rgb,
+                    "face_id": r.face_id,
+                    "K": K,
+                    "viewmat": view,
+                    "vertices": vertices,
+                    "rest": rest,
+                }
+            )
     return out
+
+
+def skin_faces(faces: np.ndarray, num_vertices: int) -> np.ndarray:
+    """[T] bool: the triangles of the mesh's largest connected piece (Anny's skin; its eyeballs
+    and mouth parts are pieces of their own). faces: [T, 3] vertex indices."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rows = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
+    cols = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(num_vertices, num_vertices))
+    _, label = connected_components(graph, directed=False)
+    skin = np.bincount(label[faces[:, 0]]).argmax()
+    return label[faces[:, 0]] == skin
+
+
+def nearest_skin_pixel(
+    face_id: np.ndarray, skin: np.ndarray, x: float, y: float, radius: int
+) -> tuple | None:
+    """(col, row) of the pixel nearest to (x, y) that shows a skin triangle, within ``radius``
+    pixels, or None. face_id: [H, W] triangle per pixel (-1: none); skin: [T] bool."""
+    h, w = face_id.shape
+    c0, r0 = int(np.floor(x)), int(np.floor(y))
+    rows = np.arange(max(r0 - radius, 0), min(r0 + radius + 1, h))
+    cols = np.arange(max(c0 - radius, 0), min(c0 + radius + 1, w))
+    if not len(rows) or not len(cols):
+        return None
+    ids = face_id[np.ix_(rows, cols)]
+    ok = ids >= 0
+    ok[ok] = skin[ids[ok]]
+    if not ok.any():
+        return None
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    d = (cc + 0.5 - x) ** 2 + (rr + 0.5 - y) ** 2
+    d[~ok] = np.inf
+    k = np.unravel_index(int(d.argmin()), d.shape)
+    if d[k] > radius**2:
+        return None
+    return int(cc[k]), int(rr[k])
 
 
 def detect_face_mesh(rgb: np.ndarray) -> np.ndarray | None:
@@ -174,8 +250,12 @@ def build_correspondence(
     faces = model.faces.cpu().numpy()
     face_part = model.sided_part_ids.cpu().numpy()
     face_index = SIDED_PART_NAMES.index("face")
+    skin = skin_faces(faces, model.num_vertices)
+    inner_lips = set(INNER_LIPS)
     candidates: list[list[tuple[int, np.ndarray, np.ndarray]]] = [[] for _ in range(NUM_LANDMARKS)]
-    for r in render_face(model, views):
+    renders = [(r, False) for r in render_face(model, views)]
+    renders += [(r, True) for r in render_face(model, views, expression=INNER_LIP_EXPRESSION)]
+    for r, open_mouth in renders:
         pts = detect_face_mesh(r["rgb"])
         if pts is None:
             continue
@@ -183,11 +263,19 @@ def build_correspondence(
         uv = project_points(cam, r["K"].double())[0].numpy()
         face_id = r["face_id"].numpy()
         h, w = face_id.shape
-        rest = r["vertices"].double().numpy()
+        rest = r["rest"].double().numpy()
         for k, (x, y) in enumerate(pts):
+            if (k in inner_lips) != open_mouth:
+                continue
             col, row = int(np.floor(x)), int(np.floor(y))
             if not (0 <= col < w and 0 <= row < h) or face_id[row, col] < 0:
                 continue
+            if not skin[face_id[row, col]]:
+                found = nearest_skin_pixel(face_id, skin, x, y, SKIN_SEARCH_PX)
+                if found is None:
+                    continue
+                col, row = found
+                x, y = col + 0.5, row + 0.5
             f = int(face_id[row, col])
             bary = _barycentric(np.array([x, y]), uv[faces[f]])
             candidates[k].append((f, bary, bary @ rest[faces[f]]))
