@@ -22,7 +22,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from paper_tables import merge, paired_regions
+from paper_tables import merge, paired_regions, trained_on
 from stats import compare_paired, mean_std
 
 
@@ -58,7 +58,8 @@ def markdown(base_name: str, base: dict, settings: dict[str, dict], command: str
         ),
         f"- base `{base_name}`: `{base['command'].split(' && ')[0]}` (one process per seed)",
         f"- benchmark: synthetic controlled, preset `{base['config']['preset']}`, seeds "
-        f"{base['config']['seeds']}; LPIPS-VGG is held out (no method trains on it)",
+        f"{base['config']['seeds']}; LPIPS-VGG is held out unless a section's 'trains on' says "
+        "*trained on the metric*",
         "",
         "Each cell: the setting against the base, the mean ± std over seeds of the per-seed relative "
         "gap; better / worse only when the mean exceeds the std. Train (s): the training loop's wall "
@@ -84,6 +85,8 @@ def markdown(base_name: str, base: dict, settings: dict[str, dict], command: str
                 f"## {method}, `{name}`",
                 "",
                 f"- changes: {', '.join(what) or 'nothing'}",
+                f"- trains on: base {trained_on(method, base['config']['train_config'][method])}; "
+                f"`{name}` {trained_on(method, doc['config']['train_config'][method])}",
                 f"- seeds {seeds}; train {seconds['mean']:.0f} s against {base_seconds:.0f} s "
                 f"({time_gap['mean']:+.1f} ± {time_gap['std']:.1f}%)",
                 *(f"- {part}" for part in paired_regions(mine, theirs, seeds)),
