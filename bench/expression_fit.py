@@ -51,10 +51,7 @@ def main() -> None:
     names = list(model.expression_names)
 
     def params(expression: dict[str, float]):
-        p = model.default_params(1)
-        for name, value in expression.items():
-            p.expression[0, names.index(name)] = value
-        return p
+        return model.params_from_pose({"expression": expression})
 
     def detected(rgb) -> torch.Tensor:
         mesh = torch.zeros(1, NUM_LANDMARKS, 3)

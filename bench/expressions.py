@@ -138,22 +138,16 @@ def run_case(
         "target_found": int(target_found.sum()),
         "stages": {},
     }
-    for stage in STAGES:
-        if stage not in marks:
-            continue
-        got = openings(*marks[stage])
+    got = {stage: openings(*marks[stage]) for stage in STAGES if stage in marks}
+    for stage, measured in got.items():
         entry["stages"][stage] = {
             "found": int(marks[stage][1].sum()),
-            **{m: agreement(target[m], got[m]).to_json() for m in MEASURES},
+            **{m: agreement(target[m], measured[m]).to_json() for m in MEASURES},
         }
     entry["per_frame"] = {
         "index": indices,
         "target": {m: target[m].tolist() for m in MEASURES},
-        **{
-            stage: {m: openings(*marks[stage])[m].tolist() for m in MEASURES}
-            for stage in STAGES
-            if stage in marks
-        },
+        **{stage: {m: measured[m].tolist() for m in MEASURES} for stage, measured in got.items()},
     }
     if ds.gt_params is not None:
         entry["expression_mm"] = expression_error_by_group(model, ds.params[indices], ds.gt_params[indices])

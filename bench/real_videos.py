@@ -134,9 +134,9 @@ def train_and_eval(
     names one: ``eva-official`` trains on black, as its authors score it)."""
     from eva_engine.avatar import load_saved_avatar, save_avatar
     from eva_engine.eval import evaluate_avatar
-    from eva_engine.train import preset, train_avatar, with_method, with_overrides
+    from eva_engine.train import train_avatar
 
-    config = with_overrides(with_method(preset(preset_name, seed=seed), method), list(overrides))
+    config = method_config(method, preset_name, overrides, seed)
     entry: dict = {"iterations": config.iterations}
     if reuse and (out / "avatar.json").is_file():
         saved = load_saved_avatar(out)
@@ -167,11 +167,29 @@ def train_and_eval(
     entry.update(n_gaussians=len(avatar.gaussians), train_seconds=train_seconds, notes=ev.notes)
     entry["eval_background"] = background.tolist() if background is not None else "dataset"
     entry["eval_every"] = every
-    entry["trained_on_metric"] = config.loss.lambda_lpips > 0 and config.loss.lpips_net == "vgg"
+    entry["trained_on_metric"] = trains_on_vgg(config)
     for region, m in ev.regions.items():
         entry[region] = {k: getattr(m, k) for k in (*METRICS, "frames", "crops", "box_px", "silhouette_iou")}
     entry["placement"] = {r: p for r in ("hand", "face") if (p := ev.placement(r)) is not None}
     return entry, avatar, ev
+
+
+def method_config(method: str, preset_name: str, overrides: Sequence[str] = (), seed: int = 0):
+    """The train config of ``method`` on ``preset_name`` with the dotted ``overrides``."""
+    from eva_engine.train import preset, with_method, with_overrides
+
+    return with_overrides(with_method(preset(preset_name, seed=seed), method), list(overrides))
+
+
+def avatar_dir(folder: Path, method: str, name: str, overrides: Sequence[str]) -> Path:
+    """Where a method's avatar is saved in a video's work folder (apart per ``--name`` when the
+    run sets train-config fields)."""
+    return folder / ("avatar-" + method.replace("+", "_") + (f"-{name}" if overrides else ""))
+
+
+def trains_on_vgg(config) -> bool:
+    """Whether ``config``'s objective has an LPIPS-VGG term (the headline metric)."""
+    return config.loss.lambda_lpips > 0 and config.loss.lpips_net == "vgg"
 
 
 def training_background(config) -> torch.Tensor | None:
@@ -236,15 +254,6 @@ def contact_sheet(
     return np.concatenate(rows, axis=0)
 
 
-def trains_on_vgg(method: str, preset_name: str, overrides: Sequence[str]) -> bool:
-    """Whether ``method``'s objective has an LPIPS-VGG term (for result files written before the
-    entries recorded it)."""
-    from eva_engine.train import preset, with_method, with_overrides
-
-    loss = with_overrides(with_method(preset(preset_name), method), list(overrides)).loss
-    return loss.lambda_lpips > 0 and loss.lpips_net == "vgg"
-
-
 def markdown(doc: dict) -> str:
     cfg = doc["config"]
     detect = cfg.get("detect_max_size", cfg["max_size"])
@@ -278,7 +287,10 @@ def markdown(doc: dict) -> str:
     for video, v in doc["videos"].items():
         for method, e in v["methods"].items():
             frames = f"{v['frames']['train']} / {v['frames']['test']}"
-            on_metric = e.get("trained_on_metric", trains_on_vgg(method, cfg["preset"], cfg.get("set", [])))
+            # Entries written before they recorded it: derived from the method's config.
+            on_metric = e.get("trained_on_metric")
+            if on_metric is None:
+                on_metric = trains_on_vgg(method_config(method, cfg["preset"], cfg.get("set", [])))
             label = f"{method} (*trained on the metric*)" if on_metric else method
             cells = [video, frames, label, f"{e['n_gaussians']:,}", f"{e['train_seconds']:.0f}"]
             for r in REGIONS:
@@ -380,7 +392,7 @@ def main() -> None:
     from eva_engine.eval import ImageMetrics, PoseRefinement
     from eva_engine.eval.evaluate import FITTED_POSES
     from eva_engine.paths import data_dir
-    from eva_engine.train import preset, with_method, with_overrides
+    from eva_engine.train import preset
 
     torch.set_num_threads(args.threads)
     work = args.work or data_dir() / "real_videos"
@@ -421,22 +433,20 @@ def main() -> None:
             from eva_engine.avatar import load_saved_avatar
 
             for method in args.methods:
-                tag = method.replace("+", "_") + (f"-{args.name}" if args.set else "")
-                saved = folder / f"avatar-{tag}"
+                saved = avatar_dir(folder, method, args.name, args.set)
                 if not (saved / "avatar.json").is_file():
                     raise SystemExit(f"no saved avatar {saved}: train it first (drop --sheet-only)")
                 avatars[method], poses[method] = load_saved_avatar(saved).avatar, ds.params
             entry.pop("methods")
         for method in args.methods if not args.sheet_only else ():
             print(f"{video.name}: {method} ...", file=sys.stderr, flush=True)
-            tag = method.replace("+", "_") + (f"-{args.name}" if args.set else "")
             entry["methods"][method], avatars[method], ev = train_and_eval(
                 ds,
                 method,
                 args.preset,
                 args.seed,
                 metrics,
-                folder / f"avatar-{tag}",
+                avatar_dir(folder, method, args.name, args.set),
                 refinement,
                 args.reuse,
                 args.set,
@@ -448,8 +458,7 @@ def main() -> None:
         backgrounds = {
             m: bg
             for m in avatars
-            if (bg := training_background(with_overrides(with_method(preset(args.preset), m), args.set)))
-            is not None
+            if (bg := training_background(method_config(m, args.preset, args.set))) is not None
         }
         sheet = contact_sheet(ds, avatars, poses, picks, backgrounds)
         name = f"{args.name}_{video.stem}.jpg"

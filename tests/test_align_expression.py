@@ -25,11 +25,7 @@ def correspondence(anny_model):
 
 
 def _params(model, expression: dict[str, float]):
-    params = model.default_params(1)
-    names = list(model.expression_names)
-    for name, value in expression.items():
-        params.expression[0, names.index(name)] = value
-    return params
+    return model.params_from_pose({"expression": expression})
 
 
 def _gaps_mm(model, correspondence, params) -> dict[str, float]:

@@ -145,16 +145,10 @@ def render_face(
     from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
     from eva_engine.synth.texture import Look, apply_look
 
-    params = model.default_params(1)
+    params = model.params_from_pose({"expression": expression or {}})
     with torch.no_grad():
-        rest = model(params).vertices[0]
-        if expression:
-            names = list(model.expression_names)
-            for name, value in expression.items():
-                params.expression[0, names.index(name)] = value
-            vertices = model(params).vertices[0]
-        else:
-            vertices = rest
+        rest = model(model.default_params(1)).vertices[0]
+        vertices = model(params).vertices[0] if expression else rest
     look = Look.random(np.random.default_rng([0, 1]))
     config = MeshRenderConfig(width=size, height=size, supersample=2)
     out = []
