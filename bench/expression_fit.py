@@ -5,9 +5,11 @@ fit recovers from MediaPipe's face mesh, and whether the true expression is the 
 
 The painted Anny face is rendered head-on (``align.face_mesh.render_face``) neutral and with
 ``--truth`` (default: both eyes 80% closed, the jaw half open); MediaPipe's face mesh runs on both
-renders. The product's face stage (``align.fit.default_stages``, "face", without the depth term)
-then fits the expression with nothing but the detected face mesh as targets: from the neutral
-face, from the true expression, and with only the lip and eye contours as targets. Reported per
+renders. The product's stages that move the expression (``align.fit.default_stages``: "face",
+free coefficients, then "refine", which keeps them in their range) then fit it with nothing but
+the detected face mesh as targets: from the neutral face, from the true expression, without the
+opening term (``FitStage.w_openings``), and the face stage alone (its coefficients clamped to
+the range afterwards, as ``fit_sequence`` does). Reported per
 run: the inner-lip and lid gaps (``eval.expression_fidelity``, over the eye-corner distance) of
 the detected landmarks, of the true face and of each fit, and the largest fitted coefficients.
 Writes ``<name>.json`` and ``<name>.md``.
@@ -35,8 +37,6 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     torch.set_num_threads(1)
-
-    from mediapipe.python.solutions import face_mesh as mp_face_mesh
 
     from eva_engine.align.evaluate import targets_from_params
     from eva_engine.align.face_mesh import NUM_LANDMARKS, detect_face_mesh, load_correspondence, render_face
@@ -99,31 +99,23 @@ def main() -> None:
     base = targets_from_params(model, truth, K, view, image_size=(512, 512))
     keypoints = base.keypoints.clone()
     keypoints[..., 2] = 0.0  # nothing but the face mesh
-    contour = sorted(
-        {
-            i
-            for conn in (
-                mp_face_mesh.FACEMESH_LIPS,
-                mp_face_mesh.FACEMESH_LEFT_EYE,
-                mp_face_mesh.FACEMESH_RIGHT_EYE,
-            )
-            for edge in conn
-            for i in edge
-        }
-    )
-    contour_mesh = mesh.clone()
-    contour_mesh[0, :, 2] = 0.0
-    contour_mesh[0, contour, 2] = 1.0
-    face = dataclasses.replace(next(s for s in default_stages() if s.name == "face"), face_z=0.0)
+    # The stages of the product's fit that move the expression: "face" (free coefficients), then
+    # "refine" (the range penalty keeps them in [0, 1]); the depth term has no targets here.
+    stages = tuple(s for s in default_stages() if s.name in ("face", "refine"))
+
+    def without_openings(stages):
+        return tuple(dataclasses.replace(s, w_openings=0.0) for s in stages)
+
     runs = {
-        "from neutral": (mesh, params({})),
-        "from the truth": (mesh, truth),
-        "contours only, from neutral": (contour_mesh, params({})),
-        "contours only, from the truth": (contour_mesh, truth),
+        "from neutral": (stages, params({})),
+        "from the truth": (stages, truth),
+        "no opening term, from neutral": (without_openings(stages), params({})),
+        "face stage alone, from neutral": (stages[:1], params({})),
+        "face stage alone, no opening term": (without_openings(stages[:1]), params({})),
     }
-    for label, (targets_mesh, init) in runs.items():
-        targets = dataclasses.replace(base, keypoints=keypoints, face_mesh=targets_mesh)
-        fit = fit_sequence(model, targets, init=init, config=FitConfig(stages=(face,))).params
+    targets = dataclasses.replace(base, keypoints=keypoints, face_mesh=mesh)
+    for label, (run_stages, init) in runs.items():
+        fit = fit_sequence(model, targets, init=init, config=FitConfig(stages=run_stages)).params
         e = fit.expression[0]
         top = sorted(range(len(names)), key=lambda i: -float(e[i]))[:6]
         g = gaps(fitted_landmarks(model, fit, reg, ids, K[None], view[None]))

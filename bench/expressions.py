@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from machine import describe
+from stats import fmt, mean_std
 
 RESULTS = Path(__file__).resolve().parent / "results"
 STAGES = ("detected", "fitted", "refitted", "truth", "render")
@@ -207,6 +208,46 @@ def fmt_agreement(a: dict) -> str:
     return f"{a['r']:.2f} | {a['stage_range'][0]:.3f}–{a['stage_range'][1]:.3f} | {a['range_ratio']:.2f}"
 
 
+def seed_groups(labels) -> dict[str, list[str]]:
+    """{group: [labels]} of the case labels ``<group>_s<seed>`` with more than one seed."""
+    groups: dict[str, list[str]] = {}
+    for label in labels:
+        head, sep, seed = label.rpartition("_s")
+        if sep and seed.isdigit():
+            groups.setdefault(head, []).append(label)
+    return {g: ls for g, ls in groups.items() if len(ls) > 1}
+
+
+def seed_summary(doc: dict) -> list[str]:
+    """Markdown lines: per group of seeds (``seed_groups``), measure and stage, mean ± std of r
+    and of the range ratio over the seeds."""
+    groups = seed_groups(doc["cases"])
+    if not groups:
+        return []
+    lines = [
+        "",
+        "## Over seeds",
+        "",
+        "Mean ± std over the cases `<video>_s<seed>` (one avatar per training seed; the detected and "
+        "fitted stages do not depend on the seed).",
+        "",
+        "| video | seeds | measure | stage | r | range ratio |",
+        "|---|---:|---|---|---:|---:|",
+    ]
+    for group, labels in groups.items():
+        cases = [doc["cases"][label] for label in labels]
+        for measure in ("mouth", "eyes"):
+            for stage in cases[0]["stages"]:
+                got = [c["stages"][stage][measure] for c in cases if stage in c["stages"]]
+                got = [a for a in got if a["frames"] >= 3]
+                if not got:
+                    continue
+                r = fmt(mean_std([a["r"] for a in got]))
+                ratio = fmt(mean_std([a["range_ratio"] for a in got]))
+                lines.append(f"| {group} | {len(got)} | {measure} | {stage} | {r} | {ratio} |")
+    return lines
+
+
 def markdown(doc: dict) -> str:
     lines = [
         "# Expression fidelity: mouth and eye opening, stage by stage",
@@ -250,6 +291,7 @@ def markdown(doc: dict) -> str:
                 for g in ("jaw", "lips", "lids", "brows")
             ]
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    lines += seed_summary(doc)
     for label, e in doc["cases"].items():
         if e.get("contact_sheet"):
             lines += [

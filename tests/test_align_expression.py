@@ -56,11 +56,12 @@ def test_jaw_and_blink_move_their_landmarks(anny_model, correspondence):
 
 
 def test_fit_follows_a_rendered_blink_and_jaw_opening(anny_model, correspondence):
-    """From MediaPipe on a render with the eyes 80% closed and the jaw half open, the face stage
-    (the product's settings, from the neutral face, nothing but the face mesh as targets) opens
-    the fitted lips and closes the fitted lids. Measured: 62% of the lip gap's true change and
-    40% of the lids' (with correspondence version 1 the lids could not move at all); the goal of
-    issue 39 is within 20%, so these floors only keep what is reached."""
+    """From MediaPipe on a render with the eyes 80% closed and the jaw half open, the product's
+    stages that move the expression ("face", then "refine", which keeps the coefficients in
+    range; from the neutral face, nothing but the face mesh as targets) open the fitted lips and
+    close the fitted lids by the true amount, within 20% (issue 39). Measured
+    (``bench/results/expressions/one_face.md``): 104% of the lip gap's true change and 92% of
+    the lids'; without the opening term 95% and 41%."""
     from eva_engine.align.evaluate import targets_from_params
     from eva_engine.align.fit import FitConfig, default_stages, fit_sequence
 
@@ -75,13 +76,12 @@ def test_fit_follows_a_rendered_blink_and_jaw_opening(anny_model, correspondence
     keypoints = base.keypoints.clone()
     keypoints[..., 2] = 0.0  # nothing but the face mesh
     targets = dataclasses.replace(base, keypoints=keypoints, face_mesh=mesh)
-    face = next(s for s in default_stages() if s.name == "face")
-    config = FitConfig(stages=(dataclasses.replace(face, face_z=0.0),))
+    config = FitConfig(stages=tuple(s for s in default_stages() if s.name in ("face", "refine")))
     fitted = fit_sequence(anny_model, targets, init=_params(anny_model, {}), config=config).params
 
     neutral = _gaps_mm(anny_model, correspondence, _params(anny_model, {}))
     want = _gaps_mm(anny_model, correspondence, truth)
     got = _gaps_mm(anny_model, correspondence, fitted)
-    for measure, floor in (("mouth", 0.5), ("eyes", 0.3)):
+    for measure in ("mouth", "eyes"):
         amplitude, recovered = want[measure] - neutral[measure], got[measure] - neutral[measure]
-        assert floor <= recovered / amplitude <= 1.2, (measure, neutral, want, got)
+        assert 0.8 <= recovered / amplitude <= 1.2, (measure, neutral, want, got)

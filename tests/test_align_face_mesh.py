@@ -139,3 +139,45 @@ def test_face_depth_term_is_finite_on_degenerate_targets(anny_model, corresponde
     assert torch.isfinite(loss)
     for g in ("root", "transl", "face"):
         assert torch.isfinite(problem.values[g].grad).all(), g
+
+
+def test_opening_term_sees_the_gap_not_an_offset(anny_model, correspondence):
+    """The opening term compares lid and inner-lip gaps: landmarks shifted as a whole cost
+    nothing, one upper lid lowered costs, a frame without a face costs nothing, and a huge
+    shift keeps the loss and its gradient finite."""
+    from eva_engine.align.face_mesh import OPENING_PAIRS
+    from eva_engine.align.fit import FitConfig, FitStage, _Problem
+    from eva_engine.render import intrinsics, orbit_camera
+
+    K, view = intrinsics(512, 512, 30.0), orbit_camera(0.0, 0.0, 1.0, target=(0.0, 0.6, 0.0))
+    params = anny_model.default_params(1)
+    stage = FitStage("openings", 1, ("face", "expression"), w_pose=0.0, w_openings=10.0, limits=0.0)
+
+    def loss_of(change) -> tuple[float, bool]:
+        targets = _face_targets(anny_model, correspondence, params, K, view, 1.0)
+        change(targets.face_mesh[0])
+        problem = _Problem(anny_model, targets, FitConfig(stages=(stage,)), params)
+        for g in ("face", "expression"):
+            problem.values[g].requires_grad_(True)
+        loss = problem.loss(stage)
+        loss.backward()
+        finite = all(torch.isfinite(problem.values[g].grad).all() for g in ("face", "expression"))
+        return float(loss.detach()), bool(torch.isfinite(loss)) and finite
+
+    def shift(mesh, by):
+        mesh[:, :2] += torch.tensor(by)
+
+    def lower_a_lid(mesh):
+        mesh[OPENING_PAIRS[1][0], 1] += 5.0
+
+    def lose_the_face(mesh):
+        mesh[:, 2] = 0.0
+
+    shifted, lid, lost, huge = (
+        loss_of(lambda m: shift(m, [7.0, -4.0])),
+        loss_of(lower_a_lid),
+        loss_of(lose_the_face),
+        loss_of(lambda m: shift(m, [1e6, -1e6])),
+    )
+    assert all(ok for _, ok in (shifted, lid, lost, huge))
+    assert shifted[0] < 1e-6 < lid[0] and lost[0] == 0.0

@@ -54,6 +54,13 @@ INNER_LIPS = (78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308, 324, 318, 402, 3
 INNER_LIP_EXPRESSION = {"jawOpen": 0.35}
 """The facial actions of the renders the inner-lip landmarks come from: lips apart, the mouth's
 inside still shadowed enough for the face mesh to find both edges."""
+OPENING_PAIRS = (
+    *((160, 144), (159, 145), (158, 153)),  # right eye: upper lid, lower lid
+    *((385, 380), (386, 374), (387, 373)),  # left eye
+    *((81, 178), (82, 87), (13, 14), (312, 317), (311, 402)),  # inner lips: upper, lower
+)
+"""Landmark pairs across the lids and the inner lips: their differences are the eye and mouth
+openings that the fit's opening term (``FitStage.w_openings``) matches."""
 SKIN_SEARCH_PX = 12
 """How far (pixels of the 512 px render) a landmark on a non-skin piece looks for skin."""
 

@@ -192,6 +192,11 @@ class FitStage:
     """Use only the face points that no facial action moves (eye corners, nose): the head's pose
     is fitted before the expression, so the mouth's points must not turn the head."""
     w_face_mesh: float = 0.0
+    w_openings: float = 0.0
+    """Weight of the eye and mouth openings: the face mesh's lid and inner-lip landmark pairs
+    (``face_mesh.OPENING_PAIRS``), compared as differences. Among 478 landmarks the dozen that
+    open and close the face weigh little, and an offset between the person's landmarks and the
+    model's moves both points of a pair alike, so the difference isolates the opening."""
     face_z: float = 0.0
     """Weight of the face mesh's relative-depth term (``face_depth``), where the targets have it."""
     w_silhouette: float = 0.0
@@ -259,6 +264,7 @@ def default_stages() -> tuple[FitStage, ...]:
         w_hand=2.0,
         w_face=2.0,
         w_face_mesh=2.0,
+        w_openings=30.0,
         face_z=10.0,
         body_3d=0.3,
         hand_z=0.5,
@@ -292,6 +298,7 @@ def default_stages() -> tuple[FitStage, ...]:
             w_pose=0.0,
             w_face=2.0,
             w_face_mesh=2.0,
+            w_openings=30.0,
             face_z=10.0,
             smooth=0.05,
             expression_reg=1e-3,
@@ -382,13 +389,17 @@ class _Problem:
         uses_prior = any(s.hand_prior > 0 for s in config.stages)
         self.articulation = articulation_prior(model) if uses_prior else None
         self.face_mesh = None  # (regressor, landmark indices) of the dense face term
+        self.opening_pairs = None  # [2, Q] positions in those landmark indices
         dense = config.dense_face and targets.face_mesh is not None
-        if dense and any(s.w_face_mesh > 0 or s.face_z > 0 for s in config.stages):
-            from eva_engine.align.face_mesh import load_correspondence
+        if dense and any(s.w_face_mesh > 0 or s.w_openings > 0 or s.face_z > 0 for s in config.stages):
+            from eva_engine.align.face_mesh import OPENING_PAIRS, load_correspondence
 
             corr = load_correspondence(model)
             if corr is not None:
                 self.face_mesh = corr.regressor(model)
+                at = {int(k): i for i, k in enumerate(self.face_mesh[1])}
+                pairs = [(at[a], at[b]) for a, b in OPENING_PAIRS if a in at and b in at]
+                self.opening_pairs = torch.tensor(pairs, dtype=torch.long).reshape(-1, 2).T
         self.silhouette = None  # (regressor of the outline's vertices, SilhouetteTargets, spacing m)
         if targets.person_masks is not None and any(s.w_silhouette > 0 for s in config.stages):
             self.silhouette = _silhouette_problem(model, targets.person_masks, config.silhouette_points)
@@ -439,13 +450,23 @@ class _Problem:
                 total = total + gamma * weighted_gm(residual, mask * self.conf, sigma_2d)
 
         use_depth = stage.face_z > 0 and t.face_depth is not None
-        if (stage.w_face_mesh > 0 or use_depth) and self.face_mesh is not None:
+        if (stage.w_face_mesh > 0 or stage.w_openings > 0 or use_depth) and self.face_mesh is not None:
             reg, landmarks = self.face_mesh
             det = t.face_mesh[:, landmarks]
             if stage.w_face_mesh > 0:
                 face_cam = to_camera(self.model.posed_points(params, reg), self.viewmat)
                 res = (project_points(face_cam, self.K) - det[..., :2]) / self.scale[:, None, None]
                 total = total + stage.w_face_mesh * weighted_gm(res, det[..., 2], cfg.sigma_2d)
+            if stage.w_openings > 0 and self.opening_pairs.numel() > 0:
+                # The openings move the face, not the head: a gap's length in the image also
+                # changes with the head's pitch (synthetic head rotation error +0.8 degrees).
+                face_only = dataclasses.replace(params.detach(), expression=params.expression)
+                cam = to_camera(self.model.posed_points(face_only, reg), self.viewmat)
+                uv = project_points(cam, self.K)
+                a, b = self.opening_pairs
+                gap = ((uv[:, a] - uv[:, b]) - (det[:, a, :2] - det[:, b, :2])) / self.scale[:, None, None]
+                w = det[:, a, 2] * det[:, b, 2]
+                total = total + stage.w_openings * weighted_gm(gap, w, cfg.sigma_2d)
             if use_depth:
                 # The depths turn the head, not the face: through the expression they pull lips
                 # and lids toward MediaPipe's depth guesses (synthetic expression error +10%).
