@@ -194,9 +194,10 @@ class FitStage:
     w_face_mesh: float = 0.0
     w_openings: float = 0.0
     """Weight of the eye and mouth openings: the face mesh's lid and inner-lip landmark pairs
-    (``face_mesh.OPENING_PAIRS``), compared as differences. Among 478 landmarks the dozen that
-    open and close the face weigh little, and an offset between the person's landmarks and the
-    model's moves both points of a pair alike, so the difference isolates the opening."""
+    (``face_mesh.OPENING_PAIRS``), compared as differences. Among the correspondence's 411
+    landmarks the 22 that open and close the face weigh little, and an offset between the
+    person's landmarks and the model's moves both points of a pair alike, so the difference
+    isolates the opening."""
     face_z: float = 0.0
     """Weight of the face mesh's relative-depth term (``face_depth``), where the targets have it."""
     w_silhouette: float = 0.0
@@ -459,7 +460,7 @@ class _Problem:
                 total = total + stage.w_face_mesh * weighted_gm(res, det[..., 2], cfg.sigma_2d)
             if stage.w_openings > 0 and self.opening_pairs.numel() > 0:
                 # The openings move the face, not the head: a gap's length in the image also
-                # changes with the head's pitch (synthetic head rotation error +0.8 degrees).
+                # changes with the head's pitch (synthetic head rotation error +0.5 degrees).
                 face_only = dataclasses.replace(params.detach(), expression=params.expression)
                 cam = to_camera(self.model.posed_points(face_only, reg), self.viewmat)
                 uv = project_points(cam, self.K)
