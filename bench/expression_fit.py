@@ -42,7 +42,7 @@ def main() -> None:
     from eva_engine.align.face_mesh import NUM_LANDMARKS, detect_face_mesh, load_correspondence, render_face
     from eva_engine.align.fit import FitConfig, default_stages, fit_sequence
     from eva_engine.body import load_body_model
-    from eva_engine.eval.expression_fidelity import fitted_landmarks, openings
+    from eva_engine.eval.expression_fidelity import fitted_landmarks, openings, surface_gaps
 
     truth_expr = {k: float(v) for k, v in (item.split("=") for item in args.truth.split(","))}
     model = load_body_model("anny")
@@ -62,15 +62,11 @@ def main() -> None:
     def gaps(landmarks: torch.Tensor) -> dict[str, float]:
         return {k: round(float(v[0]), 4) for k, v in openings(landmarks).items()}
 
+    pairs = {"mouth 13-14": (13, 14), "lids 159-145": (159, 145), "lids 386-374": (386, 374)}
+
     def gaps_mm(p) -> dict[str, float]:
-        at = {int(k): i for i, k in enumerate(ids)}
-        with torch.no_grad():
-            pts = model.posed_points(p, reg)[0]
-
-        def gap(a: int, b: int) -> float:
-            return round(float((pts[at[a]] - pts[at[b]]).norm()) * 1000, 2)
-
-        return {"mouth 13-14": gap(13, 14), "lids 159-145": gap(159, 145), "lids 386-374": gap(386, 374)}
+        mm = (1000 * surface_gaps(model, p, reg, ids, tuple(pairs.values()))[0]).tolist()
+        return {k: round(v, 2) for k, v in zip(pairs, mm, strict=True)}
 
     correspondence = {
         "neutral": gaps_mm(params({})),

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from eva_engine.align.face_mesh import NUM_LANDMARKS, detect_face_mesh, load_correspondence, render_face
-from eva_engine.eval.expression_fidelity import EYES, MOUTH
+from eva_engine.eval.expression_fidelity import EYES, MOUTH, surface_gaps
 
 TRUTH = {"eyeBlinkLeft": 0.8, "eyeBlinkRight": 0.8, "jawOpen": 0.5}
 
@@ -31,14 +31,8 @@ def _params(model, expression: dict[str, float]):
 def _gaps_mm(model, correspondence, params) -> dict[str, float]:
     """Inner-lip gap and mean lid gap of the posed correspondence points, in mm."""
     reg, landmarks = correspondence.regressor(model)
-    at = {int(k): i for i, k in enumerate(landmarks)}
-    with torch.no_grad():
-        pts = model.posed_points(params, reg)[0]
-
-    def gap(a: int, b: int) -> float:
-        return float((pts[at[a]] - pts[at[b]]).norm()) * 1000
-
-    return {"mouth": gap(*MOUTH), "eyes": 0.5 * (gap(*EYES[0]) + gap(*EYES[1]))}
+    mouth, *eyes = (1000 * surface_gaps(model, params, reg, landmarks, (MOUTH, *EYES))[0]).tolist()
+    return {"mouth": mouth, "eyes": 0.5 * (eyes[0] + eyes[1])}
 
 
 def test_jaw_and_blink_move_their_landmarks(anny_model, correspondence):

@@ -121,3 +121,19 @@ def fitted_landmarks(model, params, regressor, landmark_ids: Tensor, K: Tensor, 
     out[:, landmark_ids, :2] = pix.cpu()
     out[:, landmark_ids, 2] = 1.0
     return out
+
+
+def surface_gaps(model, params, regressor, landmark_ids: Tensor, pairs) -> Tensor:
+    """[F, Q] metres: the 3D distance between the posed correspondence points of each landmark
+    pair ((a, b), ... MediaPipe indices the correspondence has), e.g. ``MOUTH`` and ``EYES``: the
+    openings of the body surface itself, before any camera.
+
+    model: ``BodyModel``; params: ``BodyParams`` of F frames; regressor, landmark_ids: from
+    ``FaceMeshCorrespondence.regressor(model)``.
+    """
+    at = {int(k): i for i, k in enumerate(landmark_ids)}
+    a = torch.tensor([at[p] for p, _ in pairs])
+    b = torch.tensor([at[q] for _, q in pairs])
+    with torch.no_grad():
+        pts = model.posed_points(params, regressor)  # [F, L, 3]
+    return (pts[:, a] - pts[:, b]).norm(dim=-1)
