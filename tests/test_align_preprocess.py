@@ -150,6 +150,24 @@ def test_the_preprocessed_dataset_trains(preprocessed):
     assert all(np.isfinite(result.losses))
 
 
+@pytest.mark.parametrize("n", [1, 2])
+def test_a_one_or_two_frame_clip_preprocesses_and_trains(signer, anny_model, tmp_path, n):
+    """The shortest clips go through the whole job: with a test frame asked every 2nd frame, one
+    frame is all training and two split 1 + 1; the avatar trains to finite losses."""
+    from eva_engine.align.scaling import scaled_fit_config
+    from eva_engine.train import preset, train_avatar
+
+    _, _, frames, _ = signer
+    video = write_video(tmp_path / "short.mp4", frames[:n], fps=10)
+    config = PreprocessConfig(test_every=2, fitting=scaled_fit_config(0.1))
+    report = preprocess_video(video, tmp_path / "ds", config, model=anny_model)
+    ds = load_dataset(tmp_path / "ds")
+    assert report.kept_frames == n and len(ds.splits["train"]) == 1 and len(ds.splits["test_pose"]) == n - 1
+    assert torch.isfinite(ds.params.joints).all()
+    result = train_avatar(ds, preset("tiny", iterations=4, image_scale=0.25), body=anny_model)
+    assert len(result.avatar.gaussians) > 0 and all(np.isfinite(result.losses))
+
+
 def test_frames_without_a_person_are_dropped_and_counted(signer, anny_model, tmp_path):
     _, _, frames, _ = signer
     blank = np.full_like(frames[:3], 200)

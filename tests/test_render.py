@@ -376,6 +376,31 @@ def test_no_gaussians(kernel):
     torch.testing.assert_close(bg.grad, torch.full((3,), 240.0, dtype=torch.float64))
 
 
+@KERNELS
+@pytest.mark.parametrize("field", ["means", "quats", "scales", "opacities", "colors"])
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
+def test_a_non_finite_gaussian_is_not_drawn(field, value, kernel):
+    """A Gaussian with NaN or inf anywhere renders as if it were absent, its gradients are zero,
+    and the others' are those of the scene without it."""
+    scene = random_scene(6, 24, 20, seed=3)
+    bad = dict(scene)
+    bad[field] = scene[field].clone()
+    bad[field][2] = value
+    without = {k: (v[[0, 1, 3, 4, 5]] if k in PARAMS and k != "background" else v) for k, v in scene.items()}
+    config = RasterConfig(kernel=kernel)
+    out, grads = render_with_grads(bad, config)
+    ref, ref_grads = render_with_grads(without, config)
+    assert_finite(out, grads)
+    for name in ("image", "alpha", "depth"):
+        torch.testing.assert_close(getattr(out, name), getattr(ref, name), rtol=1e-10, atol=1e-12)
+    for k in PARAMS:
+        if k == "background":
+            torch.testing.assert_close(grads[k], ref_grads[k])
+            continue
+        assert torch.all(grads[k][2] == 0), k
+        torch.testing.assert_close(grads[k][[0, 1, 3, 4, 5]], ref_grads[k], rtol=1e-10, atol=1e-12, msg=k)
+
+
 def test_single_gaussian_known_value():
     # Isotropic Gaussian straight ahead: 2D sigma^2 = (f s / z)^2 + eps2d at the image centre.
     f, s, z, o = 30.0, 0.1, 2.0, 0.8

@@ -167,6 +167,56 @@ def test_clear_errors(scene, anny_model):
         AvatarLoss(LossConfig(photometric="nope"), lpips=None)
 
 
+def test_a_non_finite_loss_stops_training_before_it_reaches_the_avatar(scene, anny_model, monkeypatch):
+    """The loss turns NaN at iteration 3: training fails with a TrainingError naming it, and the
+    avatar (seen through the checkpoint hook) keeps finite parameters and networks."""
+    from eva_engine.train import trainer
+
+    ds, _ = scene
+    calls = []
+    forward = trainer.AvatarLoss.forward
+
+    def poisoned(self, *args, **kwargs):
+        terms = forward(self, *args, **kwargs)
+        calls.append(kwargs.get("step"))
+        if kwargs.get("step") == 3:
+            terms["total"] = terms["total"] * float("nan")
+        return terms
+
+    monkeypatch.setattr(trainer.AvatarLoss, "forward", poisoned)
+    seen = []
+    with pytest.raises(TrainingError, match="nan at iteration 3"):
+        train_avatar(
+            ds,
+            preset("tiny"),
+            body=anny_model,
+            checkpoint=lambda step, avatar, seconds: seen.append(avatar),
+            checkpoint_steps=(1,),
+        )
+    assert calls[-1] == 3
+    avatar = seen[0]
+    for name, tensor in [*avatar.gaussians.splats.items(), *avatar.named_parameters()]:
+        assert torch.isfinite(tensor).all(), name
+
+
+@pytest.mark.parametrize("method", ["eva", "3dgs+body"])
+def test_all_empty_masks_train_and_score_finite(scene, anny_model, method, lpips):
+    """A clip whose person masks are all empty (segmentation found nobody): the mask-box crop,
+    the mask loss and the regions have nothing to hold, and still every number is finite."""
+    ds, _ = scene
+    frames = [
+        dataclasses.replace(
+            f, mask=torch.zeros_like(f.mask), regions={k: torch.zeros_like(v) for k, v in f.regions.items()}
+        )
+        for f in ds.frames
+    ]
+    empty = dataclasses.replace(ds, frames=frames)
+    result = train_avatar(empty, with_method(preset("tiny", iterations=6), method), body=anny_model)
+    assert all(torch.isfinite(torch.tensor(result.losses)))
+    scores = evaluate_avatar(result.avatar, empty, metrics=ImageMetrics(lpips_alex=lpips)).regions["full"]
+    assert all(torch.isfinite(torch.tensor([scores.psnr, scores.ssim, scores.lpips_vgg])))
+
+
 @pytest.mark.parametrize("name", PRESETS)
 def test_every_registered_preset_has_a_configuration(name):
     config = preset(name, iterations=7)

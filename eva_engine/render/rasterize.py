@@ -109,9 +109,12 @@ def rasterize(
 
     Differentiable w.r.t. means, quats, scales, opacities, colors and background. Works on any
     device and float dtype the inputs share (float32 normally, float64 for gradient checks).
+    A Gaussian with NaN or inf in any of its inputs is not drawn and gets zero gradients, so one
+    diverged Gaussian neither blanks the image nor poisons the others' gradients.
     """
     cfg = config or RasterConfig()
     _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background, sh_degree)
+    means, quats, scales, opacities, colors = _drop_non_finite(means, quats, scales, opacities, colors)
 
     # The autograd reference stays pure torch end to end.
     kernel = cfg.kernel if cfg.backend == "tiled" else "torch"
@@ -158,6 +161,31 @@ def rasterize(
         radii=proj.radii.amax(dim=-1),
         depths=proj.depths,
         num_intersections=bins.num_intersections,
+    )
+
+
+def _drop_non_finite(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The inputs with every Gaussian that holds a non-finite value replaced by an invisible one
+    (opacity 0 at the origin), through ``torch.where`` so its gradients are zero."""
+    with torch.no_grad():  # a row's sum is finite iff all its values are (or sum past 1e38)
+        total = means.sum(1) + quats.sum(1) + scales.sum(1) + opacities + colors.flatten(1).sum(1)
+        finite = torch.isfinite(total)  # [N]
+    if bool(finite.all()):
+        return means, quats, scales, opacities, colors
+
+    def keep(t: Tensor, fill: float | Tensor) -> Tensor:
+        mask = finite.view(-1, *([1] * (t.dim() - 1)))
+        return torch.where(mask, t, torch.as_tensor(fill, dtype=t.dtype, device=t.device))
+
+    identity = quats.new_tensor([1.0, 0.0, 0.0, 0.0])
+    return (
+        keep(means, 0.0),
+        keep(quats, identity),
+        keep(scales, 1e-3),
+        keep(opacities, 0.0),
+        keep(colors, 0.0),
     )
 
 

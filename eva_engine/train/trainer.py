@@ -352,6 +352,10 @@ def train_avatar(
         if config.regularizers.active:
             total = total + regularization(avatar, config.regularizers, posed)
         t = tick("losses", t)
+        loss = float(terms["total"].detach())
+        if not math.isfinite(loss) or not bool(torch.isfinite(total.detach())):
+            # Before backward: the avatar keeps the last finite step's parameters.
+            raise TrainingError(f"the loss became {loss} at iteration {step}; training stopped")
         total.backward()
         t = tick("backward", t)
         for opt in (*optimizers.values(), *extra, *([correction_opt] if correcting else [])):
@@ -365,9 +369,6 @@ def train_avatar(
             refinements.append({"step": step, **stats})
         tick("densify", t)
 
-        loss = float(terms["total"].detach())
-        if not math.isfinite(loss):
-            raise TrainingError(f"the loss became {loss} at iteration {step}")
         losses.append(loss)
         done = step + 1
         if checkpoint is not None and done in checkpoint_steps:
