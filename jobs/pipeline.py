@@ -177,6 +177,7 @@ class JobRun:
 
     def _preprocess(self, work: Path, out: Path, options: JobOptions, report: Reporter) -> None:
         from eva_engine.align import PreprocessConfig, preprocess_video
+        from eva_engine.eval import held_out_every
         from jobs.media import check_frame_budget, probe_video
 
         video = input_file(work)
@@ -191,8 +192,13 @@ class JobRun:
 
         progress = preprocess_progress(report)
 
+        # Some frames stay out of training, so the avatar's quality report scores unseen poses.
+        frames = min(info.frame_count() or options.max_frames, options.max_frames)
         config = PreprocessConfig(
-            max_frames=options.max_frames, max_size=options.max_size, fitting=options.fit_config()
+            max_frames=options.max_frames,
+            max_size=options.max_size,
+            fitting=options.fit_config(),
+            test_every=held_out_every(frames),
         )
         partial = out.with_name(f"{out.name}.partial-{self.attempt}")
         preprocess_video(video, partial, config, model=model, progress=progress, overwrite=True)
@@ -207,6 +213,7 @@ class JobRun:
 
         from eva_engine.avatar import save_avatar
         from eva_engine.data import load_dataset
+        from eva_engine.eval import ImageMetrics, quality_report
         from eva_engine.train import preset, train_avatar, with_method
 
         ds = load_dataset(dataset_dir)
@@ -228,13 +235,16 @@ class JobRun:
             report(event.rescaled("train", 0.0, 0.95))
 
         result = train_avatar(ds, config, body=body, progress=progress)
-        report(ProgressEvent("train", 0.95, 1, "measuring the fit on training frames"), force=True)
+        report(ProgressEvent("train", 0.95, 1, "scoring the avatar on unseen frames"), force=True)
+        metrics = ImageMetrics()  # LPIPS networks loaded once for both
+        quality = quality_report(result.avatar, ds, metrics)
         record = result.record(
             config,
             preset=options.preset,
             method=options.method,
             options=options.model_dump(),
-            metrics=_training_metrics(result.avatar, ds),
+            metrics=_training_metrics(result.avatar, ds, metrics),
+            quality=quality.model_dump(),
             avatar_id=job.avatar_id,
             job_id=job.id,
             source_video=job.filename,
@@ -247,7 +257,7 @@ class JobRun:
         move_into_place(partial, out)
 
 
-def _training_metrics(avatar, ds) -> dict:
+def _training_metrics(avatar, ds, metrics=None) -> dict:
     """PSNR / SSIM / LPIPS of the avatar on up to METRIC_FRAMES of its training frames."""
     from eva_engine.eval import evaluate_avatar
 
@@ -256,7 +266,7 @@ def _training_metrics(avatar, ds) -> dict:
         return {}
     step = max(1, math.ceil(len(train) / METRIC_FRAMES))
     ds.splits["fit_check"] = train[::step][:METRIC_FRAMES]
-    result = evaluate_avatar(avatar, ds, split="fit_check")
+    result = evaluate_avatar(avatar, ds, split="fit_check", metrics=metrics)
     full = result.regions.get("full")
     out = {"split": "train", "frames": result.num_frames, "render_fps": result.render_fps}
     if full is not None:

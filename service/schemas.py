@@ -14,6 +14,7 @@ from eva_engine.avatar.render_spec import (  # noqa: F401  (the bounds, re-expor
     RenderPose,
     RenderSpec,
 )
+from eva_engine.eval.quality import QualityReport
 from eva_engine.render.view import CAMERA_PRESETS, CameraSpec  # noqa: F401
 from jobs.animation import AnimationOptions
 from jobs.options import JobOptions
@@ -172,7 +173,14 @@ class AvatarInfo(BaseModel):
     metrics: dict[str, Any] = Field(
         default_factory=dict, description="Fit on training frames: psnr, ssim, lpips_vgg, lpips_alex."
     )
-    num_frames: int | None = Field(None, description="Training frames; render one with {'frame': i}.")
+    quality: QualityReport | None = Field(
+        None,
+        description="Scores on frames kept out of training (held_out) and what preprocessing saw of the "
+        "person (detection); none for avatars made before it existed.",
+    )
+    num_frames: int | None = Field(
+        None, description="Frames the avatar keeps (held-out ones too); render one with {'frame': i}."
+    )
     frame_size: tuple[int, int] | None = Field(None, description="(height, width) of the training frames.")
 
 

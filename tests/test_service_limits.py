@@ -57,6 +57,25 @@ def test_a_seeded_avatar_renders(client, seeded):
     assert render(client, aid, {"frame": 1}).status_code == 200  # the frames' own 64x96 size
 
 
+def test_an_unreadable_quality_report_does_not_break_the_avatar(client, seeded, tmp_path):
+    """avatar.json with a quality report the service cannot read (hand-edited, or a wrong type):
+    the avatar is still listed and described, its quality null; a newer writer's extra keys are
+    ignored."""
+    _, aid = seeded
+    meta = tmp_path / "data" / "avatars" / aid / "avatar.json"
+    doc = json.loads(meta.read_text())
+    doc["quality"] = {"held_out": {"split": "test_pose", "frames": "many"}}
+    meta.write_text(json.dumps(doc))
+    res = client.get(f"/avatars/{aid}")
+    assert res.status_code == 200 and res.json()["quality"] is None
+    newer = {"frames_kept": 3, "made_by": "a newer writer"}
+    doc["quality"] = {"held_out": None, "detection": newer, "verdict": "good"}
+    meta.write_text(json.dumps(doc))
+    quality = client.get(f"/avatars/{aid}").json()["quality"]
+    assert quality["detection"]["frames_kept"] == 3 and "made_by" not in quality["detection"]
+    assert client.get("/avatars").status_code == 200
+
+
 def test_a_render_beyond_the_training_range_says_so(client, seeded):
     """Trained on the rest pose from the front: a raised arm from the side is rendered all the
     same, and the X-Render-Warnings header (a JSON list) says what lies outside; [] inside."""

@@ -32,6 +32,9 @@ def test_train_then_eval(dataset, tmp_path):
     per_part = info.gaussians_per_part
     assert per_part["before"]["hand"] > 0 and sum(per_part["after"].values()) == info.num_gaussians
     assert info.num_gaussians > 0 and info.train_seconds > 0
+    # Its quality report: the 3 held-out frames scored, printed and kept.
+    assert info.quality["held_out"]["frames"] == 3 and 10 < info.quality["held_out"]["psnr"] < 60
+    assert "held-out frames (3, poses it never trained on): PSNR" in res.output
     report = tmp_path / "metrics.json"
     res = runner.invoke(app, ["eval", str(out), str(dataset), "--json", str(report)])
     assert res.exit_code == 0, res.output

@@ -157,6 +157,7 @@ def test_upload_shows_the_job_live_and_the_avatar(site, avatar):
     card = f'.avatar-card[data-avatar-id="{avatar.id}"]'
     text = d.execute_script(f"return document.querySelector('{card}').textContent")
     assert "signer.mp4" in text and "Gaussians" in text
+    assert "dB on unseen poses" in text  # the held-out score, not the training frames' fit
     thumb = f"const i = document.querySelector('{card} img'); return i && i.complete && i.naturalWidth"
     assert wait_for(lambda: d.execute_script(thumb), 60, "the avatar's thumbnail") > 0
 

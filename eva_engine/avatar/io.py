@@ -126,7 +126,8 @@ class FramesInfo(BaseModel):
 class TrainingRecord(BaseModel):
     """How an avatar was made, as ``avatar.json`` keeps it; every field is optional. The training
     run (``TrainResult.record``), the fit on training frames (``metrics``: psnr, ssim, lpips_vgg,
-    lpips_alex, ...) and where the data came from (a dataset folder, or a job of the service)."""
+    lpips_alex, ...), the quality report (``quality``: held-out frames and detection) and where
+    the data came from (a dataset folder, or a job of the service)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -143,6 +144,8 @@ class TrainingRecord(BaseModel):
     coverage: Coverage | None = None
     """The views and poses the training frames showed (``avatar.coverage``)."""
     metrics: dict[str, Any] = Field(default_factory=dict)
+    quality: dict[str, Any] | None = None
+    """``eval.QualityReport``: held-out scores and what preprocessing saw (None: not measured)."""
     dataset: str | None = None
     source_video: str | None = None
     avatar_id: str | None = None

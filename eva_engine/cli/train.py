@@ -25,8 +25,12 @@ def train(
     device: str = typer.Option("cpu", help="cpu or cuda."),
     threads: int | None = typer.Option(None, min=1, help="Torch CPU threads."),
     seed: int = typer.Option(0, help="Random seed (runs on one thread are bit-identical given it)."),
+    quality: bool = typer.Option(
+        True, help="Score the avatar on the dataset's held-out frames and keep the report in avatar.json."
+    ),
 ) -> None:
-    """Train an avatar on the dataset's training frames (EVA: 2,000 iterations)."""
+    """Train an avatar on the dataset's training frames (EVA: 2,000 iterations), then score it on
+    the frames it did not train on (its quality report)."""
     import torch
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -92,7 +96,18 @@ def train(
         except TrainingError as err:
             console.print(f"[red]error:[/] {err}")
             raise typer.Exit(2) from err
-    record = result.record(config, preset=preset, method=method, dataset=str(dataset.resolve()))
+    report_doc = None
+    if quality:
+        from eva_engine.eval import quality_report
+
+        report_doc = quality_report(result.avatar, ds)
+    record = result.record(
+        config,
+        preset=preset,
+        method=method,
+        dataset=str(dataset.resolve()),
+        quality=report_doc.model_dump() if report_doc is not None else None,
+    )
     # Training poses (as trained) and cameras: `eva render --pose frame:N`.
     save_avatar(result.avatar, out, record, frames=result.frames(ds))
     console.print(
@@ -100,3 +115,11 @@ def train(
         f"{config.iterations} iterations in {result.train_seconds:.1f} s "
         f"(total {time.perf_counter() - started:.1f} s)"
     )
+    held = report_doc.held_out if report_doc is not None else None
+    if held is not None:
+        lpips = held.lpips_vgg * 1000 if held.lpips_vgg is not None else None
+        scores = {"PSNR": held.psnr, "LPIPS-VGG ×1000": lpips, "silhouette IoU": held.silhouette_iou}
+        shown = ", ".join(f"{k} {v:.3g}" for k, v in scores.items() if v is not None)
+        console.print(f"held-out frames ({held.frames}, poses it never trained on): {shown}")
+    elif quality:
+        console.print("no held-out frames in this dataset: nothing to score the avatar on unseen poses")

@@ -11,6 +11,7 @@ from eva_engine.eval.evaluate import (
     evaluate_avatar,
     metrics_table,
 )
+from eva_engine.eval.quality import QualityReport, held_out_every, quality_report
 
 __all__ = [
     "METRICS",
@@ -18,7 +19,10 @@ __all__ = [
     "EvalResult",
     "ImageMetrics",
     "PoseRefinement",
+    "QualityReport",
     "RegionMetrics",
     "evaluate_avatar",
+    "held_out_every",
     "metrics_table",
+    "quality_report",
 ]

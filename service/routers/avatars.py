@@ -1,12 +1,14 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Annotated, BinaryIO, Literal
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Response, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
+from pydantic import ValidationError
 
 from eva_engine.avatar import read_avatar_meta
 from eva_engine.avatar.render_spec import coverage_warnings, frame_params, spec_camera, spec_params
@@ -22,10 +24,11 @@ from service.deps import (
     render_admission,
 )
 from service.routers.responses import AVATAR_NOT_READY, BUSY, STILL_RUNNING, UPLOAD, error
-from service.schemas import AvatarCreated, AvatarForm, AvatarInfo, AvatarList, RenderRequest
+from service.schemas import AvatarCreated, AvatarForm, AvatarInfo, AvatarList, QualityReport, RenderRequest
 from service.uploads import check_video, queued_job, safe_suffix, save_upload
 
 router = APIRouter(prefix="/avatars", tags=["avatars"])
+logger = logging.getLogger("eva.service")
 WARNINGS_HEADER = "X-Render-Warnings"
 NOT_FOUND = error(404, "Unknown or malformed avatar id")
 
@@ -68,6 +71,18 @@ def _create(
     return AvatarCreated(avatar_id=avatar_id, job_id=job_id)
 
 
+def _quality(doc: dict | None, avatar_id: str) -> QualityReport | None:
+    """``avatar.json``'s quality report; None when absent, or unreadable (logged: the avatar still
+    serves)."""
+    if not doc:
+        return None
+    try:
+        return QualityReport.model_validate(doc)
+    except ValidationError as err:
+        logger.warning("avatar %s: unreadable quality report: %s", avatar_id, err)
+        return None
+
+
 def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
     status = {"queued": "pending", "running": "pending", "succeeded": "ready"}.get(job.state, job.state)
     info = AvatarInfo(
@@ -90,6 +105,7 @@ def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
                 "train_seconds": meta.train_seconds,
                 "final_loss": meta.final_loss,
                 "metrics": meta.metrics,
+                "quality": _quality(meta.quality, job.avatar_id),
                 "num_frames": meta.frames.count if meta.frames else None,
                 "frame_size": meta.frames.image_size if meta.frames else None,
             }

@@ -163,6 +163,15 @@ async function refreshAvatars() {
   showAvatars();
 }
 
+// The held-out PSNR (frames training never saw) when the avatar has one: the training frames'
+// own fit says little about new poses.
+function cardScore(a) {
+  const held = a.quality && a.quality.held_out;
+  if (held && held.psnr != null) return ` · PSNR ${held.psnr.toFixed(1)} dB on unseen poses`;
+  if (a.metrics && a.metrics.psnr) return ` · PSNR ${a.metrics.psnr.toFixed(1)} dB on training frames`;
+  return "";
+}
+
 function showAvatars() {
   const list = $("avatars");
   list.replaceChildren();
@@ -177,7 +186,7 @@ function showAvatars() {
     li.dataset.status = a.status;
     const thumb = state.thumbnails.get(a.avatar_id);
     const gaussians = a.num_gaussians ? `${a.num_gaussians.toLocaleString()} Gaussians` : "";
-    const psnr = a.metrics && a.metrics.psnr ? ` · PSNR ${a.metrics.psnr.toFixed(1)} dB` : "";
+    const psnr = cardScore(a);
     li.innerHTML = `${thumb ? `<img alt="">` : '<div class="placeholder"></div>'}
       <div><div class="name"></div><div class="facts">${a.status}${a.preset ? ` · ${a.preset}` : ""}</div>
       <div class="facts">${gaussians}${psnr}</div></div>`;

@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 
 EVA = str(Path(sys.executable).parent / "eva")
-SIGNER_FRAMES = 4
-# The pipeline at its smallest: 4 frames of 256 px, a few tiny-preset iterations at 1/4 scale.
+SIGNER_FRAMES = 6
+# The pipeline at its smallest: 6 frames of 256 px (the job keeps 2 out to score the avatar, 4
+# train), a few tiny-preset iterations at 1/4 scale.
 FAST_OPTIONS = {
     "preset": "tiny",
     "iterations": "6",

@@ -1,0 +1,145 @@
+"""An avatar's quality report: how it does on frames it never trained on, and what the pipeline
+saw of the person (issue 41's ``quality`` in ``avatar.json``).
+
+The scores come from the held-out frames of the dataset (preprocessing puts every k-th kept frame
+in ``test_pose``; the job path always keeps some out), rendered with their fitted poses, so they
+say what a user will see in new poses, unlike the fit on training frames (``metrics``). The
+detection summary comes from what preprocessing recorded in the dataset's ``meta.json``.
+
+No verdict yet: ``good`` / ``fair`` / ``poor`` needs thresholds calibrated against ground truth
+on the hard-input benchmark, which does not exist yet.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from pydantic import BaseModel, ConfigDict
+
+from eva_engine.eval.evaluate import ImageMetrics, evaluate_avatar
+
+HELD_OUT_SPLIT = "test_pose"
+HELD_OUT_EVERY = 10
+MIN_HELD_OUT = 4
+
+
+def held_out_every(frames: int) -> int:
+    """``test_every`` that keeps about one frame in ``HELD_OUT_EVERY`` out of training, and at
+    least ``MIN_HELD_OUT`` when the clip has twice that (a shorter clip keeps a half to a third out; 2
+    frames keep 1, 1 frame keeps none, as ``PreprocessConfig.test_every`` places them)."""
+    if frames < 2:
+        return 0
+    if frames < 2 * MIN_HELD_OUT:
+        return 2 if frames < 6 else 3
+    return max(2, min(HELD_OUT_EVERY, frames // MIN_HELD_OUT))
+
+
+def _finite(value: float | None) -> float | None:
+    """JSON has no inf or NaN: an identical crop's PSNR (inf) or an unmeasured value is None."""
+    return value if value is not None and math.isfinite(value) else None
+
+
+class HeldOutScores(BaseModel):
+    """The avatar on its held-out frames, full image: PSNR (dB), SSIM, LPIPS-VGG and -Alex (x1000
+    not applied: 0-1), the silhouette's IoU with the person mask in the crop, and the debris
+    (alpha outside the person) and holes (person without alpha) shares; face and hand LPIPS-VGG
+    where frames show them. None: not measurable (e.g. a perfect crop's PSNR)."""
+
+    model_config = ConfigDict(extra="ignore")  # a newer writer's keys
+
+    split: str
+    frames: int
+    psnr: float | None
+    ssim: float | None
+    lpips_vgg: float | None
+    lpips_alex: float | None
+    silhouette_iou: float | None = None
+    debris: float | None = None
+    holes: float | None = None
+    face_lpips_vgg: float | None = None
+    hand_lpips_vgg: float | None = None
+
+
+class DetectionSummary(BaseModel):
+    """What preprocessing saw: frames decoded / kept / dropped (no person found), the share of
+    decoded frames with each part found, the fit's mean 2D error per group (pixels), and the
+    person's median height in the kept frames (pixels and share of the frame's height)."""
+
+    model_config = ConfigDict(extra="ignore")  # a newer writer's keys
+
+    frames_decoded: int | None = None
+    frames_kept: int | None = None
+    frames_dropped: int | None = None
+    found: dict[str, float] = {}
+    reprojection_px: dict[str, float | None] = {}
+    person_height_px: float | None = None
+    person_height_share: float | None = None
+
+
+class QualityReport(BaseModel):
+    """``avatar.json``'s ``quality``: ``held_out`` (None: the dataset kept no frame out) and
+    ``detection`` (None: the dataset did not come from ``preprocess_video``)."""
+
+    model_config = ConfigDict(extra="ignore")  # a newer writer's keys
+
+    held_out: HeldOutScores | None = None
+    detection: DetectionSummary | None = None
+
+
+def held_out_scores(avatar, dataset, metrics: ImageMetrics | None = None) -> HeldOutScores | None:
+    """Scores of ``avatar`` on ``dataset``'s held-out split, or None when it has no such frame."""
+    if not dataset.splits.get(HELD_OUT_SPLIT):
+        return None
+    result = evaluate_avatar(avatar, dataset, split=HELD_OUT_SPLIT, metrics=metrics)
+    full = result.regions.get("full")
+    if full is None:
+        return None
+    region = {name: _finite(r.lpips_vgg) for name, r in result.regions.items()}
+    return HeldOutScores(
+        split=HELD_OUT_SPLIT,
+        frames=result.num_frames,
+        psnr=_finite(full.psnr),
+        ssim=_finite(full.ssim),
+        lpips_vgg=_finite(full.lpips_vgg),
+        lpips_alex=_finite(full.lpips_alex),
+        silhouette_iou=_finite(full.silhouette_iou),
+        debris=_finite(full.debris),
+        holes=_finite(full.holes),
+        face_lpips_vgg=region.get("face"),
+        hand_lpips_vgg=region.get("hand"),
+    )
+
+
+def detection_summary(dataset) -> DetectionSummary | None:
+    """What ``preprocess_video`` recorded in the dataset, and the person masks' heights; None for
+    a dataset it did not write (synthetic, or converted from elsewhere)."""
+    extra: dict[str, Any] = dataset.meta.extra or {}
+    if "detection_rates" not in extra:
+        return None
+    frames = extra.get("frames", {})
+    fitted = extra.get("reprojection_px", {}).get("fitted", {})
+    heights = []
+    for i in range(len(dataset)):
+        mask = dataset.mask(i) if hasattr(dataset, "mask") else dataset[i].mask  # [H, W]
+        rows = torch.nonzero(mask.amax(dim=1) > 0.5)
+        if rows.numel():
+            heights.append(float(rows.max() - rows.min() + 1))
+    height = float(torch.tensor(heights).median()) if heights else None
+    image_h = dataset.meta.image_size[0]
+    return DetectionSummary(
+        frames_decoded=frames.get("decoded"),
+        frames_kept=frames.get("kept"),
+        frames_dropped=frames.get("dropped"),
+        found={k: float(v) for k, v in extra["detection_rates"].items()},
+        reprojection_px={k: _finite(v) for k, v in fitted.items()},
+        person_height_px=height,
+        person_height_share=height / image_h if height is not None and image_h else None,
+    )
+
+
+def quality_report(avatar, dataset, metrics: ImageMetrics | None = None) -> QualityReport:
+    """The quality report of ``avatar`` trained on ``dataset`` (module docstring)."""
+    held_out = held_out_scores(avatar, dataset, metrics)
+    return QualityReport(held_out=held_out, detection=detection_summary(dataset))
