@@ -38,23 +38,16 @@ def main() -> None:
         return
     torch.set_num_threads(args.threads)
 
-    from eva_engine.align import PreprocessConfig, preprocess_video
+    from eva_engine.align import preprocess_video
     from eva_engine.data import load_dataset
-    from eva_engine.eval import ImageMetrics, held_out_every, quality_report
+    from eva_engine.eval import ImageMetrics, quality_report
     from eva_engine.train import preset, train_avatar
     from jobs.media import probe_video
     from jobs.options import JobOptions
     from jobs.pipeline import _training_metrics
 
     options = JobOptions()
-    info = probe_video(video, 4096, decode_first=False)
-    frames = min(info.frame_count() or options.max_frames, options.max_frames)
-    config = PreprocessConfig(
-        max_frames=options.max_frames,
-        max_size=options.max_size,
-        fitting=options.fit_config(),
-        test_every=held_out_every(frames),
-    )
+    config = options.preprocess_config(probe_video(video, 4096, decode_first=False).frame_count())
     seconds: dict[str, float] = {}
     start = time.perf_counter()
     preprocess_video(video, args.work / "dataset", config, overwrite=True)

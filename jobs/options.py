@@ -47,3 +47,18 @@ class JobOptions(BaseModel):
         from eva_engine.align import scaled_fit_config
 
         return scaled_fit_config(self.fit_scale)
+
+    def preprocess_config(self, video_frames: int | None = None):
+        """The ``PreprocessConfig`` of this job on a video of ``video_frames`` frames (None:
+        unknown, taken as ``max_frames``): its frame and size bounds, the scaled fit, and some
+        frames kept out of training (``eval.held_out_every``) for the avatar's quality report."""
+        from eva_engine.align import PreprocessConfig
+        from eva_engine.eval import held_out_every
+
+        frames = min(video_frames or self.max_frames, self.max_frames)
+        return PreprocessConfig(
+            max_frames=self.max_frames,
+            max_size=self.max_size,
+            fitting=self.fit_config(),
+            test_every=held_out_every(frames),
+        )

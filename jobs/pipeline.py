@@ -176,8 +176,7 @@ class JobRun:
         report.completed("export")
 
     def _preprocess(self, work: Path, out: Path, options: JobOptions, report: Reporter) -> None:
-        from eva_engine.align import PreprocessConfig, preprocess_video
-        from eva_engine.eval import held_out_every
+        from eva_engine.align import preprocess_video
         from jobs.media import check_frame_budget, probe_video
 
         video = input_file(work)
@@ -192,14 +191,7 @@ class JobRun:
 
         progress = preprocess_progress(report)
 
-        # Some frames stay out of training, so the avatar's quality report scores unseen poses.
-        frames = min(info.frame_count() or options.max_frames, options.max_frames)
-        config = PreprocessConfig(
-            max_frames=options.max_frames,
-            max_size=options.max_size,
-            fitting=options.fit_config(),
-            test_every=held_out_every(frames),
-        )
+        config = options.preprocess_config(info.frame_count())
         partial = out.with_name(f"{out.name}.partial-{self.attempt}")
         preprocess_video(video, partial, config, model=model, progress=progress, overwrite=True)
         report(ProgressEvent("align", 1, 1, "dataset ready"), force=True)  # still ours: put it in place

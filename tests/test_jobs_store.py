@@ -111,3 +111,15 @@ def test_job_methods_are_the_engines():
 
     assert typing.get_args(Method) == tuple(METHODS)
     assert JobOptions(method="eva").method == "eva"
+
+
+def test_a_job_keeps_frames_out_for_its_quality_report():
+    """The job's preprocessing: its own bounds and fit, and about one frame in ten held out of the
+    frames it will use (the video's, capped at max_frames)."""
+    options = JobOptions(max_frames=120, max_size=256, fit_scale=0.5)
+    config = options.preprocess_config(300)
+    assert (config.max_frames, config.max_size, config.test_every) == (120, 256, 10)
+    assert config.fitting == options.fit_config()
+    assert options.preprocess_config(None).test_every == 10  # unknown length: max_frames
+    assert options.preprocess_config(20).test_every == 5  # 4 held out
+    assert options.preprocess_config(1).test_every == 0  # nothing to spare

@@ -107,7 +107,7 @@ def test_upload_queues_a_job_that_can_be_cancelled(client, signer_video, tmp_pat
     ids = res.json()
     job = client.get(f"/jobs/{ids['job_id']}").json()
     assert job["state"] == "queued" and job["progress"] == 0.0 and job["avatar_id"] == ids["avatar_id"]
-    assert job["options"]["preset"] == "tiny" and job["options"]["max_frames"] == 4
+    assert job["options"]["preset"] == "tiny" and job["options"]["max_frames"] == svc.SIGNER_FRAMES
     assert job["filename"] == "me.mp4"
     work = tmp_path / "data" / "jobs" / "work" / ids["job_id"]
     assert [p.name for p in work.iterdir()] == ["input.mp4"]
