@@ -85,8 +85,8 @@ def main() -> None:
         "",
         f"- date: {doc['date']}; command: `{doc['command']}`",
         f"- machine: {doc['machine']}",
-        f"- video: {args.video}, the job defaults ({options.preset} preset, at most {options.max_frames} "
-        f"frames of {options.max_size} px): {doc['frames']} frames, {doc['held_out']} held out",
+        f"- video: {args.video}, the job defaults ({options.preset} preset, {options.max_frames} frames at "
+        f"most, {options.max_size} px): {doc['frames']} frames, {doc['held_out']} held out",
         "",
         "| stage | seconds | share of the job |",
         "|---|---:|---:|",
