@@ -23,7 +23,7 @@ def test_held_out_frames_are_a_tenth_and_at_least_four(frames, held_out):
     assert (len(range(every - 1, frames, every)) if every else 0) == held_out
 
 
-def test_held_out_scores_of_a_trained_scene(anny_model):
+def test_held_out_scores_of_the_teacher_on_its_own_renders(anny_model):
     """The teacher scored on its held-out frames (its own renders, composited as training sees
     them): close, the silhouette exact, and the report a valid JSON document."""
     ds, teacher = teacher_scene(anny_model, n_frames=6, size=48)

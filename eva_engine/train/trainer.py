@@ -353,9 +353,9 @@ def train_avatar(
             total = total + regularization(avatar, config.regularizers, posed)
         t = tick("losses", t)
         loss = float(terms["total"].detach())
-        if not math.isfinite(loss) or not bool(torch.isfinite(total.detach())):
+        if not math.isfinite(float(total.detach())):  # non-finite whenever the loss terms are
             # Before backward: the avatar keeps the last finite step's parameters.
-            raise TrainingError(f"the loss became {loss} at iteration {step}; training stopped")
+            raise TrainingError(f"the loss became {float(total)} at iteration {step}; training stopped")
         total.backward()
         t = tick("backward", t)
         for opt in (*optimizers.values(), *extra, *([correction_opt] if correcting else [])):
