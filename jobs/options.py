@@ -13,6 +13,9 @@ Method = Literal[*METHODS]
 # Bounds of what one job may ask for (with JobsConfig's frame budget and Gaussian cap, they bound
 # its memory and time): the paper trains 2,000 iterations, 3DGS 30,000 on a GPU.
 MAX_FRAMES, MIN_SIZE, MAX_SIZE, MAX_ITERATIONS = 2000, 64, 2048, 20_000
+# Fewer frames with a person than this and a job refuses the video: half are held out to score
+# the avatar (``eval.held_out_every``), the rest are too few views of the person to train on.
+MIN_FRAMES = 8
 
 
 class JobOptions(BaseModel):
@@ -23,7 +26,7 @@ class JobOptions(BaseModel):
 
     preset: Preset = Field("fast", description=f"Training preset: {describe_presets()}.")
     max_frames: int = Field(
-        120, ge=1, le=MAX_FRAMES, description="Frames of the video used, evenly from the start."
+        120, ge=MIN_FRAMES, le=MAX_FRAMES, description="Frames of the video used, evenly from the start."
     )
     max_size: int = Field(
         512, ge=MIN_SIZE, le=MAX_SIZE, description="Longest image side the frames are resized to (pixels)."
@@ -50,9 +53,10 @@ class JobOptions(BaseModel):
 
     def preprocess_config(self, video_frames: int | None = None):
         """The ``PreprocessConfig`` of this job on a video of ``video_frames`` frames (None:
-        unknown, taken as ``max_frames``): its frame and size bounds, the scaled fit, and some
-        frames kept out of training (``eval.held_out_every``) for the avatar's quality report."""
-        from eva_engine.align import PreprocessConfig
+        unknown, taken as ``max_frames``): its frame and size bounds, the scaled fit, some frames
+        kept out of training (``eval.held_out_every``) for the avatar's quality report, and the
+        input checks with ``MIN_FRAMES``."""
+        from eva_engine.align import InputChecks, PreprocessConfig
         from eva_engine.eval import held_out_every
 
         frames = min(video_frames or self.max_frames, self.max_frames)
@@ -61,4 +65,5 @@ class JobOptions(BaseModel):
             max_size=self.max_size,
             fitting=self.fit_config(),
             test_every=held_out_every(frames),
+            checks=InputChecks(min_frames=MIN_FRAMES),
         )

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
 from jobs.media import VideoInfo, VideoRejected, check_frame_budget, probe_in_subprocess
-from jobs.options import JobOptions
+from jobs.options import MIN_FRAMES, JobOptions
 from jobs.store import new_id
 
 if TYPE_CHECKING:
@@ -55,12 +55,18 @@ def check_video(path: Path, options: JobOptions | AnimationOptions, settings: Se
     ``settings.probe_memory_mb``): a safe container, frames of at most ``jobs.max_video_side``, at
     most ``settings.max_video_seconds`` long, one decodable frame, and decoded frames
     (``options.max_frames`` of at most ``options.max_size``: an avatar's video or an animation's
-    driving video) within ``jobs.max_frame_pixels``. Raises ``VideoRejected`` with the reason."""
+    driving video) within ``jobs.max_frame_pixels``; an avatar's video, at least ``MIN_FRAMES``
+    frames. Raises ``VideoRejected`` with the reason."""
     jobs = settings.jobs
     info = probe_in_subprocess(path, jobs.max_video_side, settings.probe_timeout_s, settings.probe_memory_mb)
     if info.duration_s is not None and info.duration_s > settings.max_video_seconds:
         limit = settings.max_video_seconds
         raise VideoRejected(f"the video is {info.duration_s:.1f} s long; the limit is {limit:.0f} s")
+    frames = info.frame_count()
+    if isinstance(options, JobOptions) and frames is not None and frames < MIN_FRAMES:
+        raise VideoRejected(
+            f"the video has {frames} frame{'s' if frames != 1 else ''}; an avatar needs at least {MIN_FRAMES}"
+        )
     check_frame_budget(info, options.max_frames, options.max_size, jobs.max_frame_pixels)
     return info
 

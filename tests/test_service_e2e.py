@@ -107,14 +107,16 @@ def test_avatar_metadata(live, ready):
     info = live.client.get(f"/avatars/{ids['avatar_id']}").json()
     assert info["status"] == "ready" and info["job_id"] == ids["job_id"]
     assert info["num_gaussians"] > 100 and info["iterations"] == 6 and info["train_seconds"] > 0
-    assert info["num_frames"] == 6 and info["frame_size"] == [256, 256]  # the held-out ones too
+    assert info["num_frames"] == svc.SIGNER_FRAMES and info["frame_size"] == [256, 256]  # the held-out ones too
     assert math.isfinite(info["metrics"]["psnr"]) and 0 < info["metrics"]["ssim"] <= 1
-    # Its quality report: 2 of the 6 frames kept out of training and scored, and what detection saw.
+    # Its quality report: 4 of the 8 frames kept out of training and scored, what detection saw,
+    # and the verdict: 6 iterations make a poor avatar, and the report says why in words.
     held_out, detection = info["quality"]["held_out"], info["quality"]["detection"]
-    assert held_out["split"] == "test_pose" and held_out["frames"] == 2
+    assert held_out["split"] == "test_pose" and held_out["frames"] == 4
+    assert info["quality"]["verdict"] == "poor" and "never trained on" in info["quality"]["reasons"][0]
     assert 5 < held_out["psnr"] < 60 and 0 < held_out["lpips_vgg"] < 1
     assert 0 <= held_out["silhouette_iou"] <= 1
-    assert detection["frames_decoded"] == detection["frames_kept"] == 6 and detection["found"]["pose"] == 1
+    assert detection["frames_decoded"] == detection["frames_kept"] == 8 and detection["found"]["pose"] == 1
     assert 50 < detection["person_height_px"] <= 256 and 0 < detection["person_height_share"] <= 1
     listed = live.client.get("/avatars").json()["avatars"]
     assert [a["avatar_id"] for a in listed] == [ids["avatar_id"]]

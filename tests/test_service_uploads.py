@@ -154,3 +154,17 @@ def test_a_queue_that_is_down_is_503_without_internals(tmp_path, signer_video):
         assert "unavailable" in res.text and "redis" not in res.text.lower() and "127.0.0.1" not in res.text
         assert client.get("/avatars").json() == {"avatars": []}
     assert leftovers(tmp_path) == []
+
+
+def test_a_clip_too_short_to_train_on_is_refused_at_upload(tmp_path):
+    """A job needs ``MIN_FRAMES`` frames (half are held out to score the avatar): fewer is a 422
+    with the reason, before anything is queued."""
+    from jobs.options import MIN_FRAMES
+
+    short = svc.no_person_video(tmp_path / "short.mp4", frames=MIN_FRAMES - 3)
+    with make_client(tmp_path) as client:
+        res = upload(client, short.read_bytes(), preset="tiny")
+        assert res.status_code == 422, res.text
+        assert f"has {MIN_FRAMES - 3} frames; an avatar needs at least {MIN_FRAMES}" in res.json()["detail"]
+        assert client.get("/avatars").json() == {"avatars": []}
+    assert leftovers(tmp_path) == []

@@ -35,6 +35,10 @@ def test_train_then_eval(dataset, tmp_path):
     # Its quality report: the 3 held-out frames scored, printed and kept.
     assert info.quality["held_out"]["frames"] == 3 and 10 < info.quality["held_out"]["psnr"] < 60
     assert "held-out frames (3, poses it never trained on): PSNR" in res.output
+    assert (
+        info.quality["verdict"] in ("good", "fair", "poor")
+        and f"quality: {info.quality['verdict']}" in res.output
+    )
     report = tmp_path / "metrics.json"
     res = runner.invoke(app, ["eval", str(out), str(dataset), "--json", str(report)])
     assert res.exit_code == 0, res.output

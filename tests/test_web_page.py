@@ -158,6 +158,11 @@ def test_upload_shows_the_job_live_and_the_avatar(site, avatar):
     text = d.execute_script(f"return document.querySelector('{card}').textContent")
     assert "signer.mp4" in text and "Gaussians" in text
     assert "dB on unseen poses" in text  # the held-out score, not the training frames' fit
+    # The quality verdict as a badge; a 6-iteration avatar is not good, and the card says why.
+    badge = d.execute_script(f"return document.querySelector('{card} .badge').textContent")
+    assert badge in ("fair", "poor"), badge
+    reasons = d.execute_script(f"return document.querySelector('{card} .reasons').textContent")
+    assert "frames it never trained on" in reasons, reasons
     thumb = f"const i = document.querySelector('{card} img'); return i && i.complete && i.naturalWidth"
     assert wait_for(lambda: d.execute_script(thumb), 60, "the avatar's thumbnail") > 0
 

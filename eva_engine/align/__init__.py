@@ -5,7 +5,7 @@
 
 Pieces: ``detect`` (MediaPipe Holistic -> the body models' keypoint layout), ``fit`` (staged
 L-BFGS on the robust objective), ``evaluate`` (MPJPE and exact targets for known clips),
-``preprocess`` (video -> dataset).
+``input_checks`` (the videos refused), ``preprocess`` (video -> dataset).
 """
 
 from eva_engine.align.detect import DetectorConfig, DetectorError, FrameDetection, HolisticDetector
@@ -20,6 +20,7 @@ from eva_engine.align.fit import (
     initial_estimate,
     reprojection_error,
 )
+from eva_engine.align.input_checks import InputChecks
 from eva_engine.align.preprocess import (
     Detections,
     PreprocessConfig,
@@ -40,6 +41,7 @@ __all__ = [
     "FitTargets",
     "FrameDetection",
     "HolisticDetector",
+    "InputChecks",
     "PreprocessConfig",
     "PreprocessError",
     "PreprocessReport",

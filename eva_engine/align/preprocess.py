@@ -8,8 +8,9 @@ their extras (hand depth, pose world landmarks), the fitted body parameters, and
 and intersected with the person mask, for the hands and face the detector found in that frame
 (``data.region_masks``).
 
-Frames where no person is found are dropped and counted; a video with no person in any frame is
-a :class:`PreprocessError`.
+Frames where no person is found are dropped and counted. A video an avatar cannot be made from
+(no person, no body, too few frames, a person too small, several people: ``align.input_checks``)
+is a :class:`PreprocessError` with the reason, raised before the fit.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from eva_engine.align.camera import GUESS_FOV_Y_DEG, guess_camera
 from eva_engine.align.clip import fit_clip
 from eva_engine.align.detect import DetectorConfig, FrameDetection, HolisticDetector
 from eva_engine.align.fit import FitConfig, FitTargets, reprojection_error
+from eva_engine.align.input_checks import InputChecks, others_found, person_height, refusal_reason
 from eva_engine.body import KEYPOINT_NAMES, BodyModel
 from eva_engine.progress import Progress, ProgressEvent
 
@@ -46,8 +48,7 @@ class PreprocessConfig:
     (``bench/results/detection.md``); the detections are then scaled to ``max_size``.
     fov_y_deg: the guessed camera's vertical field of view; test_every: every k-th kept frame
     goes to the ``test_pose`` split (0 = all frames train); fit: align the body model (else the
-    dataset carries only detections); min_mask: person-mask threshold below which a pixel is
-    background.
+    dataset carries only detections); checks: when the video is refused (``InputChecks``).
     """
 
     every: int = 1
@@ -59,6 +60,7 @@ class PreprocessConfig:
     fit: bool = True
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     fitting: FitConfig = field(default_factory=FitConfig)
+    checks: InputChecks = field(default_factory=InputChecks)
 
     def __post_init__(self) -> None:
         if self.detect_max_size is not None and self.detect_max_size < 1:
@@ -231,7 +233,25 @@ def preprocess_video(
     seconds["detect"] = time.perf_counter() - started
     keep = [i for i, f in enumerate(det.found) if f.get("pose", False)]
     if not keep:
-        raise PreprocessError(f"no person was found in any of the {len(clip)} frames of {video}")
+        raise PreprocessError(
+            f"no person was found in any of the {len(clip)} frames of {video}: the video must show one "
+            "person, large enough to see"
+        )
+    started, checks = time.perf_counter(), config.checks
+    others = None
+    if checks.others_samples:
+        rows = [
+            keep[k]
+            for k in np.unique(np.linspace(0, len(keep) - 1, checks.others_samples).round().astype(int))
+        ]
+        others = others_found(
+            [clip.frames[i] for i in rows], [det.masks[i] for i in rows], det.keypoints[rows]
+        )
+    heights = [person_height(det.masks[i], det.keypoints[i]) for i in keep]
+    reason = refusal_reason(checks, det.found, keep, heights, others)
+    if reason is not None:
+        raise PreprocessError(reason)
+    seconds["checks"] = time.perf_counter() - started
     rates = det.rates()
     det = det.select(keep)
     K, viewmat = guess_camera(w, h, config.fov_y_deg)

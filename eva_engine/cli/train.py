@@ -123,3 +123,8 @@ def train(
         console.print(f"held-out frames ({held.frames}, poses it never trained on): {shown}")
     elif quality:
         console.print("no held-out frames in this dataset: nothing to score the avatar on unseen poses")
+    if report_doc is not None and report_doc.verdict is not None:
+        colour = {"good": "green", "fair": "yellow", "poor": "red"}[report_doc.verdict]
+        console.print(f"quality: [{colour}]{report_doc.verdict}[/]")
+        for reason in report_doc.reasons:
+            console.print(f"  - {reason}")

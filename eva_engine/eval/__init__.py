@@ -11,7 +11,7 @@ from eva_engine.eval.evaluate import (
     evaluate_avatar,
     metrics_table,
 )
-from eva_engine.eval.quality import QualityReport, held_out_every, quality_report
+from eva_engine.eval.quality import QualityReport, VerdictRules, held_out_every, quality_report, verdict
 
 __all__ = [
     "METRICS",
@@ -20,9 +20,11 @@ __all__ = [
     "ImageMetrics",
     "PoseRefinement",
     "QualityReport",
+    "VerdictRules",
     "RegionMetrics",
     "evaluate_avatar",
     "held_out_every",
     "metrics_table",
     "quality_report",
+    "verdict",
 ]

@@ -6,14 +6,18 @@ in ``test_pose``; the job path always keeps some out), rendered with their fitte
 say what a user will see in new poses, unlike the fit on training frames (``metrics``). The
 detection summary comes from what preprocessing recorded in the dataset's ``meta.json``.
 
-No verdict yet: ``good`` / ``fair`` / ``poor`` needs thresholds calibrated against ground truth
-on the hard-input benchmark, which does not exist yet.
+The verdict (``good`` / ``fair`` / ``poor``, :func:`verdict`) reads the held-out LPIPS-VGG
+against thresholds calibrated on the hard-input benchmark (``bench/hard_inputs.py``, where each
+avatar is also scored against the truth; ``docs/quality.md``), and lowers ``good`` to ``fair``
+for what the pipeline saw that is known to cost quality (hands or face seldom found, small
+hands, a large fit error, many frames dropped). Each reason is a sentence for the user.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Literal
 
 import torch
 from pydantic import BaseModel, ConfigDict
@@ -60,6 +64,8 @@ class HeldOutScores(BaseModel):
     holes: float | None = None
     face_lpips_vgg: float | None = None
     hand_lpips_vgg: float | None = None
+    hand_px: float | None = None
+    """The hands' median box side in the held-out frames that show them (pixels)."""
 
 
 class DetectionSummary(BaseModel):
@@ -78,14 +84,84 @@ class DetectionSummary(BaseModel):
     person_height_share: float | None = None
 
 
+Verdict = Literal["good", "fair", "poor"]
+
+
 class QualityReport(BaseModel):
-    """``avatar.json``'s ``quality``: ``held_out`` (None: the dataset kept no frame out) and
-    ``detection`` (None: the dataset did not come from ``preprocess_video``)."""
+    """``avatar.json``'s ``quality``: the ``verdict`` with its ``reasons`` (None: nothing to judge
+    by, no held-out frame), ``held_out`` (None: the dataset kept no frame out) and ``detection``
+    (None: the dataset did not come from ``preprocess_video``)."""
 
     model_config = ConfigDict(extra="ignore")  # a newer writer's keys
 
+    verdict: Verdict | None = None
+    reasons: list[str] = []
     held_out: HeldOutScores | None = None
     detection: DetectionSummary | None = None
+
+
+@dataclass(frozen=True)
+class VerdictRules:
+    """Thresholds of :func:`verdict`. poor_lpips / fair_lpips: held-out LPIPS-VGG (0-1, full
+    image) above which an avatar is poor / at best fair (calibrated: ``docs/quality.md``); the
+    rest lower good to fair: a hand or the face found in fewer than ``min_found`` of the frames,
+    hands under ``min_hand_px``, the body's or hands' fit error over ``max_fit_px`` /
+    ``max_hand_fit_px``, more than ``max_dropped`` of the frames dropped."""
+
+    poor_lpips: float = 0.20
+    fair_lpips: float = 0.12
+    min_found: float = 0.5
+    min_hand_px: float = 20.0
+    max_fit_px: float = 15.0
+    max_hand_fit_px: float = 15.0
+    max_dropped: float = 0.2
+
+
+def verdict(
+    held_out: HeldOutScores | None, detection: DetectionSummary | None, rules: VerdictRules | None = None
+) -> tuple[Verdict | None, list[str]]:
+    """The verdict and its reasons (module docstring); (None, []) without held-out scores."""
+    rules = rules or VerdictRules()
+    if held_out is None or held_out.lpips_vgg is None:
+        return None, []
+    lpips = held_out.lpips_vgg
+    reasons: list[str] = []
+    if lpips > rules.poor_lpips:
+        level: Verdict = "poor"
+        reasons.append(
+            f"on frames it never trained on, the avatar's renders are far from the video "
+            f"(LPIPS-VGG {lpips:.3f}; poor above {rules.poor_lpips:.2f})"
+        )
+    elif lpips > rules.fair_lpips:
+        level = "fair"
+        reasons.append(
+            f"on frames it never trained on, the avatar's renders are off from the video "
+            f"(LPIPS-VGG {lpips:.3f}; good up to {rules.fair_lpips:.2f})"
+        )
+    else:
+        level = "good"
+    cautions = []
+    if detection is not None:
+        names = {"left_hand": "the left hand", "right_hand": "the right hand", "face": "the face"}
+        for key, name in names.items():
+            share = detection.found.get(key)
+            if share is not None and share < rules.min_found:
+                cautions.append(f"{name} was found in only {100 * share:.0f}% of the frames")
+        fit = detection.reprojection_px
+        if (fit.get("body") or 0.0) > rules.max_fit_px:
+            cautions.append(f"the body's fit is off by {fit['body']:.0f} px on average")
+        if (fit.get("hands") or 0.0) > rules.max_hand_fit_px:
+            cautions.append(f"the hands' fit is off by {fit['hands']:.0f} px on average")
+        decoded, dropped = detection.frames_decoded, detection.frames_dropped
+        if decoded and dropped is not None and dropped > rules.max_dropped * decoded:
+            cautions.append(f"no person was found in {dropped} of {decoded} frames")
+    if held_out.hand_px is not None and held_out.hand_px < rules.min_hand_px:
+        cautions.append(
+            f"the hands are under {rules.min_hand_px:.0f} px ({held_out.hand_px:.0f} px): little detail"
+        )
+    if cautions and level == "good":
+        level = "fair"
+    return level, reasons + cautions
 
 
 def held_out_scores(avatar, dataset, metrics: ImageMetrics | None = None) -> HeldOutScores | None:
@@ -109,6 +185,7 @@ def held_out_scores(avatar, dataset, metrics: ImageMetrics | None = None) -> Hel
         holes=_finite(full.holes),
         face_lpips_vgg=region.get("face"),
         hand_lpips_vgg=region.get("hand"),
+        hand_px=result.regions["hand"].box_px if "hand" in result.regions else None,
     )
 
 
@@ -139,7 +216,11 @@ def detection_summary(dataset) -> DetectionSummary | None:
     )
 
 
-def quality_report(avatar, dataset, metrics: ImageMetrics | None = None) -> QualityReport:
+def quality_report(
+    avatar, dataset, metrics: ImageMetrics | None = None, rules: VerdictRules | None = None
+) -> QualityReport:
     """The quality report of ``avatar`` trained on ``dataset`` (module docstring)."""
     held_out = held_out_scores(avatar, dataset, metrics)
-    return QualityReport(held_out=held_out, detection=detection_summary(dataset))
+    detection = detection_summary(dataset)
+    level, reasons = verdict(held_out, detection, rules)
+    return QualityReport(verdict=level, reasons=reasons, held_out=held_out, detection=detection)

@@ -192,6 +192,25 @@ function showAvatars() {
       <div class="facts">${gaussians}${psnr}</div></div>`;
     if (thumb) li.querySelector("img").src = thumb;
     li.querySelector(".name").textContent = a.source_video || a.avatar_id.slice(0, 8);
+    const verdict = a.quality && a.quality.verdict;
+    if (verdict) {
+      // The verdict as a badge; its reasons in words under it (and on hover).
+      const badge = document.createElement("span");
+      badge.className = `badge quality-${verdict}`;
+      badge.textContent = verdict;
+      badge.title = (a.quality.reasons || []).join("\n") || "no concerns";
+      li.querySelector(".name").append(" ", badge);
+      if (verdict !== "good" && a.quality.reasons && a.quality.reasons.length) {
+        const why = document.createElement("ul");
+        why.className = "reasons";
+        for (const r of a.quality.reasons) {
+          const item = document.createElement("li");
+          item.textContent = r;
+          why.appendChild(item);
+        }
+        li.lastElementChild.appendChild(why);
+      }
+    }
     if (a.status === "ready") {
       li.addEventListener("click", () => selectAvatar(a.avatar_id));
       if (!thumb) loadThumbnail(a);

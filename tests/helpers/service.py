@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 EVA = str(Path(sys.executable).parent / "eva")
-SIGNER_FRAMES = 6
-# The pipeline at its smallest: 6 frames of 256 px (the job keeps 2 out to score the avatar, 4
+SIGNER_FRAMES = 8
+# The pipeline at its smallest: 8 frames of 256 px (the job keeps 4 out to score the avatar, 4
 # train), a few tiny-preset iterations at 1/4 scale.
 FAST_OPTIONS = {
     "preset": "tiny",
@@ -66,7 +66,7 @@ def other_signer_video(anny_model, tmp_path_factory) -> Path:
     return video
 
 
-def no_person_video(path: Path, frames: int = 3) -> Path:
+def no_person_video(path: Path, frames: int = 8) -> Path:
     """A valid video of a grey gradient: decodes fine, holds nobody."""
     from eva_engine.data import write_video
 
