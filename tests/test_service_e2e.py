@@ -107,7 +107,7 @@ def test_avatar_metadata(live, ready):
     info = live.client.get(f"/avatars/{ids['avatar_id']}").json()
     assert info["status"] == "ready" and info["job_id"] == ids["job_id"]
     assert info["num_gaussians"] > 100 and info["iterations"] == 6 and info["train_seconds"] > 0
-    assert info["num_frames"] == svc.SIGNER_FRAMES and info["frame_size"] == [256, 256]  # the held-out ones too
+    assert info["num_frames"] == svc.SIGNER_FRAMES and info["frame_size"] == [256, 256]  # held-out ones too
     assert math.isfinite(info["metrics"]["psnr"]) and 0 < info["metrics"]["ssim"] <= 1
     # Its quality report: 4 of the 8 frames kept out of training and scored, what detection saw,
     # and the verdict: 6 iterations make a poor avatar, and the report says why in words.

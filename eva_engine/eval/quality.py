@@ -103,13 +103,14 @@ class QualityReport(BaseModel):
 @dataclass(frozen=True)
 class VerdictRules:
     """Thresholds of :func:`verdict`. poor_lpips / fair_lpips: held-out LPIPS-VGG (0-1, full
-    image) above which an avatar is poor / at best fair (calibrated: ``docs/quality.md``); the
+    image) above which an avatar is poor / at best fair (set on ``bench/hard_inputs.py``:
+    ``docs/quality.md``); the
     rest lower good to fair: a hand or the face found in fewer than ``min_found`` of the frames,
     hands under ``min_hand_px``, the body's or hands' fit error over ``max_fit_px`` /
     ``max_hand_fit_px``, more than ``max_dropped`` of the frames dropped."""
 
-    poor_lpips: float = 0.20
-    fair_lpips: float = 0.12
+    poor_lpips: float = 0.155
+    fair_lpips: float = 0.10
     min_found: float = 0.5
     min_hand_px: float = 20.0
     max_fit_px: float = 15.0

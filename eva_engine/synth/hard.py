@@ -33,8 +33,9 @@ DARK = (0.07, 0.07, 0.08)
 
 @dataclasses.dataclass(frozen=True)
 class HardCase:
-    """One way of filming the signer. camera_target / distance / fov_y_deg: the camera (world,
-    metres; None: the ``wild`` preset's); speed: motion played this many times faster;
+    """One way of filming the signer. camera_target / distance / fov_y_deg: the camera (metres;
+    the target's height is from the subject's nose in the first frame, as subjects differ in
+    height by up to 0.4 m; None: the ``wild`` preset's); speed: motion played this many times faster;
     shutter_frames: the exposure as a share of the frame interval (0: sharp), rendered as the
     mean of ``blur_samples`` instants; dark: near-black clothes, hair and background;
     second_person: another person walks behind, across the frame, during the middle of the clip
@@ -61,14 +62,14 @@ HARD_CASES: dict[str, HardCase] = {
         HardCase(
             "closeup",
             "chest up, 0.75 m from a wide lens: the hands come within 0.4 m of the camera",
-            camera_target=(0.0, 0.52, 0.0),
+            camera_target=(0.0, -0.05, 0.0),
             distance=0.75,
             fov_y_deg=62.0,
         ),
         HardCase(
             "cropped",
-            "the body partly out of frame: the top of the head and one arm cut off",
-            camera_target=(0.28, 0.38, 0.0),
+            "the body partly out of frame: one arm and the legs cut off",
+            camera_target=(0.28, -0.19, 0.0),
             distance=1.5,
             fov_y_deg=30.0,
         ),
@@ -191,8 +192,10 @@ def render_hard_video(
         if case.blur_samples > 1
         else np.zeros(1)
     )
-    instants = (times[:, None] + offsets[None, :]).clip(0.0, MOTION_SECONDS / case.speed) * case.speed
-    motion_cfg = MotionConfig(duration=MOTION_SECONDS, body_turn=wild.body_turn, face_actions=FACE_ACTIONS)
+    # A faster clip plays a longer motion (speed x 6 s) in the same 6 s.
+    duration = MOTION_SECONDS * case.speed
+    instants = ((times[:, None] + offsets[None, :]) * case.speed).clip(0.0, duration)
+    motion_cfg = MotionConfig(duration=duration, body_turn=wild.body_turn, face_actions=FACE_ACTIONS)
     params = sign_motion(model, shape, instants.reshape(-1), seed, motion_cfg)
     centre = case.blur_samples // 2 if case.blur_samples > 1 else 0
     other = None
@@ -228,8 +231,14 @@ def render_hard_video(
         with torch.no_grad():
             kp = model.keypoints(model(params)).reshape(frames, len(offsets), -1, 3)[:, centre]
         targets = kp[:, hand].mean(dim=1).numpy()
+    elif case.camera_target is not None:  # relative to the subject's nose: subjects differ in height
+        nose = model.keypoint_names.index("nose")
+        with torch.no_grad():
+            nose_y = float(model.keypoints(model(params[:1]))[0, nose, 1])
+        x, dy, z = case.camera_target
+        targets = np.tile(np.array([x, nose_y + dy, z]), (frames, 1))
     else:
-        targets = np.tile(np.asarray(case.camera_target or wild.camera_target), (frames, 1))
+        targets = np.tile(np.asarray(wild.camera_target), (frames, 1))
     bg = torch.tensor(background, dtype=torch.float32)
     video_frames = []
     with MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer:
