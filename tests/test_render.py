@@ -451,6 +451,19 @@ def test_extreme_scales(scale, dtype):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_an_exact_zero_scale_is_finite(dtype):
+    """A Gaussian of zero extent (all three scales exactly 0, a singular covariance) renders as
+    the 2D blur alone, with finite values and gradients."""
+    scene = random_scene(5, 20, 16, seed=4)
+    scene["scales"][1] = 0.0
+    scene = cast(scene, dtype)
+    out, grads = render_with_grads(scene)
+    assert_finite(out, grads)
+    if dtype == torch.float64:
+        _check_against_reference(scene, atol=1e-9)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_anisotropy_1e6(dtype):
     scene = random_scene(4, 30, 20, seed=8)
     scene["scales"][0] = torch.tensor([0.5, 5e-7, 5e-7])

@@ -158,6 +158,21 @@ def test_default_strategy_densifies_and_prunes():
     )
 
 
+def test_pruning_never_empties_the_avatar():
+    """When every Gaussian meets a prune rule (all transparent; all never seen at the end), the
+    strategy keeps them all rather than leave an avatar with nothing to render."""
+    gs = make_gaussians()
+    with torch.no_grad():
+        gs.splats["opacities"][:] = -10.0
+    opts = optimizers_after_a_step(gs)
+    strategy = DefaultStrategy(refine_start_iter=2, refine_stop_iter=10, refine_every=2)
+    state = strategy.initialize_state()
+    assert strategy.prune(gs, opts, state) == 0 and len(gs) == N
+    state["seen"] = torch.zeros(N)
+    finished = DefaultStrategy(prune_never_seen=True)
+    assert finished.finalize(gs, opts, state) == {} and len(gs) == N
+
+
 def test_check_sanity_rejects_foreign_optimizers():
     gs = make_gaussians()
     opts = {"means": torch.optim.Adam([torch.nn.Parameter(torch.zeros(3))])}
