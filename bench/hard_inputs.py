@@ -1,7 +1,9 @@
 """Hard inputs with ground truth (issue 41): the synthetic signer filmed badly
 (``eva_engine.synth.hard``: close-up, cropped, motion blur, dark, a second person walking past,
 and the clean reference), each clip put through the job path at the job defaults
-(``JobOptions()``: preprocess with held-out frames, train, the quality report), then scored
+(``JobOptions()``: preprocess with held-out frames, train, the quality report; the training
+without the service's bound on Gaussian size, ``JobsConfig.max_gaussian_std_m``, which these
+runs led to: ``--budgets 600 --max-scale-cm 10`` measures it), then scored
 against the truth: the held-out frames as they would look filmed well (sharp, the subject
 alone). Also per case: the largest Gaussian's standard deviation, the time taken, and a contact
 sheet of held-out frames (input | truth | render). The refusal cases (a hand alone, two people,
@@ -187,7 +189,9 @@ def run_budgets(args) -> None:
         if not (base / "result.json").is_file():
             continue
         for iterations in args.budgets:
-            out = args.work / f"budget{iterations}_s{seed}"
+            out = args.work / run_name(
+                {"seed": seed, "iterations": iterations, "max_scale_cm": args.max_scale_cm}
+            )
             out.mkdir(parents=True, exist_ok=True)
             try:
                 (out / "claimed").open("x").close()
@@ -198,12 +202,18 @@ def run_budgets(args) -> None:
             ds = load_dataset(base / "dataset")
             start = time.perf_counter()
             config = preset(JobOptions().preset, iterations=iterations)
+            if args.max_scale_cm:  # every part's Gaussians bounded (AvatarConfig.max_scale)
+                bound = (args.max_scale_cm / 100,) * 3
+                config = dataclasses.replace(
+                    config, avatar=dataclasses.replace(config.avatar, max_scale=bound)
+                )
             trained = train_avatar(ds, config, body=model)
             seconds = {"train": time.perf_counter() - start}
             result = {
                 "case": "clean",
                 "seed": seed,
                 "iterations": iterations,
+                "max_scale_cm": args.max_scale_cm,
                 "refusal_case": False,
                 "refused": None,
             }
@@ -288,6 +298,14 @@ def calibrate(runs: list[dict]) -> dict:
     }
 
 
+def run_name(r: dict) -> str:
+    """The folder of a run: ``<case>_s<seed>``, ``budget<N>[_cap<cm>]_s<seed>``."""
+    if "iterations" not in r:
+        return f"{r['case']}_s{r['seed']}"
+    cap = f"_cap{r['max_scale_cm']:g}" if r.get("max_scale_cm") else ""
+    return f"budget{r['iterations']}{cap}_s{r['seed']}"
+
+
 def report(args) -> None:
     from eva_engine.eval import VerdictRules
     from eva_engine.synth.hard import HARD_CASES, REFUSAL_CASES
@@ -313,7 +331,7 @@ def report(args) -> None:
     sheets = args.out / "hard_inputs"
     sheets.mkdir(exist_ok=True)
     for r in results:
-        name = f"budget{r['iterations']}_s{r['seed']}" if "iterations" in r else f"{r['case']}_s{r['seed']}"
+        name = run_name(r)
         src = args.work / name / "sheet.jpg"
         if src.is_file():
             shutil.copy(src, sheets / f"{name}.jpg")
@@ -346,8 +364,13 @@ def report(args) -> None:
     groups = {
         case: [r for r in trained if r["case"] == case and "iterations" not in r] for case in HARD_CASES
     }
-    for n in sorted({r["iterations"] for r in trained if "iterations" in r}):
-        groups[f"clean, {n} iterations"] = [r for r in trained if r.get("iterations") == n]
+    for n, cap in sorted(
+        {(r["iterations"], r.get("max_scale_cm") or 0) for r in trained if "iterations" in r}
+    ):
+        label = f"clean, {n} iterations" + (f", σ ≤ {cap:g} cm" if cap else "")
+        groups[label] = [
+            r for r in trained if r.get("iterations") == n and (r.get("max_scale_cm") or 0) == cap
+        ]
     for case, rs in groups.items():
         if not rs:
             continue
@@ -369,6 +392,19 @@ def report(args) -> None:
             f"{cal['truth_poor']} - {cal['median_gap']:.3f} = {cal['from_gap']:.3f}; on the grid the best "
             f"agreement ({100 * cal['best_agreement']:.0f}%) is at {', '.join(map(str, cal['best']))}; "
             f"`VerdictRules.poor_lpips` is {rules.poor_lpips}.",
+        ]
+    capped = [r for r in trained if r.get("max_scale_cm") and r.get("iterations") == 600]
+    clean = {r["seed"]: r for r in trained if r["case"] == "clean" and "iterations" not in r}
+    pairs = [(r, clean[r["seed"]]) for r in capped if r["seed"] in clean]
+    if pairs:
+        diff = [1000 * (a["truth"]["lpips_vgg"] - b["truth"]["lpips_vgg"]) for a, b in pairs]
+        lines += [
+            "",
+            f"Bounding every Gaussian's σ to {pairs[0][0]['max_scale_cm']:g} cm (`AvatarConfig.max_scale`), "
+            f"the clean case at the preset's 600 iterations, paired by seed ({len(pairs)} seeds): truth "
+            f"LPIPS-VGG ×1000 changes by {mean_std(diff)} (capped minus uncapped); the largest σ is "
+            f"{mean_std([a['max_std_m'] for a, _ in pairs], 100, 2)} cm against "
+            f"{mean_std([b['max_std_m'] for _, b in pairs], 100, 2)} cm.",
         ]
     lines += ["", "## Refusal cases", "", "| case | outcome |", "|---|---|"]
     for case in REFUSAL_CASES:
@@ -394,6 +430,9 @@ def main() -> None:
     ap.add_argument("--report", action="store_true", help="gather the runs' results")
     ap.add_argument(
         "--reclaim", action="store_true", help="run claimed cases that have no result (their process died)"
+    )
+    ap.add_argument(
+        "--max-scale-cm", type=float, default=None, help="with --budgets: bound every Gaussian's std (cm)"
     )
     ap.add_argument("--budgets", type=int, nargs="*", help="train the clean datasets for these iterations")
     args = ap.parse_args()

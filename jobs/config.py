@@ -28,7 +28,9 @@ class JobsConfig(BaseModel):
     (``RLIMIT_AS``; None: none); job_timeout_s, its wall time; max_frame_pixels, decoded frames
     x pixels per frame (checked at upload and again before decoding); max_video_side, largest
     width or height of an input video, read from its headers; max_gaussians, cap on the
-    avatar's Gaussians during training. Housekeeping: requeue_after_s, a queued job with no
+    avatar's Gaussians during training; max_gaussian_std_m, bound on every Gaussian's standard
+    deviation in metres (``AvatarConfig.max_scale``, None: unbounded; at 10 cm no difference in
+    held-out quality, ``bench/results/hard_inputs.md``). Housekeeping: requeue_after_s, a queued job with no
     message in the queue for this long is sent again; orphan_ttl_s, age after which work folders
     without a live job are removed; keep_records_days, failed / cancelled / deleted jobs' records
     are kept this long.
@@ -48,6 +50,7 @@ class JobsConfig(BaseModel):
     max_frame_pixels: int = Field(150_000_000, ge=64 * 64)
     max_video_side: int = Field(4096, ge=64, le=16384)
     max_gaussians: int = Field(300_000, ge=1000)
+    max_gaussian_std_m: float | None = Field(0.10, gt=0)
     requeue_after_s: float = Field(300.0, gt=0)
     orphan_ttl_s: float = Field(6 * 3600.0, gt=0)
     keep_records_days: float = Field(30.0, gt=0)

@@ -67,3 +67,28 @@ class JobOptions(BaseModel):
             test_every=held_out_every(frames),
             checks=InputChecks(min_frames=MIN_FRAMES),
         )
+
+    def train_config(self, max_gaussians: int, max_std_m: float | None = None):
+        """The ``TrainConfig`` of this job: its preset with the overrides and method it asks for,
+        the service's cap on Gaussians (``max_gaussians``, whatever the preset or method: memory
+        and render time) and its bound on their size (``max_std_m`` metres, every part: a
+        Gaussian larger than that is a smear from any other view; None: the preset's)."""
+        import dataclasses
+
+        from eva_engine.train import preset, with_method
+
+        overrides: dict = {}
+        if self.iterations is not None:
+            overrides["iterations"] = self.iterations
+        if self.image_scale is not None:
+            overrides["image_scale"] = self.image_scale
+        config = preset(self.preset, **overrides)
+        if self.method is not None:
+            config = with_method(config, self.method)
+        cap = min(config.strategy.max_gaussians or max_gaussians, max_gaussians)
+        config = dataclasses.replace(config, strategy=dataclasses.replace(config.strategy, max_gaussians=cap))
+        if max_std_m is not None:
+            own = config.avatar.max_scale or (max_std_m,) * 3
+            bound = tuple(min(b, max_std_m) for b in own)
+            config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, max_scale=bound))
+        return config

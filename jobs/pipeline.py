@@ -201,26 +201,15 @@ class JobRun:
     def _train(
         self, job: JobRecord, dataset_dir: Path, out: Path, options: JobOptions, report: Reporter
     ) -> None:
-        import dataclasses
 
         from eva_engine.avatar import save_avatar
         from eva_engine.data import load_dataset
         from eva_engine.eval import ImageMetrics, quality_report
-        from eva_engine.train import preset, train_avatar, with_method
+        from eva_engine.train import train_avatar
 
         ds = load_dataset(dataset_dir)
         body = self.body_model(ds.meta.body_model or options.body_model)
-        overrides: dict = {}
-        if options.iterations is not None:
-            overrides["iterations"] = options.iterations
-        if options.image_scale is not None:
-            overrides["image_scale"] = options.image_scale
-        config = preset(options.preset, **overrides)
-        if options.method is not None:
-            config = with_method(config, options.method)
-        # The service's cap on Gaussians, whatever the preset or method (memory and render time).
-        cap = min(config.strategy.max_gaussians or self.config.max_gaussians, self.config.max_gaussians)
-        config = dataclasses.replace(config, strategy=dataclasses.replace(config.strategy, max_gaussians=cap))
+        config = options.train_config(self.config.max_gaussians, self.config.max_gaussian_std_m)
         report(ProgressEvent("train", message="setting up training"), force=True)
 
         def progress(event: ProgressEvent) -> None:  # the last 5%: the fit on training frames

@@ -113,6 +113,19 @@ def test_job_methods_are_the_engines():
     assert JobOptions(method="eva").method == "eva"
 
 
+def test_a_jobs_training_is_its_preset_under_the_services_caps():
+    """The job's TrainConfig: the preset with the job's overrides and method, at most the
+    service's Gaussians, and every Gaussian's standard deviation under its bound; no bound leaves
+    the preset's."""
+    from eva_engine.train import preset
+
+    options = JobOptions(preset="tiny", iterations=7, method="eva")
+    config = options.train_config(max_gaussians=5000, max_std_m=0.1)
+    assert config.iterations == 7 and config.strategy.max_gaussians <= 5000
+    assert config.avatar.max_scale == (0.1, 0.1, 0.1)
+    assert options.train_config(5000).avatar.max_scale == preset("tiny").avatar.max_scale
+
+
 def test_a_job_keeps_frames_out_for_its_quality_report():
     """The job's preprocessing: its own bounds and fit, and about one frame in ten held out of the
     frames it will use (the video's, capped at max_frames)."""
