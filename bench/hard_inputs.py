@@ -345,7 +345,8 @@ def report(args) -> None:
         f"- machine: {'; '.join(machines)}",
         f"- clips: `eva_engine.synth.hard`, {FRAMES} frames of {SIZE} px (6 s) per case and seed; "
         "the job path at the job defaults (`JobOptions()`: fast preset, every 10th frame held out, "
-        "at least 4)",
+        "at least 4), training without the jobs' 10 cm bound on Gaussian size (these runs led to it; "
+        "the σ ≤ 10 cm row measures it)",
         f"- verdict rules: poor above LPIPS-VGG {rules.poor_lpips}, fair above {rules.fair_lpips} "
         "(held out, full image; `eva_engine.eval.quality.VerdictRules`)",
         "",
