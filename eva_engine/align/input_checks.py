@@ -46,13 +46,15 @@ def body_found(found: dict[str, bool]) -> bool:
     return bool(found.get("pose")) and any(found.get(k) for k in ("face", "left_hand", "right_hand"))
 
 
-def person_height(mask: np.ndarray | None, keypoints: np.ndarray) -> float | None:
-    """The person's height in one frame (pixels): the rows the mask covers (> 0.5), else the span
-    of the visible keypoints ([K, 3] with confidence); None when neither shows anyone."""
+def person_height(mask: np.ndarray | None, keypoints: np.ndarray | None = None) -> float | None:
+    """The person's height in one frame (pixels): the rows the mask [H, W] covers (> 0.5), else
+    the span of the visible keypoints ([K, 3] with confidence); None when neither shows anyone."""
     if mask is not None:
         rows = np.flatnonzero((mask > 0.5).any(axis=1))
         if rows.size:
             return float(rows[-1] - rows[0] + 1)
+    if keypoints is None:
+        return None
     seen = keypoints[keypoints[:, 2] > 0.5]
     return float(np.ptp(seen[:, 1])) if len(seen) >= 2 else None
 

@@ -198,12 +198,13 @@ def detection_summary(dataset) -> DetectionSummary | None:
         return None
     frames = extra.get("frames", {})
     fitted = extra.get("reprojection_px", {}).get("fitted", {})
+    from eva_engine.align.input_checks import person_height
+
     heights = []
     for i in range(len(dataset)):
         mask = dataset.mask(i) if hasattr(dataset, "mask") else dataset[i].mask  # [H, W]
-        rows = torch.nonzero(mask.amax(dim=1) > 0.5)
-        if rows.numel():
-            heights.append(float(rows.max() - rows.min() + 1))
+        if (h := person_height(mask.numpy())) is not None:
+            heights.append(h)
     height = float(torch.tensor(heights).median()) if heights else None
     image_h = dataset.meta.image_size[0]
     return DetectionSummary(

@@ -220,7 +220,9 @@ def render_hard_video(
     K = intrinsics(size, size, case.fov_y_deg or wild.fov_y_deg)
     distance = case.distance or wild.distance
     with torch.no_grad():
-        posed = model(params).vertices.reshape(frames, len(offsets), -1, 3)
+        body = model(params)
+        posed = body.vertices.reshape(frames, len(offsets), -1, 3)
+        keypoints = model.keypoints(body).reshape(frames, len(offsets), -1, 3)[:, centre]  # [F, K, 3]
         other_verts = model(other[0]).vertices if other is not None else None
     if case.track_hand:
         hand = [
@@ -228,13 +230,9 @@ def render_hard_video(
             for i, n in enumerate(model.keypoint_names)
             if n in ("right_hand_wrist", "right_hand_middle_finger_mcp", "right_hand_index_finger_pip")
         ]
-        with torch.no_grad():
-            kp = model.keypoints(model(params)).reshape(frames, len(offsets), -1, 3)[:, centre]
-        targets = kp[:, hand].mean(dim=1).numpy()
+        targets = keypoints[:, hand].mean(dim=1).numpy()
     elif case.camera_target is not None:  # relative to the subject's nose: subjects differ in height
-        nose = model.keypoint_names.index("nose")
-        with torch.no_grad():
-            nose_y = float(model.keypoints(model(params[:1]))[0, nose, 1])
+        nose_y = float(keypoints[0, model.keypoint_names.index("nose"), 1])
         x, dy, z = case.camera_target
         targets = np.tile(np.array([x, nose_y + dy, z]), (frames, 1))
     else:

@@ -352,10 +352,10 @@ def train_avatar(
         if config.regularizers.active:
             total = total + regularization(avatar, config.regularizers, posed)
         t = tick("losses", t)
-        loss = float(terms["total"].detach())
-        if not math.isfinite(float(total.detach())):  # non-finite whenever the loss terms are
+        loss, step_total = float(terms["total"].detach()), float(total.detach())
+        if not math.isfinite(step_total):  # non-finite whenever the loss terms are
             # Before backward: the avatar keeps the last finite step's parameters.
-            raise TrainingError(f"the loss became {float(total)} at iteration {step}; training stopped")
+            raise TrainingError(f"the loss became {step_total} at iteration {step}; training stopped")
         total.backward()
         t = tick("backward", t)
         for opt in (*optimizers.values(), *extra, *([correction_opt] if correcting else [])):
