@@ -90,6 +90,12 @@ def ready_avatar(
     job: JobRecord = Depends(avatar_record), ctx: ServiceContext = Depends(context)
 ) -> JobRecord:
     """409 unless the avatar is finished and on disk."""
+    return check_ready(job, ctx)
+
+
+def check_ready(job: JobRecord, ctx: ServiceContext) -> JobRecord:
+    """``ready_avatar`` called from a route, after FastAPI has validated its body (a dependency's
+    409 would come before the body's 422)."""
     if job.state != "succeeded":
         reason = {
             "queued": "its job is queued",

@@ -16,7 +16,7 @@ import time
 
 import pytest
 from helpers import service as svc
-from helpers.service import FAST_OPTIONS, gradient_video, wait_for
+from helpers.service import FAST_OPTIONS, gradient_video
 
 from eva_engine.avatar import read_avatar_meta
 from eva_engine.progress import ProgressEvent
@@ -152,17 +152,31 @@ def test_two_attempts_racing_one_job_end_with_one_result(queue, signer_video, an
     a_job = store.claim(job_id, "elsewhere:1:10:100:a")
     a = JobRun(queue.config, store, storage, a_job, a_job.worker)
     a.add_body_model(anny_model)
+    # A is parked inside its preprocess stage (where it asks for the body model) while recovery
+    # hands the job to B: waiting on events, not polling for a stage that may last 0.2 s.
+    a_parked, a_resume = threading.Event(), threading.Event()
+    a_model = a.body_model
+
+    def parked_body_model(name: str):
+        a_parked.set()
+        assert a_resume.wait(120), "A was never resumed"
+        return a_model(name)
+
+    a.body_model = parked_body_model
     outcome: dict = {}
     runner_a = threading.Thread(target=lambda: outcome.__setitem__("a", a.execute()))
     runner_a.start()
-    wait_for(lambda: store.get(job_id).stage == "preprocess", 120, "A to start")
+    assert a_parked.wait(120), "A never reached its preprocess stage"
+    assert store.get(job_id).stage == "preprocess"
     store.update(job_id, heartbeat_at=time.time() - 60)
     assert queue.recover().requeued == [job_id]
     b_job = store.claim(job_id, local_id(os.getpid(), token="b"))
+    a_resume.set()  # A runs on: its next report finds the job gone and stops without writing
+    runner_a.join(300)
+    assert not runner_a.is_alive()
     b = JobRun(queue.config, store, storage, b_job, b_job.worker)
     b.add_body_model(anny_model)
     outcome["b"] = b.execute()
-    runner_a.join(300)
     assert outcome == {"a": None, "b": "succeeded"}, outcome
     final = store.get(job_id)
     assert final.state == "succeeded" and final.worker == b_job.worker and final.attempts == 2

@@ -7,11 +7,10 @@ import os
 import shutil
 import socket
 import subprocess
-import threading
 import time
 
 import pytest
-from helpers.service import no_person_video, wait_for
+from helpers.service import no_person_video
 
 from jobs import InvalidIdError, JobOptions, JobQueue, JobsConfig, JobStore, Storage
 
@@ -89,15 +88,22 @@ def test_a_video_without_a_person_fails_cleanly(queue, tmp_path):
     assert not queue.storage.work_dir(job_id).exists() and not queue.storage.avatar_exists(job.avatar_id)
 
 
-def test_cancel_a_running_job(queue, tmp_path):
+def test_cancel_a_running_job(queue, tmp_path, monkeypatch):
     video = no_person_video(tmp_path / "long.mp4", frames=60)
     job_id = submit(queue, video, preset="tiny")
-    runner = threading.Thread(target=queue.run_pending)
-    runner.start()
-    wait_for(lambda: queue.store.get(job_id).state == "running", 60, "the job to start")
-    job = queue.cancel(queue.store.get(job_id))
-    assert job.cancel_requested
-    runner.join(60)
+    claim, asked = queue.store.claim, []
+
+    def claim_then_cancel(job_id: str, worker: str):
+        # The cancel comes the moment the worker owns the job (before its process starts), not
+        # after polling for a "running" state that a fast job may leave within one poll.
+        job = claim(job_id, worker)
+        if job is not None:
+            asked.append(queue.cancel(job).cancel_requested)
+        return job
+
+    monkeypatch.setattr(queue.store, "claim", claim_then_cancel)
+    queue.run_pending()
+    assert asked == [True]
     job = queue.store.get(job_id)
     assert job.state == "cancelled" and job.error is None
     assert not queue.storage.work_dir(job_id).exists()

@@ -19,6 +19,7 @@ from service.deps import (
     ServiceContext,
     avatar_record,
     check_job_quota,
+    check_ready,
     context,
     ready_avatar,
     render_admission,
@@ -170,9 +171,11 @@ def delete_avatar(
 )
 async def render_avatar(
     req: RenderRequest | None = None,
-    job: JobRecord = Depends(ready_avatar),
+    job: JobRecord = Depends(avatar_record),
     ctx: ServiceContext = Depends(context),
 ) -> Response:
+    # Here, not as a dependency: a malformed body is a 422 whatever the avatar's state.
+    await run_in_threadpool(check_ready, job, ctx)
     req = req or RenderRequest()
     folder = ctx.queue.storage.avatar_dir(job.avatar_id)
     limits = ctx.settings.max_render_side, ctx.settings.max_render_pixels
