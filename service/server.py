@@ -6,6 +6,7 @@ import gc
 import sys
 
 from service.app import create_app
+from service.connections import guarded_protocol
 from service.settings import ServiceSettings
 
 
@@ -25,8 +26,11 @@ def serve(settings: ServiceSettings, log_level: str = "info") -> None:
         host=settings.host,
         port=settings.port,
         log_level=log_level,
-        # Behind the guard's 503s (which say Retry-After), uvicorn's own cap on connections.
-        limit_concurrency=2 * settings.max_requests,
+        # No cap on connections in uvicorn: it would answer 503 to every request, /healthz too,
+        # while idle sockets hold it. Waiting connections are bounded by the protocol instead,
+        # requests in flight by the guard (503 with Retry-After).
+        http=guarded_protocol(settings.connections),
+        limit_concurrency=None,
         timeout_keep_alive=5,
         server_header=False,
     )

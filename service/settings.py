@@ -8,6 +8,7 @@ import os
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from jobs.config import JobsConfig
+from service.connections import ConnectionLimits
 
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1", "[::1]")
 
@@ -31,8 +32,9 @@ class ServiceSettings(BaseModel):
     upload (a video for an avatar, a driving video or poses for an animation); max_json_kb, every
     other body; max_uploads, uploads of either kind at once; body_timeout_s, longest
     pause while a body streams in (a slow sender is cut off with 408); max_requests, requests in
-    flight (connections: ``max_requests`` x 2, uvicorn's own limit behind it). Past a limit of
-    concurrency the answer is 503 with ``Retry-After``.
+    flight (past it, the answer is 503 with ``Retry-After``; ``/healthz`` always passes);
+    connections, the connections that have not sent a request's headers (``ConnectionLimits``:
+    closed after a timeout, the oldest first past a cap).
 
     Videos: max_video_seconds; probe_timeout_s / probe_memory_mb, the child process that reads an
     upload's headers; max_poses_mb, a JSON pose sequence uploaded for an animation (parsed in the
@@ -55,6 +57,7 @@ class ServiceSettings(BaseModel):
     max_uploads: int = Field(2, ge=1)
     body_timeout_s: float = Field(30.0, gt=0)
     max_requests: int = Field(64, ge=1)
+    connections: ConnectionLimits = ConnectionLimits()
     max_video_seconds: float = Field(600.0, gt=0)
     probe_timeout_s: float = Field(30.0, gt=0)
     probe_memory_mb: int = Field(1024, ge=128)
