@@ -5,7 +5,8 @@ Layout under ``data_dir`` (a shared folder when workers run on several machines)
 - ``avatars/<avatar_id>/``: finished avatars (avatar directories, ``eva_engine.avatar.io``);
 - ``animations/<animation_id>/``: finished animations (``animation.mp4`` + ``animation.json``);
 - ``jobs/jobs.db``: the job records (SQLite); ``jobs/queue.db``: huey's SQLite queue (default mode);
-- ``jobs/work/<job_id>/``: a job's upload and intermediate results, removed when it ends.
+- ``jobs/work/<job_id>/``: a job's upload and intermediate results, removed when it ends;
+- ``quarantine/``: avatars and animations found without a job record (never removed by the service).
 """
 
 from __future__ import annotations
@@ -94,6 +95,11 @@ class JobsConfig(BaseModel):
     @property
     def animations_dir(self) -> Path:
         return self.data_dir / "animations"
+
+    @property
+    def quarantine_dir(self) -> Path:
+        """Avatars and animations the sweeper found without a job record (``jobs.sweep``)."""
+        return self.data_dir / "quarantine"
 
     @property
     def jobs_dir(self) -> Path:

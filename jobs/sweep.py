@@ -5,8 +5,11 @@
   no record (the API died during an upload), after ``orphan_ttl_s``;
 - ``avatars/.deleted-*`` and ``animations/.deleted-*`` (a deletion that stopped between its
   rename and its removal);
-- ``avatars/<id>/`` and ``animations/<id>/`` whose job failed, was cancelled or has no record,
-  after ``orphan_ttl_s``;
+- ``avatars/<id>/`` and ``animations/<id>/`` whose job failed or was cancelled, or whose record
+  says they were deleted, after ``orphan_ttl_s``. One with *no* record is not removed but moved to
+  ``quarantine/<avatars|animations>/<id>/``, where nothing removes it: a restore from a backup,
+  a fresh job store or a wrong data dir must not cost a finished avatar (``docs/deployment.md``
+  says how to put one back);
 - the records of failed and cancelled jobs, and of deleted avatars and animations,
   ``keep_records_days`` after they ended.
 
@@ -36,6 +39,7 @@ class Sweep:
 
     folders: list[Path] = field(default_factory=list)
     records: list[str] = field(default_factory=list)
+    quarantined: list[Path] = field(default_factory=list)  # where each went
 
 
 def _age(path: Path, now: float) -> float:
@@ -57,6 +61,15 @@ def sweep(config: JobsConfig, store: JobStore, storage: Storage, now: float | No
         done.folders.append(path)
         logger.info("swept %s (%s)", path, why)
 
+    def quarantine(path: Path, into: Path) -> None:
+        into.mkdir(parents=True, exist_ok=True)
+        target = into / path.name
+        if target.exists():  # quarantined before, and the same id came back: keep both
+            target = into / f"{path.name}.{int(now)}"
+        path.rename(target)
+        done.quarantined.append(target)
+        logger.warning("%s has no job record: moved to %s (not deleted)", path, target)
+
     for path in sorted(config.work_dir.iterdir()) if config.work_dir.is_dir() else []:
         job = store.get(path.name) if is_valid_id(path.name) else None
         age = _age(path, now)
@@ -71,12 +84,19 @@ def sweep(config: JobsConfig, store: JobStore, storage: Storage, now: float | No
                 remove(path, f"a deleted {kind}'s leftovers")
             elif is_valid_id(path.name) and age > config.orphan_ttl_s:
                 job = store.by_avatar(path.name, with_deleted=True, kind=kind)
-                if job is None or job.state in ("failed", "cancelled") or job.avatar_deleted:
-                    remove(path, f"{kind} without a finished job")
+                if job is None:
+                    quarantine(path, config.quarantine_dir / folder.name)
+                elif job.state in ("failed", "cancelled") or job.avatar_deleted:
+                    remove(path, f"{kind} of a {'deleted' if job.avatar_deleted else job.state} job")
     purged = store.purge(finished_before=now - config.keep_records_days * 86400.0)
     done.records = [job.id for job in purged]
     for job in purged:
         storage.remove_work(job.id)
-    if done.folders or done.records:
-        logger.info("sweep: removed %d folder(s), %d record(s)", len(done.folders), len(done.records))
+    if done.folders or done.records or done.quarantined:
+        logger.info(
+            "sweep: removed %d folder(s), %d record(s); quarantined %d folder(s)",
+            len(done.folders),
+            len(done.records),
+            len(done.quarantined),
+        )
     return done

@@ -245,8 +245,26 @@ def test_the_sweeper_removes_what_crashes_leave(queue, signer_video):
     published = config.animations_dir / made.avatar_id
     published.mkdir()
     aged(published)
+    # Finished results with no record at all (a backup restored beside a fresh job store):
+    # moved to the quarantine, whole, never removed.
+    unknown_avatar = config.avatars_dir / ("c" * 32)
+    unknown_avatar.mkdir()
+    (unknown_avatar / "avatar.json").write_text("{}")
+    aged(unknown_avatar)
+    unknown_animation = config.animations_dir / ("d" * 32)
+    unknown_animation.mkdir()
+    (unknown_animation / "animation.mp4").write_bytes(b"mp4")
+    aged(unknown_animation)
     swept = sweep(config, store, storage)
     assert sorted(swept.folders) == sorted([orphan, leftover, trash, stray, animation_trash, stray_animation])
+    assert swept.quarantined == [
+        config.quarantine_dir / "avatars" / ("c" * 32),
+        config.quarantine_dir / "animations" / ("d" * 32),
+    ]
+    assert not unknown_avatar.exists() and (swept.quarantined[0] / "avatar.json").read_text() == "{}"
+    assert (swept.quarantined[1] / "animation.mp4").read_bytes() == b"mp4"
+    assert sweep(config, store, storage).quarantined == []  # and left there
+    assert swept.quarantined[0].exists() and swept.quarantined[1].exists()
     assert published.exists()
     assert swept.records == [done.id] and store.get(done.id) is None and store.get(kept.id) is not None
     assert uploading.exists() and storage.work_dir(live).exists()
