@@ -202,6 +202,9 @@ def test_an_avatar_still_being_made_is_409(service):
         ({"poses": poses_file([{}])}, {"camera": "{bad"}, "valid JSON"),
         ({"poses": poses_file([{}])}, {"fps": "0"}, "fps"),
         ({"poses": poses_file([{}])}, {"width": "100000"}, "width"),
+        ({"poses": ("m.json", b"[" * 100_000 + b"]" * 100_000, "application/json")}, {}, "nested too deeply"),
+        # Counted before each pose is validated: the budget speaks, not the first unknown joint.
+        ({"poses": poses_file([{"joints": {"wing.L": [0, 0, 1]}}] * 5000)}, {}, "5000 frames of 512x512"),
         ({"video": ("clip.mp4", b"just some text, no video" * 10, "video/mp4")}, {}, "not a readable video"),
         ({"video": ("clip.mp4", b"", "video/mp4")}, {}, "empty"),
     ],
@@ -217,6 +220,8 @@ def test_an_avatar_still_being_made_is_409(service):
         "camera-json",
         "fps",
         "width",
+        "nested-json",
+        "over-the-budget",
         "not-a-video",
         "empty-video",
     ],

@@ -112,7 +112,7 @@ def _create(
                 422, f"the uploaded {'poses are' if is_poses else 'video is'} empty (0 bytes)"
             )
         if is_poses:
-            frames, fps, size = _check_poses(path, avatar, ctx)
+            frames, fps, size = _check_poses(path, avatar, options, ctx)
         else:
             info = check_video(path, options, settings)
             scale = min(1.0, options.max_size / max(info.width, info.height))  # as preprocessing resizes
@@ -163,16 +163,30 @@ def _one_upload(video: UploadFile | None, poses: UploadFile | None) -> UploadFil
     return video if video is not None else poses  # type: ignore[return-value]
 
 
-def _check_poses(path: Path, avatar: JobRecord, ctx: ServiceContext) -> tuple[int, float, None]:
+def _check_poses(
+    path: Path, avatar: JobRecord, options: AnimationOptions, ctx: ServiceContext
+) -> tuple[int, float, None]:
     """422 unless the file is a pose sequence the avatar's body model understands (bounded
-    values, known names, within the model's ranges); returns (frames, fps, None: no image)."""
+    values, known names, within the model's ranges) and its frames fit the render budget;
+    returns (frames, fps, None: no image). The poses are counted before each is validated:
+    validating is the costly part."""
     from eva_engine.animate import DrivingError, driving_from_poses
+    from eva_engine.animate.driving import DEFAULT_POSES_FPS, MAX_POSES
     from eva_engine.avatar import read_avatar_meta
 
     try:
         doc = json.loads(path.read_bytes())
+    except RecursionError as err:  # json's own limit on nesting, far deeper than a pose needs
+        raise HTTPException(422, "the poses are nested too deeply to be a pose sequence") from err
     except (ValueError, UnicodeDecodeError) as err:
         raise HTTPException(422, f"the poses are not valid JSON: {err}") from err
+    poses = doc if isinstance(doc, list) else doc.get("poses") if isinstance(doc, dict) else None
+    fps = doc.get("fps", DEFAULT_POSES_FPS) if isinstance(doc, dict) else DEFAULT_POSES_FPS
+    if isinstance(poses, list):
+        if len(poses) > MAX_POSES:
+            raise HTTPException(422, f"{len(poses)} poses: at most {MAX_POSES} in one animation")
+        if isinstance(fps, int | float) and 0 < fps <= 240:  # else the validation says what is wrong
+            _check_render_size(options, len(poses), float(fps), None, ctx)
     body = ctx.avatars.body(read_avatar_meta(ctx.queue.storage.avatar_dir(avatar.avatar_id)).body_model)
     try:
         driving = driving_from_poses(doc, body)
