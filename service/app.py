@@ -33,6 +33,7 @@ from service.deps import ServiceContext
 from service.guard import RETRY_AFTER_S, BodyRule, GuardConfig, RequestGuard
 from service.rendering import AvatarCache, RenderBusy, RenderGate, RenderInputError
 from service.routers import animations, avatars, health, jobs, page
+from service.security_headers import SecurityHeaders
 from service.settings import ServiceSettings
 from service.uploads import UploadTooLarge
 
@@ -192,7 +193,8 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
         open_prefixes=OPEN_PREFIXES,
     )
     app.add_middleware(RequestGuard, config=guard)
-    app.add_middleware(TrustedHostMiddleware, allowed_hosts=settings.trusted_hosts)  # outermost
+    app.add_middleware(TrustedHostMiddleware, allowed_hosts=settings.trusted_hosts)
+    app.add_middleware(SecurityHeaders)  # outermost: on every answer, refusals included
     _install_error_handlers(app)
 
     # Declares the header in the OpenAPI document; the check itself is the guard's.

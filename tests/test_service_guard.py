@@ -205,6 +205,25 @@ def test_docs_are_behind_the_key(tmp_path):
         assert "APIKeyHeader" in spec["components"]["securitySchemes"]
 
 
+def test_every_answer_carries_the_browser_defences(tmp_path):
+    """nosniff, no framing by another site, and a content policy: the page runs only its own
+    files; only the docs may load FastAPI's CDN."""
+    with client(tmp_path, api_key=KEY) as c:
+        answers = {
+            "page": c.get("/"),
+            "refusal": c.get("/avatars"),  # 401 from the guard
+            "api": c.get("/avatars", headers={"X-API-Key": KEY}),
+            "docs": c.get("/docs", headers={"X-API-Key": KEY}),
+        }
+    for name, res in answers.items():
+        assert res.headers["X-Content-Type-Options"] == "nosniff", name
+        assert res.headers["X-Frame-Options"] == "DENY", name
+        assert "frame-ancestors 'none'" in res.headers["Content-Security-Policy"], name
+    page = answers["page"].headers["Content-Security-Policy"]
+    assert "default-src 'self'" in page and "cdn" not in page and "unsafe-inline" not in page
+    assert "https://cdn.jsdelivr.net" in answers["docs"].headers["Content-Security-Policy"]
+
+
 def test_the_key_is_compared_in_constant_time(tmp_path, monkeypatch):
     compared = []
     real = guard_module.hmac.compare_digest
