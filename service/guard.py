@@ -3,8 +3,9 @@ of its body or routes it, in this order:
 
 1. the API key (``X-API-Key``, compared in constant time) unless the path is public (``/healthz``)
    or open (the web page and its static files, which hold no secret): 401;
-2. a browser's cross-site write (``Origin`` / ``Sec-Fetch-Site`` of another site on a POST,
-   PUT, PATCH or DELETE, e.g. a web page posting a form to the loopback service): 403;
+2. without a key, a browser's cross-origin write (an ``Origin`` of another scheme, host or port,
+   or ``Sec-Fetch-Site: cross-site``, on a POST, PUT, PATCH or DELETE, e.g. a web page, or
+   another program's page on another loopback port, posting a form to the service): 403;
 3. requests in flight over ``max_requests`` (public paths, i.e. ``/healthz``, are always
    answered): 503 with ``Retry-After``;
 4. the body limit of the route (``BodyRule``: per method and path pattern, else
@@ -72,6 +73,24 @@ class BodyRejected(HTTPException):
     """Raised from ``receive`` when a body breaks its limit; FastAPI answers it as is."""
 
 
+def _same_origin(origin: str, scheme: str, host: str) -> bool:
+    """``origin`` (``scheme://host[:port]``; "null" for sandboxed frames and file:// pages) is the
+    service itself, as the request's ``scheme`` and ``Host`` name it: the same scheme, host *and*
+    port, so a page that another program serves on another loopback port is another origin."""
+    defaults = {"http": 80, "https": 443}
+    try:
+        theirs, ours = urlsplit(origin), urlsplit(f"//{host}")
+        their_port = theirs.port or defaults.get(theirs.scheme)
+        our_port = ours.port or defaults.get(scheme)
+    except ValueError:  # a port out of range or not a number
+        return False
+    return theirs.hostname is not None and (theirs.scheme, theirs.hostname, their_port) == (
+        scheme,
+        ours.hostname,
+        our_port,
+    )
+
+
 def _reply(status: int, detail: str, retry_after: bool = False) -> JSONResponse:
     headers = {"Retry-After": str(RETRY_AFTER_S)} if retry_after else None
     return JSONResponse({"detail": detail}, status_code=status, headers=headers)
@@ -95,7 +114,7 @@ class RequestGuard:
             return
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         method, path = scope["method"], scope["path"]
-        refusal = self._refuse(method, path, headers)
+        refusal = self._refuse(method, path, headers, scope.get("scheme", "http"))
         if refusal is not None:
             await refusal(scope, receive, send)
             return
@@ -128,28 +147,25 @@ class RequestGuard:
             if index is not None:
                 counters.per_rule[index] -= 1
 
-    def _refuse(self, method: str, path: str, headers: dict[str, str]) -> JSONResponse | None:
+    def _refuse(self, method: str, path: str, headers: dict[str, str], scheme: str) -> JSONResponse | None:
         if self._key is not None and self.config.needs_key(path):
             given = headers.get("x-api-key", "").encode("latin-1")
             if not hmac.compare_digest(given, self._key):
                 return _reply(401, "missing or wrong API key (header X-API-Key)")
-        if method not in SAFE_METHODS and self._cross_site(headers):
+        if method not in SAFE_METHODS and self._cross_site(headers, scheme):
             return _reply(403, "cross-site requests are refused (the Origin is not this service)")
         return None
 
-    def _cross_site(self, headers: dict[str, str]) -> bool:
+    def _cross_site(self, headers: dict[str, str], scheme: str) -> bool:
         """A browser request made by another site's page (programs send neither header)."""
         if headers.get("sec-fetch-site") == "cross-site":
             return True
         origin = headers.get("origin")
         if origin is None:
             return False
-        host = urlsplit(origin).hostname
-        if host is None:  # "null": sandboxed frames, file:// pages
-            return True
-        trusted = self.config.trusted_hosts
-        own = (headers.get("host") or "").rsplit(":", 1)[0].strip("[]")
-        return host != own and "*" not in trusted and host not in {h.strip("[]") for h in trusted}
+        if "*" in self.config.trusted_hosts:  # keyed: another site's page cannot send the key
+            return False
+        return not _same_origin(origin, scheme, headers.get("host") or "")
 
     async def _run(
         self, scope: Scope, receive: Receive, send: Send, limit: int, method: str, path: str

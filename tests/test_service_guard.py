@@ -254,6 +254,15 @@ def test_cross_site_writes_are_refused(tmp_path, signer_video):
         assert res.status_code == 403 and "cross-site" in res.json()["detail"]
         assert c.post("/avatars", files=files, headers={"Sec-Fetch-Site": "cross-site"}).status_code == 403
         assert c.post("/avatars", files=files, headers={"Origin": "null"}).status_code == 403
+        # Another program's page on another loopback port is another origin.
+        for origin in (
+            "http://127.0.0.1:3000",
+            "http://localhost",
+            "https://127.0.0.1",
+            "http://127.0.0.1:x",
+        ):
+            res = c.post("/avatars", files=files, headers={"Origin": origin})
+            assert res.status_code == 403, origin
         assert c.get("/avatars").json() == {"avatars": []}
         res = c.post("/avatars", files=files, headers={"Origin": "http://127.0.0.1"}, data={"preset": "tiny"})
         assert res.status_code == 202, res.text
