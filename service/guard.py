@@ -3,9 +3,9 @@ of its body or routes it, in this order:
 
 1. the API key (``X-API-Key``, compared in constant time) unless the path is public (``/healthz``)
    or open (the web page and its static files, which hold no secret): 401;
-2. without a key, a browser's cross-origin write (an ``Origin`` of another scheme, host or port,
-   or ``Sec-Fetch-Site: cross-site``, on a POST, PUT, PATCH or DELETE, e.g. a web page, or
-   another program's page on another loopback port, posting a form to the service): 403;
+2. a browser's cross-site write (``Sec-Fetch-Site: cross-site``; without a key, also an
+   ``Origin`` of another scheme, host or port) on a POST, PUT, PATCH or DELETE, e.g. a web page,
+   or another program's page on another loopback port, posting a form to the service: 403;
 3. requests in flight over ``max_requests`` (public paths, i.e. ``/healthz``, are always
    answered): 503 with ``Retry-After``;
 4. the body limit of the route (``BodyRule``: per method and path pattern, else
