@@ -23,6 +23,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from jobs.child_env import child_environment
+
 SAFE_CONTAINERS = {"mov": "mp4/mov", "matroska": "mkv/webm", "avi": "avi"}
 _MOV_ATOMS = (b"ftyp", b"moov", b"mdat", b"free", b"skip", b"wide", b"pnot")
 
@@ -180,7 +182,9 @@ def probe_in_subprocess(
         str(memory_mb),
     ]
     try:
-        done = subprocess.run(args, capture_output=True, timeout=timeout_s, stdin=subprocess.DEVNULL)
+        done = subprocess.run(
+            args, capture_output=True, timeout=timeout_s, stdin=subprocess.DEVNULL, env=child_environment()
+        )
     except subprocess.TimeoutExpired as err:  # run() has killed it
         raise VideoRejected(f"probing the video took longer than {timeout_s:.0f} s") from err
     try:

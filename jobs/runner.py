@@ -26,6 +26,7 @@ import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
+from jobs.child_env import child_environment
 from jobs.config import JobsConfig
 from jobs.storage import Storage
 from jobs.store import JobRecord, JobStore
@@ -124,7 +125,7 @@ class JobRunner:
         try:
             child = subprocess.Popen(
                 [sys.executable, "-m", "jobs", "run", job.id],
-                env={**os.environ, SPEC_ENV: json.dumps(spec)},
+                env=child_environment(**{SPEC_ENV: json.dumps(spec)}),
                 stdin=subprocess.DEVNULL,
                 start_new_session=True,  # a terminal's Ctrl-C goes to the worker, which decides
             )

@@ -5,11 +5,14 @@ from __future__ import annotations
 import ipaddress
 import os
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from jobs.config import JobsConfig
 from service.connections import ConnectionLimits
 
+# A key is the only thing between the network and every avatar: long enough not to be guessed
+# (``openssl rand -hex 24`` gives 48 characters).
+MIN_KEY_LENGTH = 16
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1", "[::1]")
 
 
@@ -50,7 +53,7 @@ class ServiceSettings(BaseModel):
     jobs: JobsConfig
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
-    api_key: str | None = Field(None, min_length=1)
+    api_key: str | None = None
     allowed_hosts: tuple[str, ...] | None = None
     max_upload_mb: float = Field(512.0, gt=0)
     max_json_kb: float = Field(64.0, gt=0)
@@ -71,12 +74,22 @@ class ServiceSettings(BaseModel):
     avatar_cache: int = Field(4, ge=1)
     preload_body_models: tuple[str, ...] = ("anny",)
 
+    @field_validator("api_key")
+    @classmethod
+    def _long_enough(cls, key: str | None) -> str | None:
+        if key is not None and len(key) < MIN_KEY_LENGTH:
+            raise ValueError(
+                f"the API key has {len(key)} characters; at least {MIN_KEY_LENGTH} are needed "
+                "(`openssl rand -hex 24` makes one)"
+            )
+        return key
+
     @model_validator(mode="after")
     def _no_open_api_on_a_network(self) -> ServiceSettings:
         if self.api_key is None and not is_loopback(self.host):
             raise ValueError(
                 f"refusing to serve on {self.host} without an API key: anyone who can reach it could "
-                "upload, export and delete avatars; set EVA_API_KEY (or --api-key), or bind 127.0.0.1"
+                "upload, export and delete avatars; set EVA_API_KEY (or --api-key-file), or bind 127.0.0.1"
             )
         return self
 

@@ -276,7 +276,7 @@ def test_pose_controls_and_the_page(service):
 
 
 def test_api_key_guards_animations_but_not_the_page(tmp_path, anny_model):
-    client, queue = make_client(tmp_path, api_key="s3cret")
+    client, queue = make_client(tmp_path, api_key="s3cret-key-0123456789")
     with client:
         avatar_id = ready_avatar(queue, anny_model)
         assert client.get("/").status_code == 200 and client.get("/static/app.js").status_code == 200
@@ -285,7 +285,9 @@ def test_api_key_guards_animations_but_not_the_page(tmp_path, anny_model):
         assert client.get(url).status_code == 401
         assert client.get(f"/avatars/{avatar_id}/controls").status_code == 401
         assert client.get("/animations/0123456789abcdef0123456789abcdef").status_code == 401
-        ok = client.post(url, files={"poses": poses_file([{}])}, headers={"X-API-Key": "s3cret"})
+        ok = client.post(
+            url, files={"poses": poses_file([{}])}, headers={"X-API-Key": "s3cret-key-0123456789"}
+        )
         assert ok.status_code == 202, ok.text
 
 

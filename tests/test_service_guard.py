@@ -268,6 +268,24 @@ def test_cross_site_writes_are_refused(tmp_path, signer_video):
         assert res.status_code == 202, res.text
 
 
+def test_a_short_key_is_refused_and_the_key_stays_off_command_lines(tmp_path, monkeypatch):
+    from jobs.child_env import child_environment
+    from service.cli import app
+
+    jobs = JobsConfig(data_dir=tmp_path / "data")
+    with pytest.raises(ValueError, match="at least 16"):
+        ServiceSettings(jobs=jobs, api_key="s3cret")
+    result = CliRunner().invoke(app, ["serve", "--api-key", KEY, "--data-dir", str(tmp_path / "data")])
+    assert result.exit_code == 2 and "No such option" in result.output
+    short = tmp_path / "key"
+    short.write_text("s3cret\n")
+    result = CliRunner().invoke(app, ["serve", "--api-key-file", str(short), "--data-dir", str(tmp_path)])
+    assert result.exit_code == 2 and "at least 16" in result.output
+    # The children that read uploads (the probe, a job's process) never see the key.
+    monkeypatch.setenv("EVA_API_KEY", KEY)
+    assert "EVA_API_KEY" not in child_environment(EXTRA="1") and child_environment(EXTRA="1")["EXTRA"] == "1"
+
+
 def test_no_open_api_on_a_network_address(tmp_path):
     jobs = JobsConfig(data_dir=tmp_path / "data")
     with pytest.raises(ValueError, match="without an API key"):

@@ -292,7 +292,9 @@ def test_the_page_asks_for_the_key_once_and_sends_it(tmp_path):
     """A service with a key: the page asks for it, then every call carries it."""
     port = free_port()
     log = tmp_path / "serve.log"
-    args = [EVA, "serve", "--port", str(port), "--data-dir", str(tmp_path), "--api-key", "s3cret"]
+    key_file = tmp_path / "api-key"
+    key_file.write_text("s3cret-key-0123456789\n")  # from a file: a command line shows in `ps`
+    args = [EVA, "serve", "--port", str(port), "--data-dir", str(tmp_path), "--api-key-file", str(key_file)]
     server = start_process(args, log)
     driver = profile = None
     try:
@@ -318,7 +320,7 @@ def test_the_page_asks_for_the_key_once_and_sends_it(tmp_path):
             30,
             "the page to say the key was refused",
         )
-        d.find_element(*_by("#key-input")).send_keys("s3cret")
+        d.find_element(*_by("#key-input")).send_keys("s3cret-key-0123456789")
         d.find_element(*_by("#key-form button")).click()
         empty = "return document.getElementById('avatars').textContent"
         wait_for(
@@ -326,7 +328,7 @@ def test_the_page_asks_for_the_key_once_and_sends_it(tmp_path):
             30,
             "the avatar list, fetched with the key",
         )
-        assert d.execute_script("return sessionStorage.getItem('eva-api-key')") == "s3cret"
+        assert d.execute_script("return sessionStorage.getItem('eva-api-key')") == "s3cret-key-0123456789"
         # The docs are behind the key, which a plain link cannot send: no link that answers 401.
         assert not d.find_element(*_by("a.docs")).is_displayed()
         OUT.mkdir(exist_ok=True)

@@ -21,8 +21,12 @@ def serve(
     queue_url: str | None = typer.Option(
         None, help="redis://host:port/db for Redis (default: SQLite in the data dir, or EVA_QUEUE_URL)."
     ),
-    api_key: str | None = typer.Option(
-        None, help="Require this X-API-Key header (or EVA_API_KEY); needed to bind a non-loopback address."
+    api_key_file: Path | None = typer.Option(
+        None,
+        exists=True,
+        dir_okay=False,
+        help="A file holding the key that the X-API-Key header must carry (or set EVA_API_KEY; "
+        "never on the command line, where `ps` shows it); needed to bind a non-loopback address.",
     ),
     max_upload_mb: float | None = typer.Option(None, min=0.001, help="Upload size limit (default 512)."),
     log_level: str = typer.Option("info", help="uvicorn log level."),
@@ -35,6 +39,7 @@ def serve(
     from service.settings import ServiceSettings
 
     try:
+        api_key = read_key_file(api_key_file) if api_key_file is not None else None
         jobs = JobsConfig.from_env(data_dir=data_dir, queue_url=queue_url)
         settings = ServiceSettings.from_env(
             jobs, host=host, port=port, api_key=api_key, max_upload_mb=max_upload_mb
@@ -47,6 +52,14 @@ def serve(
     except ValueError as err:  # e.g. job records on a network file system
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(2) from err
+
+
+def read_key_file(path: Path) -> str:
+    """The key in ``path``: its text without surrounding whitespace (a trailing newline)."""
+    try:
+        return path.read_text().strip()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"cannot read the API key file {path}: {err}") from err
 
 
 def prefer_passive_openmp() -> None:

@@ -1,0 +1,16 @@
+"""``child_environment()``: the environment of a child process that reads untrusted input (an
+upload's probe, a job): the parent's, without the service's secrets. A child exploited through a
+crafted video then cannot read the API key from ``/proc/self/environ``."""
+
+from __future__ import annotations
+
+import os
+
+SECRETS = ("EVA_API_KEY",)
+
+
+def child_environment(**extra: str) -> dict[str, str]:
+    """``os.environ`` without ``SECRETS``, plus ``extra``."""
+    env = {k: v for k, v in os.environ.items() if k not in SECRETS}
+    env.update(extra)
+    return env
