@@ -5,7 +5,7 @@ by an atomic rename, so a retried job starts after its last completed stage; eve
 is conditional on the attempt still owning the job (``JobLost`` stops it otherwise, checked again
 before each result is put in place); partial results carry the attempt's own suffix:
 
-    work/<job_id>/input.<ext>      the upload: a video, or input.json (poses)
+    work/<job_id>/input.video      the upload: a video (any container), or input.json (poses)
     work/<job_id>/dataset/         the driving video preprocessed and aligned (stages preprocess, align)
     work/<job_id>/animation/       animation.mp4 + animation.json (stage render)
     animations/<animation_id>/     the same folder, renamed (stage export)
@@ -148,7 +148,11 @@ def _driving(run: JobRun, work: Path, dataset_dir: Path, body, options: Animatio
     progress = preprocess_progress(report, fitted=" to the driving video")
 
     config = PreprocessConfig(
-        max_frames=options.max_frames, max_size=options.max_size, fitting=scaled_fit_config(options.fit_scale)
+        max_frames=options.max_frames,
+        max_size=options.max_size,
+        fitting=scaled_fit_config(options.fit_scale),
+        demuxer=info.container,  # decoded as what the probe approved
+        max_video_side=run.config.max_video_side,
     )
     partial = dataset_dir.with_name(f"{dataset_dir.name}.partial-{run.attempt}")
     result = preprocess_video(upload, partial, config, model=body, progress=progress, overwrite=True)

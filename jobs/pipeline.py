@@ -5,7 +5,7 @@ stage's result lands in the job's work folder by an atomic rename, so a process 
 moment leaves either the previous stage's result or the next one, and a retry starts after the
 last completed stage.
 
-    work/<job_id>/input.<ext>   the upload (written by the API)
+    work/<job_id>/input.video   the upload (written by the API, whatever its name was)
     work/<job_id>/dataset/      eva_engine.align.preprocess_video (stages preprocess, align)
     work/<job_id>/avatar/       eva_engine.avatar.save_avatar: with its metrics and frames (stage train)
     avatars/<avatar_id>/        the same folder, renamed (stage export)
@@ -18,6 +18,7 @@ attempts never write into one folder.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import logging
 import math
@@ -191,7 +192,12 @@ class JobRun:
 
         progress = preprocess_progress(report)
 
-        config = options.preprocess_config(info.frame_count())
+        # Decoded as what the probe approved: its demuxer (never one FFmpeg guesses) and size limit.
+        config = dataclasses.replace(
+            options.preprocess_config(info.frame_count()),
+            demuxer=info.container,
+            max_video_side=self.config.max_video_side,
+        )
         partial = out.with_name(f"{out.name}.partial-{self.attempt}")
         preprocess_video(video, partial, config, model=model, progress=progress, overwrite=True)
         report(ProgressEvent("align", 1, 1, "dataset ready"), force=True)  # still ours: put it in place

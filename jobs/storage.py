@@ -83,7 +83,7 @@ def _remove(path: Path) -> None:
 
 
 def input_file(work: Path) -> Path | None:
-    """The upload in a job's work folder (``input.<ext>``), or None."""
+    """The upload in a job's work folder (``input.video`` or ``input.json``: ``service.uploads``), or None."""
     found = sorted(p for p in work.glob("input.*") if p.is_file()) if work.is_dir() else []
     return found[0] if found else None
 

@@ -4,7 +4,6 @@ them in a thread. The body's size limit is the request guard's (``service.guard`
 
 from __future__ import annotations
 
-import re
 import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -21,7 +20,6 @@ if TYPE_CHECKING:
     from service.settings import ServiceSettings
 
 CHUNK = 1024 * 1024
-_SUFFIX = re.compile(r"^\.[a-z0-9]{1,5}$")
 
 
 class UploadTooLarge(Exception):
@@ -30,11 +28,9 @@ class UploadTooLarge(Exception):
         self.limit = limit
 
 
-def safe_suffix(filename: str | None) -> str:
-    """The upload's extension if it is harmless, else ``.video`` (the demuxer is chosen from the
-    file's bytes, not its name)."""
-    suffix = Path(filename or "").suffix.lower()
-    return suffix if _SUFFIX.match(suffix) else ".video"
+# Uploads are stored under neutral names: the user's extension never reaches a demuxer (the job
+# decodes with the one the probe chose from the file's bytes), nor the file system.
+VIDEO_UPLOAD, POSES_UPLOAD = "input.video", "input.json"
 
 
 def save_upload(source: BinaryIO, dest: Path, max_bytes: int) -> int:

@@ -90,3 +90,31 @@ def test_writer_validates_input(tmp_path):
         write_video(tmp_path / "e.mp4", [])
     odd = write_video(tmp_path / "odd.mp4", np.zeros((2, 15, 17, 3), np.float32))
     assert read_video(odd).frames.shape[0] == 2
+
+
+def _tga(width: int, height: int) -> bytes:
+    """An uncompressed 24-bit TGA image: an 18-byte header, then the pixels (no magic bytes: FFmpeg
+    takes a file for one by its name)."""
+    header = bytes([0, 0, 2, 0, 0, 0, 0, 0, 0, 0, 0, 0]) + width.to_bytes(2, "little")
+    return header + height.to_bytes(2, "little") + bytes([24, 0]) + b"\x80" * (width * height * 3)
+
+
+def test_a_named_demuxer_is_the_only_one_that_reads_the_file(tmp_path):
+    """What the upload check approved is what decodes: with ``demuxer`` set, a file whose name
+    (or contents) would make FFmpeg pick another demuxer is not read by that one."""
+    image = tmp_path / "upload.tga"
+    image.write_bytes(_tga(200, 100))
+    assert read_video(image).frames.shape == (1, 100, 200, 3)  # guessed: the image demuxer
+    with pytest.raises(VideoError, match="not a readable video"):
+        read_video(image, VideoReadOptions(demuxer="mov"))
+    # An MP4 under an image's name decodes as the MP4 it is.
+    disguised = tmp_path / "clip.tga"
+    disguised.write_bytes(write_video(tmp_path / "v.mp4", _frames(), fps=10).read_bytes())
+    assert read_video(disguised, VideoReadOptions(demuxer="mov")).frames.shape == (10, 48, 64, 3)
+
+
+def test_frames_over_the_size_limit_are_refused_by_the_decoder(tmp_path):
+    path = write_video(tmp_path / "v.mp4", _frames(), fps=10)  # 64 x 48
+    assert len(read_video(path, VideoReadOptions(demuxer="mov", max_side=64))) == 10
+    with pytest.raises(VideoError):
+        read_video(path, VideoReadOptions(demuxer="mov", max_side=40))

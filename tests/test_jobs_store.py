@@ -10,7 +10,7 @@ import subprocess
 import time
 
 import pytest
-from helpers.service import no_person_video
+from helpers.service import no_person_video, run_job_here
 
 from jobs import InvalidIdError, JobOptions, JobQueue, JobsConfig, JobStore, Storage
 
@@ -86,6 +86,28 @@ def test_a_video_without_a_person_fails_cleanly(queue, tmp_path):
     assert job.state == "failed" and "no person" in job.error and "stage preprocess" in job.error
     assert str(queue.storage.work_dir(job_id)) not in job.error
     assert not queue.storage.work_dir(job_id).exists() and not queue.storage.avatar_exists(job.avatar_id)
+
+
+def test_the_job_decodes_the_upload_as_the_probe_approved_it(queue, tmp_path, monkeypatch, anny_model):
+    """The job opens the upload with the demuxer the probe chose from its bytes, under the
+    probe's size limit, whatever the user called the file (the API stores it as input.video)."""
+    import eva_engine.align as align
+
+    configs = []
+    real = align.preprocess_video
+
+    def spy(video, out, config, **kwargs):
+        configs.append(config)
+        return real(video, out, config, **kwargs)
+
+    monkeypatch.setattr(align, "preprocess_video", spy)
+    job_id = submit(queue, no_person_video(tmp_path / "nobody.mp4"), preset="tiny")
+    work = queue.storage.work_dir(job_id)
+    (work / "input.mp4").rename(work / "input.video")
+    assert run_job_here(queue, job_id, anny_model) == "failed"  # no person: decoded all the same
+    assert "no person" in queue.store.get(job_id).error
+    [config] = configs
+    assert config.demuxer == "mov" and config.max_video_side == queue.config.max_video_side
 
 
 def test_cancel_a_running_job(queue, tmp_path, monkeypatch):

@@ -110,7 +110,7 @@ def test_upload_queues_a_job_that_can_be_cancelled(client, signer_video, tmp_pat
     assert job["options"]["preset"] == "tiny" and job["options"]["max_frames"] == svc.SIGNER_FRAMES
     assert job["filename"] == "me.mp4"
     work = tmp_path / "data" / "jobs" / "work" / ids["job_id"]
-    assert [p.name for p in work.iterdir()] == ["input.mp4"]
+    assert [p.name for p in work.iterdir()] == ["input.video"]  # not the name the user gave
     avatar = client.get(f"/avatars/{ids['avatar_id']}").json()
     assert avatar["status"] == "pending" and avatar["num_gaussians"] is None
     # Not finished yet: 409 with the reason.

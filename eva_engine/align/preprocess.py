@@ -46,15 +46,20 @@ class PreprocessConfig:
     and faces are small in whole-body video: MediaPipe's hand and face models crop them from the
     frame it is given, so a larger frame gives them more pixels and finds them more often
     (``bench/results/detection.md``); the detections are then scaled to ``max_size``.
-    fov_y_deg: the guessed camera's vertical field of view; test_every: every k-th kept frame
-    goes to the ``test_pose`` split (0 = all frames train); fit: align the body model (else the
-    dataset carries only detections); checks: when the video is refused (``InputChecks``).
+    demuxer / max_video_side: read the video with this FFmpeg demuxer only and frames of at most
+    this many pixels a side (``VideoReadOptions``: what an upload's check approved; None: FFmpeg
+    guesses, no limit). fov_y_deg: the guessed camera's vertical field of view; test_every: every
+    k-th kept frame goes to the ``test_pose`` split (0 = all frames train); fit: align the body
+    model (else the dataset carries only detections); checks: when the video is refused
+    (``InputChecks``).
     """
 
     every: int = 1
     max_frames: int | None = 300
     max_size: int | None = 512
     detect_max_size: int | None = 1280
+    demuxer: str | None = None
+    max_video_side: int | None = None
     fov_y_deg: float = GUESS_FOV_Y_DEG
     test_every: int = 0
     fit: bool = True
@@ -213,7 +218,8 @@ def preprocess_video(
     config = config or PreprocessConfig()
     seconds: dict[str, float] = {}
     started = time.perf_counter()
-    clip = read_video(video, VideoReadOptions(config.every, config.max_frames, config.max_size))
+    source = {"demuxer": config.demuxer, "max_side": config.max_video_side}
+    clip = read_video(video, VideoReadOptions(config.every, config.max_frames, config.max_size, **source))
     seconds["decode"] = time.perf_counter() - started
     if progress is not None:
         progress(ProgressEvent("decode", len(clip), len(clip), f"decoded {len(clip)} frames"))
@@ -226,7 +232,9 @@ def preprocess_video(
     if detect_long == max(h, w):
         frames = iter(clip.frames)
     else:  # a second decoding pass, at the detector's size, frame for frame the same
-        frames = iter_frames(video, VideoReadOptions(config.every, len(clip), config.detect_max_size))
+        frames = iter_frames(
+            video, VideoReadOptions(config.every, len(clip), config.detect_max_size, **source)
+        )
     det = detect_frames(frames, config.detector, progress, total=len(clip), size=(h, w))
     if len(det.found) != len(clip):
         raise PreprocessError(f"{video} decoded to {len(det.found)} frames on a second pass, not {len(clip)}")

@@ -33,6 +33,12 @@ class VideoReadOptions:
     """Stop after this many kept frames (None = no limit)."""
     max_size: int | None = None
     """Downscale so the longest side is at most this many pixels (never upscales)."""
+    demuxer: str | None = None
+    """Open the file with this FFmpeg demuxer only (e.g. the one an upload's check chose from its
+    bytes), never the one FFmpeg would guess from its name or contents (None: guess)."""
+    max_side: int | None = None
+    """Refuse frames larger than this many pixels a side, from the headers or as each frame
+    decodes, before its RGB copy (None: no limit)."""
 
     def __post_init__(self) -> None:
         if self.every < 1:
@@ -41,6 +47,8 @@ class VideoReadOptions:
             raise ValueError(f"max_frames must be >= 1, got {self.max_frames}")
         if self.max_size is not None and self.max_size < 1:
             raise ValueError(f"max_size must be >= 1, got {self.max_size}")
+        if self.max_side is not None and self.max_side < 1:
+            raise ValueError(f"max_side must be >= 1, got {self.max_side}")
 
 
 @dataclasses.dataclass
@@ -107,7 +115,7 @@ def _decode(
     if not path.is_file():
         raise VideoError(f"video file {path} does not exist")
     try:
-        container = av.open(str(path), mode="r")
+        container = av.open(str(path), mode="r", format=opts.demuxer, options={"protocol_whitelist": "file"})
     except (av.FFmpegError, OSError, ValueError) as err:
         raise VideoError(f"{path} is not a readable video: {err}") from err
     kept = 0
@@ -116,6 +124,7 @@ def _decode(
         if not streams:
             raise VideoError(f"{path} has no video stream")
         stream = streams[0]
+        _check_side(stream.codec_context.width or 0, stream.codec_context.height or 0, opts.max_side, path)
         stream.thread_type = "AUTO"
         rate = stream.average_rate or stream.guessed_rate or stream.base_rate
         fps = float(rate) if rate else 0.0
@@ -126,6 +135,7 @@ def _decode(
             for frame in container.decode(stream):
                 if start is None:
                     start = frame.time if frame.time is not None else 0.0
+                _check_side(frame.width, frame.height, opts.max_side, path)  # before its RGB copy
                 keep = decoded % opts.every == 0
                 decoded += 1
                 if not keep:
@@ -138,10 +148,17 @@ def _decode(
                 yield _resize(rgb, opts.max_size), float(t - start)
                 if opts.max_frames is not None and kept >= opts.max_frames:
                     break
+        except VideoError:
+            raise
         except (av.FFmpegError, OSError, ValueError) as err:
             if not kept:
                 raise VideoError(f"{path} could not be decoded: {err}") from err
             # A damaged tail: keep what decoded (players do the same).
+
+
+def _check_side(width: int, height: int, max_side: int | None, path: Path) -> None:
+    if max_side is not None and max(width, height) > max_side:
+        raise VideoError(f"{path} has frames of {width}x{height} pixels; the limit is {max_side} a side")
 
 
 def read_video(path: str | Path, options: VideoReadOptions | None = None) -> VideoClip:

@@ -44,7 +44,7 @@ from service.deps import (
     render_admission,
 )
 from service.routers.responses import AVATAR_NOT_READY, BUSY, STILL_RUNNING, UPLOAD, error
-from service.uploads import check_video, queued_job, safe_suffix, save_upload
+from service.uploads import POSES_UPLOAD, VIDEO_UPLOAD, check_video, queued_job, save_upload
 
 router = APIRouter(tags=["animations"])
 NOT_FOUND = error(404, "Unknown or malformed id")
@@ -103,9 +103,8 @@ def _create(
     check_job_quota(ctx)
     animation_id = new_id()
     with queued_job(queue) as (job_id, work):
-        # The worker tells poses from a video by the suffix: a video is never saved as .json.
-        suffix = ".json" if is_poses else safe_suffix(filename).replace(".json", ".video")
-        path = work / f"input{suffix}"
+        # The worker tells poses from a video by the name: a video is never saved as .json.
+        path = work / (POSES_UPLOAD if is_poses else VIDEO_UPLOAD)
         limit = settings.max_poses_bytes if is_poses else settings.max_upload_bytes
         if save_upload(source, path, limit) == 0:
             raise HTTPException(

@@ -26,7 +26,7 @@ from service.deps import (
 )
 from service.routers.responses import AVATAR_NOT_READY, BUSY, STILL_RUNNING, UPLOAD, error
 from service.schemas import AvatarCreated, AvatarForm, AvatarInfo, AvatarList, QualityReport, RenderRequest
-from service.uploads import check_video, queued_job, safe_suffix, save_upload
+from service.uploads import VIDEO_UPLOAD, check_video, queued_job, save_upload
 
 router = APIRouter(prefix="/avatars", tags=["avatars"])
 logger = logging.getLogger("eva.service")
@@ -63,7 +63,7 @@ def _create(
     check_job_quota(ctx)
     avatar_id = new_id()
     with queued_job(queue) as (job_id, work):
-        path = work / f"input{safe_suffix(filename)}"
+        path = work / VIDEO_UPLOAD
         if save_upload(source, path, settings.max_upload_bytes) == 0:
             raise HTTPException(422, "the uploaded video is empty (0 bytes)")
         check_video(path, options, settings)
