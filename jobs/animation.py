@@ -63,12 +63,17 @@ class AnimationOptions(AnimationRequest):
 
 
 def animation_pixels(
-    options: AnimationConfig, frames: int, fps: float, image_size: tuple[int, int] | None
+    options: AnimationConfig,
+    frames: int,
+    fps: float,
+    image_size: tuple[int, int] | None,
+    span_s: float | None = None,
 ) -> tuple[int, int, int, int]:
     """(frames, width, height, pixels) of the animation of ``frames`` driving frames at ``fps``
-    of ``image_size`` (height, width; None for poses): what its rendered frames hold in memory
-    until they are encoded (width includes the driving frame beside the avatar)."""
-    count = output_frames(frames, fps, options)
+    of ``image_size`` (height, width; None for poses), spanning ``span_s`` seconds if known
+    (``output_frames``): what its rendered frames hold in memory until they are encoded (width
+    includes the driving frame beside the avatar)."""
+    count = output_frames(frames, fps, options, span_s)
     width, height = output_size(options, image_size)
     total = width
     if options.side_by_side and image_size is not None:
@@ -77,10 +82,16 @@ def animation_pixels(
 
 
 def check_animation_budget(
-    options: AnimationConfig, frames: int, fps: float, image_size: tuple[int, int] | None, budget: int
+    options: AnimationConfig,
+    frames: int,
+    fps: float,
+    image_size: tuple[int, int] | None,
+    budget: int,
+    span_s: float | None = None,
 ) -> None:
-    """``AnimationError`` when the rendered frames would exceed ``budget`` pixels."""
-    count, width, height, pixels = animation_pixels(options, frames, fps, image_size)
+    """``AnimationError`` when the rendered frames would exceed ``budget`` pixels (arguments as
+    ``animation_pixels``)."""
+    count, width, height, pixels = animation_pixels(options, frames, fps, image_size, span_s)
     if pixels > budget:
         raise AnimationError(
             f"{count} frames of {width}x{height} pixels are {pixels / 1e6:.0f} M pixels; the limit is "
@@ -107,8 +118,15 @@ def animation_stages(run: JobRun, job: JobRecord, report: Reporter) -> None:
         avatar = load_avatar(avatar_dir, body=body).eval()
         driving = _driving(run, work, dataset_dir, body, options, report)
         report.completed("align")
+        # Over the decoded frames' real time span: what will be rendered (the upload's check
+        # could only count frames at the nominal rate, which a variable frame rate defeats).
         check_animation_budget(
-            options, len(driving), driving.fps, driving.image_size, run.config.max_frame_pixels
+            options,
+            len(driving),
+            driving.fps,
+            driving.image_size,
+            run.config.max_frame_pixels,
+            span_s=driving.duration,
         )
         _render(run, job, avatar, driving, options, rendered_dir, report)
     report.completed("render")

@@ -168,3 +168,21 @@ def test_pose_controls_move_the_right_joints(anny_model):
         pose_from_controls(controls, {"jaw_open": 2.0})
     with pytest.raises(ValueError, match="unknown"):
         pose_from_controls(controls, {"wings": 1.0})
+
+
+def test_the_budget_counts_the_frames_a_variable_frame_rate_will_render():
+    """Ten driving frames whose timestamps span 100 s (a variable frame rate): the rendered
+    animation has a frame per 1/fps of that span, and the job's budget counts those, not ten."""
+    from eva_engine.animate.animation import AnimationConfig, AnimationError, output_frames
+    from eva_engine.animate.timing import frame_times
+    from jobs.animation import check_animation_budget
+
+    times = torch.tensor([0.0, 0.1, 0.2, 0.3, 0.4, 50.0, 99.6, 99.7, 99.8, 100.0], dtype=torch.float64)
+    config = AnimationConfig(width=64, height=64)
+    rendered = len(frame_times(float(times[0]), float(times[-1]), 10.0))
+    assert rendered == 1001 == output_frames(10, 10.0, config, span_s=float(times[-1] - times[0]))
+    assert output_frames(10, 10.0, config) == 10  # the nominal count the upload could make
+    budget = 100 * 64 * 64
+    check_animation_budget(config, 10, 10.0, None, budget)
+    with pytest.raises(AnimationError, match="1001 frames"):
+        check_animation_budget(config, 10, 10.0, None, budget, span_s=100.0)

@@ -132,10 +132,12 @@ def output_size(config: AnimationConfig, image_size: tuple[int, int] | None) -> 
     return config.width or config.height or side, config.height or config.width or side
 
 
-def output_frames(frames: int, fps: float, config: AnimationConfig) -> int:
+def output_frames(frames: int, fps: float, config: AnimationConfig, span_s: float | None = None) -> int:
     """Frames of the animation of ``frames`` driving frames at ``fps`` (resampled at
-    ``config.fps``)."""
-    span = max(frames - 1, 0) / fps
+    ``config.fps``), as ``avatar_motion`` renders them: over the driving frames' real time span
+    ``span_s`` when it is known (a variable frame rate can stretch it far past ``frames / fps``),
+    else over ``(frames - 1) / fps``."""
+    span = span_s if span_s is not None else max(frames - 1, 0) / fps
     return int(span * (config.fps or fps) + 1e-6) + 1
 
 
