@@ -11,7 +11,9 @@ of its body or routes it, in this order:
 4. the body limit of the route (``BodyRule``: per method and path pattern, else
    ``default_max_bytes``): 413 at once from ``Content-Length``, or as soon as the streamed body
    crosses it; the rule's own cap on concurrent requests (uploads): 503 with ``Retry-After``;
-   a body that pauses longer than ``body_timeout_s`` between chunks: 408.
+   a body that pauses longer than ``body_timeout_s`` between chunks, or whose average rate
+   falls under ``body_min_rate`` bytes/s once ``body_grace_s`` have passed (a sender of a byte
+   now and then would hold an upload slot for ever): 408.
 
 A body cut off by 413 or 408 fails the app's parsing, so the endpoint never runs (no half job).
 """
@@ -60,6 +62,8 @@ class GuardConfig:
     default_max_bytes: int
     max_requests: int
     body_timeout_s: float
+    body_min_rate: float = 16 * 1024.0
+    body_grace_s: float = 10.0
     open_paths: frozenset[str] = frozenset()
     open_prefixes: tuple[str, ...] = ()
 
@@ -171,16 +175,27 @@ class RequestGuard:
         self, scope: Scope, receive: Receive, send: Send, limit: int, method: str, path: str
     ) -> None:
         seen, done, started = 0, False, False
-        timeout = self.config.body_timeout_s
+        cfg = self.config
+        loop = asyncio.get_running_loop()
+        begun = loop.time()
 
         async def limited() -> Message:
             nonlocal seen, done
             if done:  # the body is in; what follows is a wait for the disconnect: no timeout
                 return await receive()
+            # The next chunk must come within body_timeout_s, and before the average rate since
+            # the first byte was asked for drops under body_min_rate (after the grace).
+            behind = begun + cfg.body_grace_s + seen / cfg.body_min_rate - loop.time()
+            timeout = min(cfg.body_timeout_s, behind)
             try:
-                message = await asyncio.wait_for(receive(), timeout)
+                message = await asyncio.wait_for(receive(), max(timeout, 0.0))
             except TimeoutError:
-                raise BodyRejected(408, f"the request body stalled for more than {timeout:.0f} s") from None
+                if timeout < cfg.body_timeout_s:
+                    rate = f"{cfg.body_min_rate / 1024:.0f} KB/s"
+                    raise BodyRejected(408, f"the request body arrived slower than {rate}") from None
+                raise BodyRejected(
+                    408, f"the request body stalled for more than {cfg.body_timeout_s:.0f} s"
+                ) from None
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
                 if seen > limit:

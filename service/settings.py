@@ -33,7 +33,8 @@ class ServiceSettings(BaseModel):
 
     Limits, all enforced before a request reaches its endpoint: max_upload_mb, the body of an
     upload (a video for an avatar, a driving video or poses for an animation); max_json_kb, every
-    other body; max_uploads, uploads of either kind at once; body_timeout_s, longest
+    other body; max_uploads, uploads of either kind at once; body_min_kb_s, the slowest average
+    rate a body may arrive at once body_grace_s have passed (else 408); body_timeout_s, longest
     pause while a body streams in (a slow sender is cut off with 408); max_requests, requests in
     flight (past it, the answer is 503 with ``Retry-After``; ``/healthz`` always passes);
     connections, the connections that have not sent a request's headers (``ConnectionLimits``:
@@ -59,6 +60,8 @@ class ServiceSettings(BaseModel):
     max_json_kb: float = Field(64.0, gt=0)
     max_uploads: int = Field(2, ge=1)
     body_timeout_s: float = Field(30.0, gt=0)
+    body_min_kb_s: float = Field(16.0, gt=0)
+    body_grace_s: float = Field(10.0, ge=0)
     max_requests: int = Field(64, ge=1)
     connections: ConnectionLimits = ConnectionLimits()
     max_video_seconds: float = Field(600.0, gt=0)

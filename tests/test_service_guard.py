@@ -30,7 +30,8 @@ signer_video = svc.signer_video  # a fixture
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    """A keyed server: 1 upload at once, bodies that stall for 1.5 s are cut off."""
+    """A keyed server: 1 upload at once, bodies that stall for 1.5 s, or arrive slower than
+    16 KB/s after 2 s, are cut off."""
     data = tmp_path_factory.mktemp("guarded")
     settings = ServiceSettings(
         jobs=JobsConfig(data_dir=data),
@@ -38,6 +39,7 @@ def server(tmp_path_factory):
         api_key=KEY,
         max_uploads=1,
         body_timeout_s=1.5,
+        body_grace_s=2.0,
         preload_body_models=(),
         max_upload_mb=64,
     )
@@ -133,6 +135,16 @@ def test_a_stalled_body_is_cut_off(server):
     started = time.monotonic()
     status, sent = push_body(base, "/avatars", 10 * 2**20, UPLOAD_HEAD, chunk=1024, pause=3.0, prefix=PART)
     assert status == 408 and sent <= 4096 and time.monotonic() - started < 10
+
+
+def test_a_body_that_trickles_in_is_cut_off(server):
+    """100 bytes a second never pauses long enough to stall, but would hold the upload slot for
+    days: under 16 KB/s on average after the grace, the body is cut off with 408."""
+    _, base, _, _ = server
+    started = time.monotonic()
+    status, sent = push_body(base, "/avatars", 10 * 2**20, UPLOAD_HEAD, chunk=100, pause=1.0, prefix=PART)
+    took = time.monotonic() - started
+    assert status == 408 and sent < 1000 and 2.0 <= took < 6.0, (status, sent, took)
 
 
 def test_uploads_at_once_are_capped_with_retry_after(server):
