@@ -19,7 +19,6 @@ attempts never write into one folder.
 from __future__ import annotations
 
 import dataclasses
-import errno
 import logging
 import math
 import re
@@ -30,6 +29,7 @@ from pathlib import Path
 
 from eva_engine.progress import ProgressEvent
 from jobs.config import JobsConfig
+from jobs.disk import DiskFull, is_disk_full
 from jobs.options import JobOptions
 from jobs.progress import preprocess_progress
 from jobs.storage import Storage, input_file, move_into_place
@@ -119,7 +119,8 @@ class JobRun:
     def execute(self) -> str | None:
         """Run the stages of the job's kind (an avatar, or an animation: ``jobs.animation``) and
         end the job with its outcome; returns the final state, or None when this attempt lost
-        the job (it then leaves the record and the files alone)."""
+        the job (it then leaves the record and the files alone). Raises ``DiskFull`` (leaving
+        the record and the files alone) when the disk is full."""
         job = self.job
         stages, spans = self._stages, STAGE_SPANS
         if job.kind == "animation":
@@ -136,6 +137,9 @@ class JobRun:
         except JobCancelled:
             state, fields = "cancelled", {"message": "cancelled on request"}
         except Exception as err:  # every failure ends the job with its reason
+            if is_disk_full(err):  # but a full disk: the job goes back to the queue, upload and all
+                logger.error("job %s: the disk is full; its attempt stops here", job.id, exc_info=True)
+                raise DiskFull(job.id) from err
             stage = (self.store.get(job.id) or job).stage or stage
             reason = failure_reason(err, stage, self.config)
             # No server paths in messages.
@@ -311,7 +315,7 @@ def failure_reason(err: Exception, stage: str | None, config: JobsConfig) -> str
             f"the job ran out of memory{where}: it needs more than its limit{limit}; "
             "lower max_frames, max_size or iterations"
         )
-    if isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT):
+    if is_disk_full(err):
         return f"the server's disk is full{where}"
     if is_input_error(err):
         return f"{err}{where}"

@@ -28,6 +28,7 @@ from pathlib import Path
 
 from jobs.child_env import child_environment
 from jobs.config import JobsConfig
+from jobs.disk import EXIT_DISK_FULL, DiskFull
 from jobs.storage import Storage
 from jobs.store import JobRecord, JobStore
 
@@ -212,6 +213,8 @@ def _stop(child: subprocess.Popen, grace: float = 10.0) -> None:
 def exit_reason(returncode: int, config: JobsConfig) -> str:
     """Why a job's process ended without ending its job, for the job's record."""
     limit = f"{config.job_memory_mb} MB" if config.job_memory_mb else "none"
+    if returncode == EXIT_DISK_FULL:
+        return "the server's disk was full"
     if returncode < 0:
         sig = signal.Signals(-returncode).name if -returncode in signal.valid_signals() else str(-returncode)
         if -returncode == signal.SIGKILL:
@@ -301,5 +304,8 @@ def main(argv: list[str] | None = None) -> int:
     job = store.get(argv[0])
     if job is None or job.state != "running" or job.worker != spec["worker"]:
         return 0  # taken from us before we started
-    JobRun(config, store, Storage(config), job, spec["worker"]).execute()
+    try:
+        JobRun(config, store, Storage(config), job, spec["worker"]).execute()
+    except DiskFull:  # the worker gives the job back to the queue (exit_reason)
+        return EXIT_DISK_FULL
     return 0

@@ -8,7 +8,6 @@ client's, 503 with ``Retry-After`` when busy, 507 when the disk is full.
 
 from __future__ import annotations
 
-import errno
 import logging
 import sqlite3
 import threading
@@ -25,6 +24,7 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 import eva_engine
 from eva_engine.avatar import AvatarFileError
 from eva_engine.body import InvalidPoseError
+from jobs.disk import is_disk_full
 from jobs.media import VideoRejected
 from jobs.queue import JobQueue, QueueUnavailable
 from jobs.storage import InvalidIdError
@@ -92,10 +92,6 @@ def _reply(status: int, detail: str, retry: bool = False) -> JSONResponse:
     return JSONResponse({"detail": detail}, status_code=status, headers=headers)
 
 
-def _disk_full(exc: BaseException | None) -> bool:
-    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
-
-
 def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -118,7 +114,7 @@ def _install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-        if _disk_full(exc.__cause__):  # FastAPI words a failed spool of the upload as a 400
+        if is_disk_full(exc.__cause__):  # FastAPI words a failed spool of the upload as a 400
             return _reply(507, "the server's disk is full; retry later")
         return JSONResponse({"detail": exc.detail}, status_code=exc.status_code, headers=exc.headers)
 
@@ -134,11 +130,13 @@ def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(sqlite3.OperationalError)
     async def _store_busy(request: Request, exc: sqlite3.OperationalError) -> JSONResponse:
         logger.error("job store error", exc_info=exc)
+        if is_disk_full(exc):
+            return _reply(507, "the server's disk is full; retry later")
         return _reply(503, "the job records are busy; retry shortly", retry=True)
 
     @app.exception_handler(OSError)
     async def _os_error(request: Request, exc: OSError) -> JSONResponse:
-        if _disk_full(exc):
+        if is_disk_full(exc):
             logger.error("disk full", exc_info=exc)
             return _reply(507, "the server's disk is full; retry later")
         logger.error("I/O error in %s %s", request.method, request.url.path, exc_info=exc)

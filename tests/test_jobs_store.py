@@ -110,6 +110,29 @@ def test_the_job_decodes_the_upload_as_the_probe_approved_it(queue, tmp_path, mo
     assert config.demuxer == "mov" and config.max_video_side == queue.config.max_video_side
 
 
+def test_a_job_on_a_full_disk_goes_back_with_its_upload(queue, tmp_path, monkeypatch, anny_model):
+    """A full disk is the server's state, not the job's fault: the attempt stops without ending
+    the job or removing its upload; its process exits with EXIT_DISK_FULL, which the worker
+    reads as a reason to give the job back (``exit_reason``)."""
+    import errno
+
+    import eva_engine.align as align
+    from jobs.disk import EXIT_DISK_FULL, DiskFull
+    from jobs.runner import exit_reason
+
+    def no_space(video, out, config, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(align, "preprocess_video", no_space)
+    job_id = submit(queue, no_person_video(tmp_path / "v.mp4"), preset="tiny")
+    with pytest.raises(DiskFull):
+        run_job_here(queue, job_id, anny_model)
+    job = queue.store.get(job_id)
+    assert job.state == "running" and job.error is None  # the worker decides, as after a crash
+    assert (queue.storage.work_dir(job_id) / "input.mp4").is_file()
+    assert exit_reason(EXIT_DISK_FULL, queue.config) == "the server's disk was full"
+
+
 def test_cancel_a_running_job(queue, tmp_path, monkeypatch):
     video = no_person_video(tmp_path / "long.mp4", frames=60)
     job_id = submit(queue, video, preset="tiny")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import errno
 import json
+import sqlite3
 import subprocess
 import sys
 
@@ -143,6 +144,20 @@ def test_a_full_disk_is_507_and_leaves_nothing(tmp_path, signer_video, monkeypat
     with make_client(tmp_path) as client:
         res = upload(client, signer_video.read_bytes())
     assert res.status_code == 507 and "disk is full" in res.json()["detail"], res.text
+    assert leftovers(tmp_path) == []
+
+
+def test_job_records_on_a_full_disk_are_507_not_busy(tmp_path, signer_video, monkeypatch):
+    def full(*args, **kwargs):
+        err = sqlite3.OperationalError("database or disk is full")
+        err.sqlite_errorcode = 13  # SQLITE_FULL, as sqlite3 sets it
+        raise err
+
+    with make_client(tmp_path) as client:
+        monkeypatch.setattr(client.app.state.context.queue.store, "create", full)
+        res = upload(client, signer_video.read_bytes())
+    assert res.status_code == 507 and "disk is full" in res.json()["detail"], res.text
+    assert "retry-after" not in res.headers
     assert leftovers(tmp_path) == []
 
 
