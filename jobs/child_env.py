@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import os
 
-SECRETS = ("EVA_API_KEY",)
+# The API key; the queue's URL, which holds its password (a job's process never uses the queue).
+SECRETS = ("EVA_API_KEY", "EVA_QUEUE_URL")
 
 
 def child_environment(**extra: str) -> dict[str, str]:

@@ -122,7 +122,9 @@ class JobRunner:
         if job is None:
             return None
         logger.info("job %s: attempt %d on %s", job.id, job.attempts, self.worker)
-        spec = {"config": self.config.model_dump(mode="json"), "worker": self.worker, "parent": os.getpid()}
+        # Without the queue's URL (and its password): the job's process uses the store, not the queue.
+        config = self.config.model_copy(update={"queue_url": None}).model_dump(mode="json")
+        spec = {"config": config, "worker": self.worker, "parent": os.getpid()}
         try:
             child = subprocess.Popen(
                 [sys.executable, "-m", "jobs", "run", job.id],

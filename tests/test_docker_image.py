@@ -134,6 +134,11 @@ def test_compose_caps_memory_and_needs_a_key():
     api, worker = compose["services"]["api"], compose["services"]["worker"]
     assert re.match(r"\$\{EVA_API_KEY:\?", api["environment"]["EVA_API_KEY"])
     assert all(p.startswith("127.0.0.1:") for p in api["ports"])
+    # Redis asks for a password (huey's messages are pickles): every client's URL carries it.
+    redis = compose["services"]["redis"]
+    assert "--requirepass" in " ".join(redis["command"]) and redis["environment"]["REDISCLI_AUTH"]
+    with_password = r"redis://:\$\{EVA_REDIS_PASSWORD:\?[^}]+\}@redis:"
+    assert all(re.match(with_password, s["environment"]["EVA_QUEUE_URL"]) for s in (api, worker))
     job_mb = int(re.search(r":-(\d+)", worker["environment"]["EVA_JOB_MEMORY_MB"]).group(1))
     assert job_mb * 2**20 < int(worker["mem_limit"].rstrip("g")) * 2**30  # a job fails before the container
 

@@ -295,7 +295,9 @@ def test_a_short_key_is_refused_and_the_key_stays_off_command_lines(tmp_path, mo
     assert result.exit_code == 2 and "at least 16" in result.output
     # The children that read uploads (the probe, a job's process) never see the key.
     monkeypatch.setenv("EVA_API_KEY", KEY)
-    assert "EVA_API_KEY" not in child_environment(EXTRA="1") and child_environment(EXTRA="1")["EXTRA"] == "1"
+    monkeypatch.setenv("EVA_QUEUE_URL", "redis://:password@redis:6379/0")
+    env = child_environment(EXTRA="1")
+    assert "EVA_API_KEY" not in env and "EVA_QUEUE_URL" not in env and env["EXTRA"] == "1"
 
 
 def test_no_open_api_on_a_network_address(tmp_path):
