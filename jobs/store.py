@@ -65,12 +65,13 @@ CREATE TABLE IF NOT EXISTS jobs (
     updated_at REAL NOT NULL,
     heartbeat_at REAL,
     enqueued_at REAL,
-    kind TEXT NOT NULL DEFAULT 'avatar'
+    kind TEXT NOT NULL DEFAULT 'avatar',
+    account TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state);
 """
 # Columns added since the first release: added to an older file when it is opened.
-_ADDED_COLUMNS = {"enqueued_at": "REAL", "kind": "TEXT NOT NULL DEFAULT 'avatar'"}
+_ADDED_COLUMNS = {"enqueued_at": "REAL", "kind": "TEXT NOT NULL DEFAULT 'avatar'", "account": "TEXT"}
 # File systems where SQLite's WAL (shared-memory index, POSIX locks) is unsafe.
 NETWORK_FILESYSTEMS = frozenset(
     {
@@ -139,6 +140,8 @@ class JobRecord:
     heartbeat_at: float | None = None
     enqueued_at: float | None = None
     kind: str = "avatar"
+    account: str | None = None
+    """The owner the job belongs to (``service.accounts``; None: the local mode, or older)."""
 
     @property
     def finished(self) -> bool:
@@ -252,9 +255,17 @@ class JobStore:
 
     @_retry_busy
     def list(
-        self, states: tuple[str, ...] | None = None, with_deleted: bool = False, kind: str | None = None
+        self,
+        states: tuple[str, ...] | None = None,
+        with_deleted: bool = False,
+        kind: str | None = None,
+        account: str | None = None,
     ) -> list[JobRecord]:
+        """Jobs oldest first, of these ``states``, ``kind`` and ``account`` (None: any)."""
         query, args = "SELECT * FROM jobs WHERE 1 = 1", []
+        if account is not None:
+            query += " AND account = ?"
+            args.append(account)
         if kind is not None:
             query += " AND kind = ?"
             args.append(kind)
@@ -266,6 +277,15 @@ class JobStore:
         with self._connect() as db:
             rows = db.execute(query + " ORDER BY created_at", args).fetchall()
         return [JobRecord.from_row(r) for r in rows]
+
+    @_retry_busy
+    def queued(self, account: str | None = None) -> int:
+        """Jobs waiting for a worker (of ``account``; None: all)."""
+        query, args = "SELECT COUNT(*) FROM jobs WHERE state = 'queued'", []
+        if account is not None:
+            query, args = query + " AND account = ?", [account]
+        with self._connect() as db:
+            return int(db.execute(query, args).fetchone()[0])
 
     @_retry_busy
     def counts(self) -> dict[str, int]:
@@ -285,6 +305,7 @@ class JobStore:
         job_id: str | None = None,
         avatar_id: str | None = None,
         kind: str = "avatar",
+        account: str | None = None,
     ) -> JobRecord:
         if kind not in KINDS:
             raise ValueError(f"unknown job kind {kind!r}; choose one of {KINDS}")
@@ -299,13 +320,14 @@ class JobStore:
             filename=filename,
             message="waiting for a worker",
             kind=kind,
+            account=account,
         )
         row = (job.id, job.avatar_id, kind, job.state, json.dumps(options), filename, job.message, now, now)
         with self._connect() as db:
             db.execute(
                 "INSERT INTO jobs (id, avatar_id, kind, state, options, filename, message, created_at,"
-                " updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                row,
+                " updated_at, account) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (*row, account),
             )
         return job
 

@@ -187,6 +187,7 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
         default_max_bytes=settings.max_json_bytes,
         max_requests=settings.max_requests,
         body_timeout_s=settings.body_timeout_s,
+        accounts=settings.accounts,
         body_min_rate=settings.body_min_kb_s * 1024,
         body_grace_s=settings.body_grace_s,
         open_paths=OPEN_PATHS,

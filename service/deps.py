@@ -14,6 +14,7 @@ from fastapi.concurrency import run_in_threadpool
 
 from jobs.queue import JobQueue
 from jobs.store import JobRecord, is_valid_id
+from service.accounts import LOCAL, Caller
 from service.guard import RETRY_AFTER_S
 from service.rendering import AvatarCache, RenderGate
 from service.settings import ServiceSettings
@@ -62,28 +63,46 @@ async def render_admission(ctx: ServiceContext = Depends(context)) -> None:
     ctx.renders.admit()
 
 
-def _record(what: str, value: str, find: Callable[[str], JobRecord | None]) -> JobRecord:
-    """What ``find`` answers for a well-formed id; 404 for a malformed or unknown one."""
+async def caller(request: Request, ctx: ServiceContext = Depends(context)) -> Caller:
+    """Who made the request (``RequestGuard`` identified them): the local user when the service
+    has no accounts."""
+    if not ctx.settings.accounts:
+        return LOCAL
+    who = request.scope.get("state", {}).get("caller")
+    if who is None:
+        raise HTTPException(401, "missing or wrong API key (header X-API-Key)")
+    return who
+
+
+def _record(what: str, value: str, find: Callable[[str], JobRecord | None], who: Caller) -> JobRecord:
+    """What ``find`` answers for a well-formed id that ``who`` may see; 404 for a malformed or
+    unknown one, and for another owner's (the same answer: an id says nothing about its owner)."""
     if not is_valid_id(value):
         raise HTTPException(404, f"no {what} with id {value!r} (ids are 32 lowercase hex characters)")
     job = find(value)
-    if job is None:
+    if job is None or not who.sees(job.account):
         raise HTTPException(404, f"no {what} with id {value!r}")
     return job
 
 
-def job_record(job_id: str, ctx: ServiceContext = Depends(context)) -> JobRecord:
-    return _record("job", job_id, ctx.queue.store.get)
+def job_record(
+    job_id: str, ctx: ServiceContext = Depends(context), who: Caller = Depends(caller)
+) -> JobRecord:
+    return _record("job", job_id, ctx.queue.store.get, who)
 
 
-def avatar_record(avatar_id: str, ctx: ServiceContext = Depends(context)) -> JobRecord:
+def avatar_record(
+    avatar_id: str, ctx: ServiceContext = Depends(context), who: Caller = Depends(caller)
+) -> JobRecord:
     """The job record behind an avatar (one job makes one avatar)."""
-    return _record("avatar", avatar_id, ctx.queue.store.by_avatar)
+    return _record("avatar", avatar_id, ctx.queue.store.by_avatar, who)
 
 
-def animation_record(animation_id: str, ctx: ServiceContext = Depends(context)) -> JobRecord:
+def animation_record(
+    animation_id: str, ctx: ServiceContext = Depends(context), who: Caller = Depends(caller)
+) -> JobRecord:
     """The job record behind an animation (its ``avatar_id`` column is the animation's id)."""
-    return _record("animation", animation_id, partial(ctx.queue.store.by_avatar, kind="animation"))
+    return _record("animation", animation_id, partial(ctx.queue.store.by_avatar, kind="animation"), who)
 
 
 def ready_avatar(
@@ -109,13 +128,15 @@ def check_ready(job: JobRecord, ctx: ServiceContext) -> JobRecord:
     return job
 
 
-def check_job_quota(ctx: ServiceContext) -> None:
+def check_job_quota(ctx: ServiceContext, who: Caller = LOCAL) -> None:
     """503 with ``Retry-After`` when ``max_queued_jobs`` jobs (avatars and animations) already wait
-    for a worker. Blocking (reads the store): call it from a thread."""
-    queued = ctx.queue.store.counts()["queued"]
+    for a worker: ``who``'s own jobs when the service has accounts (one owner cannot lock the
+    others out), all jobs otherwise. Blocking (reads the store): call it from a thread."""
+    queued = ctx.queue.store.queued(who.account)
     if queued >= ctx.settings.max_queued_jobs:
+        whose = "of yours " if who.account is not None else ""
         raise HTTPException(
             503,
-            f"{queued} jobs are waiting for a worker (the quota); retry later",
+            f"{queued} jobs {whose}are waiting for a worker (the quota); retry later",
             headers={"Retry-After": str(30 * RETRY_AFTER_S)},
         )

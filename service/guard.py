@@ -1,8 +1,9 @@
 """``RequestGuard``: an ASGI middleware that decides about a request before the app reads a byte
 of its body or routes it, in this order:
 
-1. the API key (``X-API-Key``, compared in constant time) unless the path is public (``/healthz``)
-   or open (the web page and its static files, which hold no secret): 401;
+1. the API key (``X-API-Key``, compared in constant time: the one key, or each account's) unless
+   the path is public (``/healthz``) or open (the web page and its static files, which hold no
+   secret): 401. Who called (``accounts.Caller``) goes to ``scope["state"]["caller"]``;
 2. a browser's cross-site write (``Sec-Fetch-Site: cross-site``; without a key, also an
    ``Origin`` of another scheme, host or port) on a POST, PUT, PATCH or DELETE, e.g. a web page,
    or another program's page on another loopback port, posting a form to the service: 403;
@@ -29,6 +30,8 @@ from urllib.parse import urlsplit
 from starlette.exceptions import HTTPException
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.accounts import Account, identify
 
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 RETRY_AFTER_S = 1
@@ -62,6 +65,7 @@ class GuardConfig:
     default_max_bytes: int
     max_requests: int
     body_timeout_s: float
+    accounts: tuple[Account, ...] = ()
     body_min_rate: float = 16 * 1024.0
     body_grace_s: float = 10.0
     open_paths: frozenset[str] = frozenset()
@@ -118,7 +122,8 @@ class RequestGuard:
             return
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         method, path = scope["method"], scope["path"]
-        refusal = self._refuse(method, path, headers, scope.get("scheme", "http"))
+        state = scope.setdefault("state", {})
+        refusal = self._refuse(method, path, headers, scope.get("scheme", "http"), state)
         if refusal is not None:
             await refusal(scope, receive, send)
             return
@@ -151,8 +156,15 @@ class RequestGuard:
             if index is not None:
                 counters.per_rule[index] -= 1
 
-    def _refuse(self, method: str, path: str, headers: dict[str, str], scheme: str) -> JSONResponse | None:
-        if self._key is not None and self.config.needs_key(path):
+    def _refuse(
+        self, method: str, path: str, headers: dict[str, str], scheme: str, state: dict
+    ) -> JSONResponse | None:
+        if self.config.accounts:
+            caller = identify(headers.get("x-api-key", ""), self.config.accounts)
+            if caller is None and self.config.needs_key(path):
+                return _reply(401, "missing or wrong API key (header X-API-Key)")
+            state["caller"] = caller
+        elif self._key is not None and self.config.needs_key(path):
             given = headers.get("x-api-key", "").encode("latin-1")
             if not hmac.compare_digest(given, self._key):
                 return _reply(401, "missing or wrong API key (header X-API-Key)")

@@ -8,11 +8,9 @@ import os
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from jobs.config import JobsConfig
+from service.accounts import MIN_KEY_LENGTH, Account, read_accounts
 from service.connections import ConnectionLimits
 
-# A key is the only thing between the network and every avatar: long enough not to be guessed
-# (``openssl rand -hex 24`` gives 48 characters).
-MIN_KEY_LENGTH = 16
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1", "[::1]")
 
 
@@ -27,8 +25,10 @@ def is_loopback(host: str) -> bool:
 
 class ServiceSettings(BaseModel):
     """host / port: where ``eva serve`` binds (loopback by default; any other address needs an
-    ``api_key``); api_key: when set, every endpoint but ``/healthz`` (the docs included) needs the
-    header ``X-API-Key``; allowed_hosts: accepted ``Host`` headers (default: the loopback names
+    ``api_key`` or ``accounts``); api_key: when set, every endpoint but ``/healthz`` (the docs
+    included) needs the header ``X-API-Key``; accounts: several keys, each with its owner, who
+    sees only their own avatars, animations and jobs (``service.accounts``; instead of
+    ``api_key``); allowed_hosts: accepted ``Host`` headers (default: the loopback names
     without a key, any with one; DNS rebinding cannot supply the key).
 
     Limits, all enforced before a request reaches its endpoint: max_upload_mb, the body of an
@@ -42,7 +42,8 @@ class ServiceSettings(BaseModel):
 
     Videos: max_video_seconds; probe_timeout_s / probe_memory_mb, the child process that reads an
     upload's headers; max_poses_mb, a JSON pose sequence uploaded for an animation (parsed in the
-    API). Jobs: max_queued_jobs, quota of jobs (of either kind) waiting for a worker.
+    API). Jobs: max_queued_jobs, quota of jobs (of either kind) waiting for a worker (per owner
+    with accounts).
 
     Renders: max_render_side, largest width or height; max_render_pixels, width x height;
     max_renders at once, up to render_queue more waiting at most render_wait_s; avatar_cache:
@@ -55,6 +56,7 @@ class ServiceSettings(BaseModel):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
     api_key: str | None = None
+    accounts: tuple[Account, ...] = ()
     allowed_hosts: tuple[str, ...] | None = None
     max_upload_mb: float = Field(512.0, gt=0)
     max_json_kb: float = Field(64.0, gt=0)
@@ -88,8 +90,19 @@ class ServiceSettings(BaseModel):
         return key
 
     @model_validator(mode="after")
+    def _one_way_of_keys(self) -> ServiceSettings:
+        if self.api_key is not None and self.accounts:
+            raise ValueError("give one API key (EVA_API_KEY) or a keys file (EVA_API_KEYS_FILE), not both")
+        return self
+
+    @property
+    def keyed(self) -> bool:
+        """Whether requests need a key (one key, or the accounts' keys)."""
+        return self.api_key is not None or bool(self.accounts)
+
+    @model_validator(mode="after")
     def _no_open_api_on_a_network(self) -> ServiceSettings:
-        if self.api_key is None and not is_loopback(self.host):
+        if not self.keyed and not is_loopback(self.host):
             raise ValueError(
                 f"refusing to serve on {self.host} without an API key: anyone who can reach it could "
                 "upload, export and delete avatars; set EVA_API_KEY (or --api-key-file), or bind 127.0.0.1"
@@ -112,14 +125,15 @@ class ServiceSettings(BaseModel):
     def trusted_hosts(self) -> list[str]:
         if self.allowed_hosts is not None:
             return list(self.allowed_hosts)
-        if self.api_key is not None:
+        if self.keyed:
             return ["*"]
         extra = [] if self.host in ("0.0.0.0", "::") else [self.host]
         return [*LOOPBACK_NAMES, *extra]
 
     @classmethod
     def from_env(cls, jobs: JobsConfig | None = None, **overrides) -> ServiceSettings:
-        """From ``EVA_HOST``, ``EVA_PORT``, ``EVA_API_KEY``, ``EVA_ALLOWED_HOSTS`` (comma-separated),
+        """From ``EVA_HOST``, ``EVA_PORT``, ``EVA_API_KEY`` or ``EVA_API_KEYS_FILE`` (accounts:
+        ``service.accounts``), ``EVA_ALLOWED_HOSTS`` (comma-separated),
         ``EVA_MAX_UPLOAD_MB``, ``EVA_MAX_VIDEO_SECONDS``, ``EVA_MAX_RENDER_PIXELS`` (width x
         height), ``EVA_MAX_RENDER_SIDE``, ``EVA_MAX_QUEUED_JOBS``, ``EVA_MAX_RENDERS`` (and
         ``JobsConfig.from_env``); ``overrides`` that are not None win."""
@@ -139,5 +153,7 @@ class ServiceSettings(BaseModel):
             values["allowed_hosts"] = tuple(
                 h.strip() for h in os.environ["EVA_ALLOWED_HOSTS"].split(",") if h.strip()
             )
+        if os.environ.get("EVA_API_KEYS_FILE"):
+            values["accounts"] = read_accounts(os.environ["EVA_API_KEYS_FILE"])
         values.update({k: v for k, v in overrides.items() if v is not None})
         return cls(jobs=jobs or JobsConfig.from_env(), **values)

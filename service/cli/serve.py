@@ -28,6 +28,13 @@ def serve(
         help="A file holding the key that the X-API-Key header must carry (or set EVA_API_KEY; "
         "never on the command line, where `ps` shows it); needed to bind a non-loopback address.",
     ),
+    api_keys_file: Path | None = typer.Option(
+        None,
+        exists=True,
+        dir_okay=False,
+        help="Several keys, each with its owner, who sees only their own avatars (JSON, "
+        "docs/deployment.md; or EVA_API_KEYS_FILE); instead of --api-key-file.",
+    ),
     max_upload_mb: float | None = typer.Option(None, min=0.001, help="Upload size limit (default 512)."),
     log_level: str = typer.Option("info", help="uvicorn log level."),
 ) -> None:
@@ -35,14 +42,16 @@ def serve(
     Run ``eva worker`` beside it (same data dir and queue) to process the jobs."""
     prefer_passive_openmp()
     from jobs.config import JobsConfig
+    from service.accounts import read_accounts
     from service.server import serve as run_server
     from service.settings import ServiceSettings
 
     try:
         api_key = read_key_file(api_key_file) if api_key_file is not None else None
+        accounts = read_accounts(api_keys_file) if api_keys_file is not None else None
         jobs = JobsConfig.from_env(data_dir=data_dir, queue_url=queue_url)
         settings = ServiceSettings.from_env(
-            jobs, host=host, port=port, api_key=api_key, max_upload_mb=max_upload_mb
+            jobs, host=host, port=port, api_key=api_key, accounts=accounts, max_upload_mb=max_upload_mb
         )
     except ValueError as err:
         typer.echo(f"error: {err}", err=True)

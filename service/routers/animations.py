@@ -26,6 +26,7 @@ from jobs.animation import (
     read_animation_info,
 )
 from jobs.store import JobRecord, new_id
+from service.accounts import Caller
 from service.animation_schemas import (
     AnimationCreated,
     AnimationForm,
@@ -38,6 +39,7 @@ from service.deps import (
     ServiceContext,
     animation_record,
     avatar_record,
+    caller,
     check_job_quota,
     context,
     ready_avatar,
@@ -80,6 +82,7 @@ async def create_animation(
     poses: UploadFile | None = File(None, description='Or a JSON pose sequence {"fps", "poses": [...]}.'),
     avatar: JobRecord = Depends(ready_avatar),
     ctx: ServiceContext = Depends(context),
+    who: Caller = Depends(caller),
 ) -> AnimationCreated:
     options = AnimationOptions(**form.model_dump(), avatar_id=avatar.avatar_id)
     upload = _one_upload(video, poses)
@@ -87,12 +90,13 @@ async def create_animation(
         raise HTTPException(422, "camera 'driving' and side_by_side need a driving video, not poses")
     # File copies, the probe's child process, parsing poses and SQLite block: off the event loop.
     return await run_in_threadpool(
-        _create, ctx, avatar, options, upload.file, upload.filename, poses is not None
+        _create, ctx, who, avatar, options, upload.file, upload.filename, poses is not None
     )
 
 
 def _create(
     ctx: ServiceContext,
+    who: Caller,
     avatar: JobRecord,
     options: AnimationOptions,
     source: BinaryIO,
@@ -100,7 +104,7 @@ def _create(
     is_poses: bool,
 ) -> AnimationCreated:
     queue, settings = ctx.queue, ctx.settings
-    check_job_quota(ctx)
+    check_job_quota(ctx, who)
     animation_id = new_id()
     with queued_job(queue) as (job_id, work):
         # The worker tells poses from a video by the name: a video is never saved as .json.
@@ -126,6 +130,7 @@ def _create(
             job_id=job_id,
             avatar_id=animation_id,
             kind="animation",
+            account=who.account,
         )
     return AnimationCreated(animation_id=animation_id, job_id=job_id)
 
@@ -242,8 +247,12 @@ def delete_animation(job: JobRecord = Depends(animation_record), ctx: ServiceCon
     responses=NOT_FOUND,
     summary="The animations of an avatar, oldest first",
 )
-def list_animations(avatar: JobRecord = Depends(avatar_record), ctx: ServiceContext = Depends(context)):
-    jobs = ctx.queue.store.list(kind="animation")
+def list_animations(
+    avatar: JobRecord = Depends(avatar_record),
+    ctx: ServiceContext = Depends(context),
+    who: Caller = Depends(caller),
+):
+    jobs = ctx.queue.store.list(kind="animation", account=None if who.admin else who.account)
     jobs = [j for j in jobs if j.options.get("avatar_id") == avatar.avatar_id]
     return AnimationList(animations=[_info(j, ctx) for j in jobs])
 

@@ -15,9 +15,11 @@ from eva_engine.avatar.render_spec import coverage_warnings, frame_params, spec_
 from jobs.options import JobOptions
 from jobs.store import JobRecord, new_id
 from service import rendering
+from service.accounts import Caller
 from service.deps import (
     ServiceContext,
     avatar_record,
+    caller,
     check_job_quota,
     check_ready,
     context,
@@ -51,16 +53,17 @@ async def create_avatar(
     video: Annotated[UploadFile, File(description="A video of one person (mp4, mov, mkv, webm or avi).")],
     options: Annotated[AvatarForm, Form()],
     ctx: ServiceContext = Depends(context),
+    who: Caller = Depends(caller),
 ) -> AvatarCreated:
     # File copies, the probe's child process and SQLite block: off the event loop.
-    return await run_in_threadpool(_create, ctx, options, video.file, video.filename)
+    return await run_in_threadpool(_create, ctx, who, options, video.file, video.filename)
 
 
 def _create(
-    ctx: ServiceContext, options: JobOptions, source: BinaryIO, filename: str | None
+    ctx: ServiceContext, who: Caller, options: JobOptions, source: BinaryIO, filename: str | None
 ) -> AvatarCreated:
     queue, settings = ctx.queue, ctx.settings
-    check_job_quota(ctx)
+    check_job_quota(ctx, who)
     avatar_id = new_id()
     with queued_job(queue) as (job_id, work):
         path = work / VIDEO_UPLOAD
@@ -68,7 +71,9 @@ def _create(
             raise HTTPException(422, "the uploaded video is empty (0 bytes)")
         check_video(path, options, settings)
         name = Path(filename or "video").name[:200]
-        queue.store.create(options.model_dump(), filename=name, job_id=job_id, avatar_id=avatar_id)
+        queue.store.create(
+            options.model_dump(), filename=name, job_id=job_id, avatar_id=avatar_id, account=who.account
+        )
     return AvatarCreated(avatar_id=avatar_id, job_id=job_id)
 
 
@@ -114,9 +119,10 @@ def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
     return info
 
 
-@router.get("", response_model=AvatarList, summary="All avatars, oldest first")
-def list_avatars(ctx: ServiceContext = Depends(context)) -> AvatarList:
-    return AvatarList(avatars=[_info(job, ctx) for job in ctx.queue.store.list(kind="avatar")])
+@router.get("", response_model=AvatarList, summary="All avatars (with accounts: the caller's), oldest first")
+def list_avatars(ctx: ServiceContext = Depends(context), who: Caller = Depends(caller)) -> AvatarList:
+    jobs = ctx.queue.store.list(kind="avatar", account=None if who.admin else who.account)
+    return AvatarList(avatars=[_info(job, ctx) for job in jobs])
 
 
 @router.get("/{avatar_id}", response_model=AvatarInfo, responses=NOT_FOUND, summary="An avatar's metadata")
