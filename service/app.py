@@ -32,7 +32,7 @@ from jobs.store import JobStoreError
 from service.deps import ServiceContext
 from service.guard import RETRY_AFTER_S, BodyRule, GuardConfig, RequestGuard
 from service.rendering import AvatarCache, RenderBusy, RenderGate, RenderInputError
-from service.routers import animations, avatars, health, jobs, page
+from service.routers import animations, avatars, docs, health, jobs, page
 from service.security_headers import SecurityHeaders
 from service.settings import ServiceSettings
 from service.uploads import UploadTooLarge
@@ -167,7 +167,12 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
         yield
 
     app = FastAPI(
-        title="EVA avatar service", version=eva_engine.__version__, description=DESCRIPTION, lifespan=lifespan
+        title="EVA avatar service",
+        version=eva_engine.__version__,
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        docs_url=None,  # routers.docs serves it with its own files, not a CDN's
+        redoc_url=None,
     )
     try:
         job_queue = queue or JobQueue(settings.jobs)
@@ -207,5 +212,6 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
     app.include_router(animations.router, dependencies=documented_key)
     app.include_router(jobs.router, dependencies=documented_key)
     app.include_router(page.router)
+    app.include_router(docs.router)
     app.mount("/static", StaticFiles(directory=page.STATIC_DIR), name="static")
     return app

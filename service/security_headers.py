@@ -3,9 +3,8 @@
 - ``X-Content-Type-Options: nosniff``: an upload served back is never run as a script or style;
 - ``Content-Security-Policy``: the page runs only its own files (``service/static``), shows
   images and videos it fetched (``blob:``), and no other site may frame it (``frame-ancestors``,
-  with ``X-Frame-Options`` for older browsers); the OpenAPI docs (FastAPI's Swagger UI) also
-  load their scripts, styles and fonts from the CDNs FastAPI names, and run their inline
-  start-up scripts;
+  with ``X-Frame-Options`` for older browsers); the OpenAPI docs (Swagger UI, served from
+  ``service/static/docs``) also run their inline start-up script and styles;
 - ``Referrer-Policy: no-referrer``: avatar and job ids in URLs stay here.
 """
 
@@ -18,15 +17,12 @@ PAGE_POLICY = (
     "default-src 'self'; img-src 'self' blob: data:; media-src 'self' blob:; object-src 'none'; "
     "base-uri 'none'; form-action 'self'; frame-ancestors 'none'"
 )
-DOCS_CDN = "https://cdn.jsdelivr.net"
+# Swagger UI (this service's own copy) starts from an inline script and sets inline styles.
 DOCS_POLICY = (
-    f"default-src 'self'; script-src 'self' 'unsafe-inline' {DOCS_CDN}; "
-    f"style-src 'self' 'unsafe-inline' {DOCS_CDN} https://fonts.googleapis.com; "
-    "font-src 'self' https://fonts.gstatic.com; worker-src 'self' blob:; "
-    "img-src 'self' data: https://fastapi.tiangolo.com https://cdn.redoc.ly; object-src 'none'; "
-    "base-uri 'none'; frame-ancestors 'none'"
+    "default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; "
+    "img-src 'self' data:; object-src 'none'; base-uri 'none'; frame-ancestors 'none'"
 )
-DOCS_PATHS = frozenset({"/docs", "/redoc", "/docs/oauth2-redirect"})
+DOCS_PATHS = frozenset({"/docs"})
 
 
 class SecurityHeaders:
