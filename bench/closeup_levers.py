@@ -26,6 +26,7 @@ import dataclasses
 import datetime
 import json
 import shlex
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -181,9 +182,13 @@ def report(args) -> None:
         "|---|---|---:|---:|---:|---:|---:|---:|",
         *rows,
         "",
-        "Contact sheets (input | truth | render, held-out frames): "
-        "`<work>/levers/<variant>_s<seed>/sheet.jpg`.",
+        "Contact sheets (input | truth | render, held-out frames): `closeup_levers/<variant>_s<seed>.jpg`.",
     ]
+    sheets = args.out / "closeup_levers"
+    sheets.mkdir(parents=True, exist_ok=True)
+    for r in runs:
+        name = f"{r['variant']}_s{r['seed']}"
+        shutil.copy(args.work / "levers" / name / "sheet.jpg", sheets / f"{name}.jpg")
     (args.out / "closeup_levers.md").write_text("\n".join(lines) + "\n")
     (args.out / "closeup_levers.json").write_text(json.dumps({"command": command, "runs": runs}, indent=1))
     print("\n".join(lines))
