@@ -50,7 +50,15 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 EVA = str(Path(sys.executable).parent / "eva")
 VERDICT = "every job succeeded or failed with a reason, none stuck, none ran twice at once, no orphan files"
-TINY = {"preset": "tiny", "iterations": "6", "image_scale": "0.25", "max_frames": "4", "fit_scale": "0.1"}
+# The shortest clip a job takes (jobs.options.MIN_FRAMES: half of it is held out to score the avatar).
+CLIP_FRAMES = 8
+TINY = {
+    "preset": "tiny",
+    "iterations": "6",
+    "image_scale": "0.25",
+    "max_frames": str(CLIP_FRAMES),
+    "fit_scale": "0.1",
+}
 
 
 # -- shared ---------------------------------------------------------------------------------------
@@ -448,7 +456,7 @@ def run_load(args) -> None:
     met = h["failed"] == 0 and h["max_ms"] < 50
     lines = header("Service under load", report, args.note) + [
         f"- load: {args.clients} render clients ({args.size}², a new pose each time) and "
-        f"{args.uploads} upload clients (a 4-frame signer video, then cancel the queued job) for "
+        f"{args.uploads} upload clients (a {CLIP_FRAMES}-frame signer video, then cancel the queued job) for "
         f"{args.seconds:.0f} s against `eva serve` with an API key and its default limits (2 renders "
         "at once, 8 waiting at most 10 s, 2 uploads at once); "
         "clients wait out 503s as `Retry-After` says; `/healthz` polled every 100 ms from another process",
@@ -491,8 +499,8 @@ def _signer_video(work: Path) -> Path:
     from eva_engine.demo import signer_video
 
     video, frames = signer_video(work / "signer", load_body_model("anny"))
-    short = work / "signer4.mp4"
-    write_video(short, (frames[:4].numpy() * 255 + 0.5).astype(np.uint8), fps=10)
+    short = work / f"signer{CLIP_FRAMES}.mp4"
+    write_video(short, (frames[:CLIP_FRAMES].numpy() * 255 + 0.5).astype(np.uint8), fps=10)
     return short
 
 
@@ -520,7 +528,7 @@ def run_soak(args) -> None:
     data = work / "service"
     signer = args.video or _signer_video(work)
     nobody = work / "nobody.mp4"
-    gradient = np.zeros((4, 128, 128, 3), np.uint8)
+    gradient = np.zeros((CLIP_FRAMES, 128, 128, 3), np.uint8)
     gradient[:] = np.linspace(0, 255, 128, dtype=np.uint8)[None, None, :, None]
     write_video(nobody, gradient, fps=5)
     port = free_port()
@@ -679,8 +687,8 @@ def run_soak(args) -> None:
     ok = not violations and not stuck and not no_reason and orphans == 0
     kills_done = [e for e in events if e["event"].startswith("SIGKILL")]
     lines = header("Service soak: jobs under worker kills", report, args.note) + [
-        f"- setup: {args.jobs} jobs ({args.jobs - 2} of a 4-frame signer video, tiny preset, 6 or 40 "
-        f"iterations; 2 of a video without a person), {args.workers} `eva worker` processes (SQLite "
+        f"- setup: {args.jobs} jobs ({args.jobs - 2} of a signer video of {CLIP_FRAMES} frames, tiny preset, "
+        f"6 or 40 iterations; 2 of a video without a person), {args.workers} `eva worker` processes (SQLite "
         f"queue, default limits: 2 attempts, 8 GB per job process); {len(kills_done)} SIGKILLs every "
         f"{args.kill_min:.0f}-{args.kill_max:.0f} s, each of a random worker (replaced 0-3 s later) or, "
         "one time in four, of a random job's own process",
@@ -724,7 +732,9 @@ def main() -> None:
     load = sub.add_parser("load", help="50 render clients + uploads; errors, memory, /healthz")
     load.add_argument("--service-dir", type=Path)
     load.add_argument(
-        "--video", type=Path, help="the video the upload clients send (default: a 4-frame signer)"
+        "--video",
+        type=Path,
+        help=f"the video the upload clients send (default: a {CLIP_FRAMES}-frame signer)",
     )
     load.add_argument("--seconds", type=float, default=60.0)
     load.add_argument("--clients", type=int, default=50)

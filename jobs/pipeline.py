@@ -144,7 +144,7 @@ class JobRun:
             reason = failure_reason(err, stage, self.config)
             # No server paths in messages.
             reason = re.sub(
-                re.escape(str(self.storage.work_dir(job.id))) + r"/\S*", "the uploaded video", reason
+                re.escape(str(self.storage.work_dir(job.id))) + r"/[^\s:;,]*", "the uploaded video", reason
             )
             logger.warning(
                 "job %s failed in stage %s: %s", job.id, stage, reason, exc_info=not is_input_error(err)
