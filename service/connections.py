@@ -6,9 +6,14 @@ socket, which is why an attacker without a key can hold hundreds of them; the re
 (``service.guard``) never sees them, since it runs only once headers have arrived. So here:
 
 - a connection that waits longer than ``header_timeout_s`` is closed (slow or silent headers);
-- when a client address holds more than ``max_waiting_per_client`` waiting connections, or the
-  server more than ``max_waiting``, a new one closes the *oldest* waiting one (of that client
-  first): idle sockets can never lock out a client that sends its request at once.
+- when a client address holds more than ``max_waiting_per_client`` connections that have sent
+  nothing yet, or the server more than ``max_waiting``, a new one closes the *oldest* of them (of
+  that client first): idle sockets can never lock out a client that sends its request at once.
+  A keep-alive connection between two requests is left to uvicorn's keep-alive timeout: closing
+  it would race its client's next request. The caps are loose (128 from one address): behind a
+  reverse proxy every client has its address, and the 50 clients of ``bench/service.py load``,
+  from one address and starved of CPU between connecting and sending, lost requests to a cap
+  of 16.
 
 Connections with a request in flight are not counted: ``RequestGuard`` bounds those (503 with
 ``Retry-After``), and ``/healthz`` passes it. A reverse proxy in front (``docs/deployment.md``)
@@ -34,8 +39,8 @@ class ConnectionLimits(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     header_timeout_s: float = Field(10.0, gt=0)
-    max_waiting_per_client: int = Field(16, ge=1)
-    max_waiting: int = Field(256, ge=1)
+    max_waiting_per_client: int = Field(128, ge=1)
+    max_waiting: int = Field(512, ge=1)
 
 
 def guarded_protocol(limits: ConnectionLimits) -> type[H11Protocol]:
@@ -81,8 +86,15 @@ def guarded_protocol(limits: ConnectionLimits) -> type[H11Protocol]:
                 return
             self._close("no request headers within %.0f s", self._limits.header_timeout_s)
 
+        @property
+        def fresh(self) -> bool:
+            """Waiting, and no request yet: an idle keep-alive connection between a client's
+            requests is not shed (its client may be sending on it right now; uvicorn's keep-alive
+            timeout closes it)."""
+            return self.waiting and self.cycle is None
+
         def _shed_waiting(self) -> None:
-            waiting = [c for c in self.connections if isinstance(c, GuardedH11Protocol) and c.waiting]
+            waiting = [c for c in self.connections if isinstance(c, GuardedH11Protocol) and c.fresh]
             mine = [c for c in waiting if c.client_host == self.client_host]
             caps = self._limits.max_waiting_per_client, self._limits.max_waiting
             for group, cap in zip((mine, waiting), caps, strict=True):
