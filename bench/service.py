@@ -44,14 +44,14 @@ from pathlib import Path
 
 from machine import describe
 
+from jobs.options import MIN_FRAMES
 from jobs.runner import JobProcess, job_processes
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 EVA = str(Path(sys.executable).parent / "eva")
 VERDICT = "every job succeeded or failed with a reason, none stuck, none ran twice at once, no orphan files"
-# The shortest clip a job takes (jobs.options.MIN_FRAMES: half of it is held out to score the avatar).
-CLIP_FRAMES = 8
+CLIP_FRAMES = MIN_FRAMES  # the shortest clip a job takes: half of it is held out to score the avatar
 TINY = {
     "preset": "tiny",
     "iterations": "6",
