@@ -84,10 +84,19 @@ class Caller:
 LOCAL = Caller(None, admin=True)
 
 
-def identify(given: str, accounts: tuple[Account, ...]) -> Caller | None:
-    """The account whose key is ``given`` (every key compared in constant time), or None."""
+def caller_keys(api_key: str | None, accounts: tuple[Account, ...]) -> tuple[tuple[bytes, Caller], ...]:
+    """Each key the service takes, with who sends it: the one key (the local user's), or each
+    account's; none without a key."""
+    if api_key is not None:
+        return ((api_key.encode(), LOCAL),)
+    return tuple((a.key.encode(), Caller(a.owner, a.admin)) for a in accounts)
+
+
+def identify(given: bytes, keys: tuple[tuple[bytes, Caller], ...]) -> Caller | None:
+    """Who sends the key ``given`` (the header's bytes) among ``keys``, every key compared in
+    constant time; or None."""
     found = None
-    for account in accounts:  # no early exit: the time does not tell which key was close
-        if hmac.compare_digest(given.encode("utf-8", "replace"), account.key.encode()):
-            found = account
-    return Caller(found.owner, found.admin) if found is not None else None
+    for key, caller in keys:  # no early exit: the time does not tell which key was close
+        if hmac.compare_digest(given, key):
+            found = caller
+    return found

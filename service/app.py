@@ -29,6 +29,7 @@ from jobs.media import VideoRejected
 from jobs.queue import JobQueue, QueueUnavailable
 from jobs.storage import InvalidIdError
 from jobs.store import JobStoreError
+from service.accounts import caller_keys
 from service.deps import ServiceContext
 from service.guard import RETRY_AFTER_S, BodyRule, GuardConfig, RequestGuard
 from service.rendering import AvatarCache, RenderBusy, RenderGate, RenderInputError
@@ -185,14 +186,13 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
         renders=RenderGate(settings.max_renders, settings.render_queue, settings.render_wait_s),
     )
     guard = GuardConfig(
-        api_key=settings.api_key,
+        keys=caller_keys(settings.api_key, settings.accounts),
         public_paths=PUBLIC_PATHS,
         trusted_hosts=tuple(settings.trusted_hosts),
         rules=body_rules(settings),
         default_max_bytes=settings.max_json_bytes,
         max_requests=settings.max_requests,
         body_timeout_s=settings.body_timeout_s,
-        accounts=settings.accounts,
         body_min_rate=settings.body_min_kb_s * 1024,
         body_grace_s=settings.body_grace_s,
         open_paths=OPEN_PATHS,

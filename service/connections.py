@@ -73,7 +73,7 @@ def guarded_protocol(limits: ConnectionLimits) -> type[H11Protocol]:
 
         def _start_waiting(self) -> None:
             self._waiting_since = time.monotonic()
-            if getattr(self, "_header_timer", None) is None:
+            if self._header_timer is None:
                 self._header_timer = self.loop.call_later(self._limits.header_timeout_s, self._check_headers)
 
         def _check_headers(self) -> None:

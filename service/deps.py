@@ -63,11 +63,9 @@ async def render_admission(ctx: ServiceContext = Depends(context)) -> None:
     ctx.renders.admit()
 
 
-async def caller(request: Request, ctx: ServiceContext = Depends(context)) -> Caller:
-    """Who made the request (``RequestGuard`` identified them): the local user when the service
-    has no accounts."""
-    if not ctx.settings.accounts:
-        return LOCAL
+async def caller(request: Request) -> Caller:
+    """Who made the request, as ``RequestGuard`` identified them (the local user without
+    accounts)."""
     who = request.scope.get("state", {}).get("caller")
     if who is None:
         raise HTTPException(401, "missing or wrong API key (header X-API-Key)")

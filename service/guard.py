@@ -22,7 +22,6 @@ A body cut off by 413 or 408 fails the app's parsing, so the endpoint never runs
 from __future__ import annotations
 
 import asyncio
-import hmac
 import re
 from dataclasses import dataclass, field
 from urllib.parse import urlsplit
@@ -31,7 +30,7 @@ from starlette.exceptions import HTTPException
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.accounts import Account, identify
+from service.accounts import LOCAL, Caller, identify
 
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 RETRY_AFTER_S = 1
@@ -54,18 +53,18 @@ class BodyRule:
 
 @dataclass(frozen=True)
 class GuardConfig:
-    """api_key: None for no key; public_paths: paths that need no key and are answered whatever
+    """keys: each key taken, with who sends it (``accounts.caller_keys``; none: no key, and every
+    request is the local user's); public_paths: paths that need no key and are answered whatever
     the load (exact match: health); open_paths / open_prefixes: paths (exact, or starting with a
     prefix) that need no key but count against ``max_requests`` like any other (the web page)."""
 
-    api_key: str | None
+    keys: tuple[tuple[bytes, Caller], ...]
     public_paths: frozenset[str]
     trusted_hosts: tuple[str, ...]
     rules: tuple[BodyRule, ...]
     default_max_bytes: int
     max_requests: int
     body_timeout_s: float
-    accounts: tuple[Account, ...] = ()
     body_min_rate: float = 16 * 1024.0
     body_grace_s: float = 10.0
     open_paths: frozenset[str] = frozenset()
@@ -113,7 +112,6 @@ class _Counters:
 class RequestGuard:
     def __init__(self, app: ASGIApp, config: GuardConfig) -> None:
         self.app, self.config = app, config
-        self._key = config.api_key.encode() if config.api_key is not None else None
         self._counters = _Counters()  # this app's requests (the event loop is single-threaded)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -159,15 +157,12 @@ class RequestGuard:
     def _refuse(
         self, method: str, path: str, headers: dict[str, str], scheme: str, state: dict
     ) -> JSONResponse | None:
-        if self.config.accounts:
-            caller = identify(headers.get("x-api-key", ""), self.config.accounts)
+        caller = LOCAL
+        if self.config.keys:  # the header's own bytes (decoded as latin-1 above)
+            caller = identify(headers.get("x-api-key", "").encode("latin-1"), self.config.keys)
             if caller is None and self.config.needs_key(path):
                 return _reply(401, "missing or wrong API key (header X-API-Key)")
-            state["caller"] = caller
-        elif self._key is not None and self.config.needs_key(path):
-            given = headers.get("x-api-key", "").encode("latin-1")
-            if not hmac.compare_digest(given, self._key):
-                return _reply(401, "missing or wrong API key (header X-API-Key)")
+        state["caller"] = caller
         if method not in SAFE_METHODS and self._cross_site(headers, scheme):
             return _reply(403, "cross-site requests are refused (the Origin is not this service)")
         return None

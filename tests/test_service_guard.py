@@ -20,7 +20,7 @@ from helpers.service import free_port, log_tail, rss_mb, start_service, stop
 from typer.testing import CliRunner
 
 from jobs import JobsConfig
-from service import guard as guard_module
+from service import accounts as accounts_module
 from service.app import create_app
 from service.settings import ServiceSettings
 
@@ -244,13 +244,13 @@ def test_every_answer_carries_the_browser_defences(tmp_path):
 
 def test_the_key_is_compared_in_constant_time(tmp_path, monkeypatch):
     compared = []
-    real = guard_module.hmac.compare_digest
+    real = accounts_module.hmac.compare_digest
 
     def spy(a, b):
         compared.append((a, b))
         return real(a, b)
 
-    monkeypatch.setattr(guard_module.hmac, "compare_digest", spy)
+    monkeypatch.setattr(accounts_module.hmac, "compare_digest", spy)
     with client(tmp_path, api_key=KEY) as c:
         assert c.get("/avatars", headers={"X-API-Key": KEY[:-1] + "x"}).status_code == 401
         assert c.get("/avatars", headers={"X-API-Key": "é".encode()}).status_code == 401  # not ASCII
