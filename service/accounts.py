@@ -80,6 +80,11 @@ class Caller:
         """The owner name that records made by this caller carry."""
         return self.owner
 
+    @property
+    def listed_account(self) -> str | None:
+        """Whose records a listing shows them: their own, or everyone's (None) for an admin."""
+        return None if self.admin else self.owner
+
 
 LOCAL = Caller(None, admin=True)
 

@@ -27,7 +27,7 @@ from eva_engine.body.params import BodyParams
 from eva_engine.progress import Progress
 
 MAX_POSES = 100_000
-DEFAULT_POSES_FPS = 25.0
+DEFAULT_POSES_FPS, MAX_POSES_FPS = 25.0, 240.0
 
 
 class DrivingError(ValueError):
@@ -40,7 +40,7 @@ class PoseSequence(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    fps: float = Field(DEFAULT_POSES_FPS, gt=0.0, le=240.0, description="Frames per second.")
+    fps: float = Field(DEFAULT_POSES_FPS, gt=0.0, le=MAX_POSES_FPS, description="Frames per second.")
     poses: list[RenderPose] = Field(
         ..., min_length=1, max_length=MAX_POSES, description="One pose per frame."
     )

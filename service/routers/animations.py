@@ -175,7 +175,7 @@ def _check_poses(
     returns (frames, fps, None: no image). The poses are counted before each is validated:
     validating is the costly part."""
     from eva_engine.animate import DrivingError, driving_from_poses
-    from eva_engine.animate.driving import DEFAULT_POSES_FPS, MAX_POSES
+    from eva_engine.animate.driving import DEFAULT_POSES_FPS, MAX_POSES, MAX_POSES_FPS
     from eva_engine.avatar import read_avatar_meta
 
     try:
@@ -189,7 +189,7 @@ def _check_poses(
     if isinstance(poses, list):
         if len(poses) > MAX_POSES:
             raise HTTPException(422, f"{len(poses)} poses: at most {MAX_POSES} in one animation")
-        if isinstance(fps, int | float) and 0 < fps <= 240:  # else the validation says what is wrong
+        if isinstance(fps, int | float) and 0 < fps <= MAX_POSES_FPS:  # else validation says what is wrong
             _check_render_size(options, len(poses), float(fps), None, ctx)
     body = ctx.avatars.body(read_avatar_meta(ctx.queue.storage.avatar_dir(avatar.avatar_id)).body_model)
     try:
@@ -252,7 +252,7 @@ def list_animations(
     ctx: ServiceContext = Depends(context),
     who: Caller = Depends(caller),
 ):
-    jobs = ctx.queue.store.list(kind="animation", account=None if who.admin else who.account)
+    jobs = ctx.queue.store.list(kind="animation", account=who.listed_account)
     jobs = [j for j in jobs if j.options.get("avatar_id") == avatar.avatar_id]
     return AnimationList(animations=[_info(j, ctx) for j in jobs])
 

@@ -121,7 +121,7 @@ def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
 
 @router.get("", response_model=AvatarList, summary="All avatars (with accounts: the caller's), oldest first")
 def list_avatars(ctx: ServiceContext = Depends(context), who: Caller = Depends(caller)) -> AvatarList:
-    jobs = ctx.queue.store.list(kind="avatar", account=None if who.admin else who.account)
+    jobs = ctx.queue.store.list(kind="avatar", account=who.listed_account)
     return AvatarList(avatars=[_info(job, ctx) for job in jobs])
 
 
