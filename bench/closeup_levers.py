@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from hard_inputs import FRAMES, restore_frames, score
+from hard_inputs import FRAMES, claim, restore_frames, score
 from machine import describe
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -138,10 +138,7 @@ def run(args) -> None:
     model = load_body_model("anny")
     for name in args.variants or list(VARIANTS):
         out = args.work / "levers" / f"{name}_s{args.seed}"
-        out.mkdir(parents=True, exist_ok=True)
-        try:  # another process may be on it
-            (out / "claimed").open("x").close()
-        except FileExistsError:
+        if not claim(out):  # another process is on it
             continue
         start = time.perf_counter()
         result = run_variant(name, args.seed, args.work, model)

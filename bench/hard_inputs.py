@@ -158,6 +158,17 @@ def score(avatar, ds, hv, sheet_path: Path, seconds: dict) -> dict:
     }
 
 
+def claim(folder: Path) -> bool:
+    """Make ``folder`` and take its run for this process (``folder/claimed``); False when another
+    process took it first (several processes share the runs)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        (folder / "claimed").open("x").close()
+    except FileExistsError:
+        return False
+    return True
+
+
 def restore_frames(dataset_dir: Path, video: Path) -> None:
     """Put back the frames a finished run deleted (the clip decoded again, as preprocessing
     did; every frame was kept in the clean clip)."""
@@ -192,10 +203,7 @@ def run_budgets(args) -> None:
             out = args.work / run_name(
                 {"seed": seed, "iterations": iterations, "max_scale_cm": args.max_scale_cm}
             )
-            out.mkdir(parents=True, exist_ok=True)
-            try:
-                (out / "claimed").open("x").close()
-            except FileExistsError:
+            if not claim(out):
                 continue
             hv = HardVideo.load(base / "clip")
             restore_frames(base / "dataset", hv.video)
@@ -236,12 +244,8 @@ def run(args) -> None:
             if case in REFUSAL_CASES and seed != args.seeds[0]:
                 continue
             done = args.work / f"{case}_s{seed}" / "result.json"
-            done.parent.mkdir(parents=True, exist_ok=True)
-            try:  # another process may be on it
-                (done.parent / "claimed").open("x").close()
-            except FileExistsError:
-                if not args.reclaim or done.is_file():
-                    continue
+            if not claim(done.parent) and (not args.reclaim or done.is_file()):
+                continue
             start = time.perf_counter()
             result = run_case(case, seed, args.work, model)
             result["wall_s"] = time.perf_counter() - start
