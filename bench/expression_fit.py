@@ -30,6 +30,16 @@ from machine import describe
 RESULTS = Path(__file__).resolve().parent / "results" / "expressions"
 
 
+GROUPS = ("jaw", "lips", "lids", "brows")
+
+
+def recovered(fitted: float, neutral: float, truth: float) -> float:
+    """The share of the true change of a gap the fit recovered; NaN when the truth does not change it
+    (e.g. a brow raise leaves the lips and lids alone)."""
+    change = truth - neutral
+    return round((fitted - neutral) / change, 3) if abs(change) > 5e-3 else float("nan")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--truth", default="eyeBlinkLeft=0.8,eyeBlinkRight=0.8,jawOpen=0.5")
@@ -38,7 +48,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
 
-    from eva_engine.align.evaluate import targets_from_params
+    from eva_engine.align.evaluate import expression_error_by_group, targets_from_params
     from eva_engine.align.face_mesh import NUM_LANDMARKS, detect_face_mesh, load_correspondence, render_face
     from eva_engine.align.fit import FitConfig, default_stages, fit_sequence
     from eva_engine.body import load_body_model
@@ -109,6 +119,8 @@ def main() -> None:
         "face stage alone, from neutral": (stages[:1], params({})),
         "face stage alone, no opening term": (without_openings(stages[:1]), params({})),
     }
+    neutral_mm = expression_error_by_group(model, params({}), truth)
+    doc["neutral_mm"] = {k: round(v, 3) for k, v in neutral_mm.items() if k in GROUPS and v == v}
     targets = dataclasses.replace(base, keypoints=keypoints, face_mesh=mesh)
     for label, (run_stages, init) in runs.items():
         fit = fit_sequence(model, targets, init=init, config=FitConfig(stages=run_stages)).params
@@ -117,11 +129,9 @@ def main() -> None:
         g = gaps(fitted_landmarks(model, fit, reg, ids, K[None], view[None]))
         doc["fits"][label] = {
             "gaps": g,
-            "recovered": {
-                m: round(
-                    (g[m] - projected["neutral"][m]) / (projected["truth"][m] - projected["neutral"][m]), 3
-                )
-                for m in g
+            "recovered": {m: recovered(g[m], projected["neutral"][m], projected["truth"][m]) for m in g},
+            "expression_mm": {
+                k: round(v, 3) for k, v in expression_error_by_group(model, fit, truth).items() if k in GROUPS
             },
             "top_coefficients": {names[i]: round(float(e[i]), 3) for i in top},
         }
@@ -144,15 +154,22 @@ def main() -> None:
         f"- the true face's correspondence points: {projected['truth']}; "
         f"the neutral face's: {projected['neutral']}",
         "",
+        "Expression error: per facial-action group, mm (``align.evaluate.expression_error_by_group``; "
+        "only that group's actions kept in the fit and the truth); a neutral face's: "
+        + ", ".join(f"{k} {v:.2f}" for k, v in doc["neutral_mm"].items())
+        + ".",
+        "",
         "| fit | mouth gap | eyes gap | mouth change recovered | eyes change recovered "
-        "| largest coefficients |",
-        "|---|---:|---:|---:|---:|---|",
+        "| expression error, mm | largest coefficients |",
+        "|---|---:|---:|---:|---:|---|---|",
     ]
     for label, f in doc["fits"].items():
         top = ", ".join(f"{k} {v:.2f}" for k, v in f["top_coefficients"].items())
+        err = ", ".join(f"{k} {v:.2f}" for k, v in f["expression_mm"].items() if v == v)
+        share = {m: "-" if v != v else f"{v:.0%}" for m, v in f["recovered"].items()}
         lines.append(
-            f"| {label} | {f['gaps']['mouth']:.3f} | {f['gaps']['eyes']:.3f} | {f['recovered']['mouth']:.0%} "
-            f"| {f['recovered']['eyes']:.0%} | {top} |"
+            f"| {label} | {f['gaps']['mouth']:.3f} | {f['gaps']['eyes']:.3f} | {share['mouth']} "
+            f"| {share['eyes']} | {err} | {top} |"
         )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1))

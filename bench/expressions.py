@@ -12,7 +12,9 @@ for each stage: ``detected`` (the landmarks preprocessing stored), ``fitted`` (t
 surface projected), ``render``; each against the target: Pearson r, and the 5-95 percentile
 range. With ground truth (a synthetic dataset), also ``truth`` (the true face projected) and the
 fitted expression's error in mm per action group against the truth and against a neutral face
-(``align.evaluate.expression_error_by_group``). ``--avatar -``: no render stage.
+(``align.evaluate.expression_error_by_group``). ``--avatar -``: no render stage. ``--blur S``:
+also the stage ``blurred``, the target itself under a Gaussian blur of S px through the same
+detector: a control for how much of the render's loss a blurrier image alone would cost.
 
 Writes ``bench/results/<name>.{json,md}`` and ``<name>_<case>.jpg``: face close-ups, target |
 render, of the frames with the widest-open mouth and the most closed eyes in the target.
@@ -33,7 +35,7 @@ from machine import describe
 from stats import fmt, mean_std
 
 RESULTS = Path(__file__).resolve().parent / "results"
-STAGES = ("detected", "fitted", "refitted", "truth", "render")
+STAGES = ("detected", "fitted", "refitted", "truth", "blurred", "render")
 
 
 def detect_faces(images: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -74,10 +76,16 @@ def refit(model, ds):
 
 
 def run_case(
-    label: str, dataset: Path, avatar_dir: Path | None, split: str, every: int, refitting: bool = False
+    label: str,
+    dataset: Path,
+    avatar_dir: Path | None,
+    split: str,
+    every: int,
+    refitting: bool = False,
+    blur: float = 0.0,
 ) -> tuple[dict, dict]:
     """(result entry, images for the sheet) of one case; ``refitting``: also the stage
-    ``refitted`` (:func:`refit`)."""
+    ``refitted`` (:func:`refit`); ``blur`` > 0: also the stage ``blurred`` (the module docstring)."""
     from eva_engine.align.evaluate import expression_error_by_group
     from eva_engine.align.face_mesh import load_correspondence
     from eva_engine.avatar import Camera, load_saved_avatar
@@ -117,6 +125,11 @@ def run_case(
     if ds.gt_params is not None:
         marks["truth"] = (fitted_landmarks(model, ds.gt_params[indices], reg, ids, K, view), ones)
 
+    if blur > 0:
+        import cv2
+
+        marks["blurred"] = detect_faces([cv2.GaussianBlur(t, (0, 0), blur) for t in targets])
+
     renders = []
     if saved is not None:
         cfg_bg = (saved.meta.train_config or {}).get("background")
@@ -135,6 +148,7 @@ def run_case(
         "dataset": str(dataset),
         "avatar": str(avatar_dir) if avatar_dir is not None else None,
         "split": split,
+        "blur_px": blur,
         "frames": len(indices),
         "target_found": int(target_found.sum()),
         "stages": {},
@@ -260,6 +274,15 @@ def markdown(doc: dict) -> str:
         "frame (single images). Each stage against the target: Pearson r | the stage's 5-95 "
         "percentile range | that range's width over the target's.",
         "",
+    ]
+    blurs = sorted({e.get("blur_px", 0.0) for e in doc["cases"].values()} - {0.0})
+    if blurs:
+        lines += [
+            f"Stage `blurred`: the target under a Gaussian blur of {', '.join(f'{b:g}' for b in blurs)} "
+            "px, the same detector (a control: what a blurrier image alone costs the measures).",
+            "",
+        ]
+    lines += [
         "| case | frames (face found) | measure | target range | stage | r | stage range | range ratio |",
         "|---|---|---|---|---|---:|---|---:|",
     ]
@@ -323,6 +346,7 @@ def main() -> None:
         action="store_true",
         help="also fit each clip again from its stored detections (stage refitted)",
     )
+    ap.add_argument("--blur", type=float, default=0.0, help="px: also the blurred-target control stage")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--name", default="expressions")
     ap.add_argument("--out", type=Path, default=RESULTS)
@@ -337,7 +361,13 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     for label, dataset, avatar in args.case:
         entry, images = run_case(
-            label, Path(dataset), None if avatar == "-" else Path(avatar), args.split, args.every, args.refit
+            label,
+            Path(dataset),
+            None if avatar == "-" else Path(avatar),
+            args.split,
+            args.every,
+            args.refit,
+            args.blur,
         )
         sheet = contact_sheet(images, picks_of(images["target"]))
         if sheet is not None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import json
 
 import numpy as np
@@ -156,3 +158,20 @@ def test_reads_avatar_json_as_earlier_versions_wrote_it(tmp_path, anny_model, tr
     assert meta.preset == "fast" and meta.method is None and meta.train_seconds == 12.5
     assert meta.frames == FramesInfo(count=4, image_size=(96, 64), fps=25.0)
     assert load_avatar(out, body=anny_model).active_sh_degree == trained_like.gaussians.sh_degree
+
+
+def test_expression_frames_survive_saving_and_old_avatars_keep_offsets(tmp_path, anny_model, trained_like):
+    """An avatar trained with the skin's frames renders with them after a reload; one saved
+    before the setting existed (no such key) renders as it was trained: vertex offsets only."""
+    framed = copy.deepcopy(trained_like)
+    framed.config = dataclasses.replace(framed.config, expression_frames=True)
+    out = save_avatar(framed, tmp_path / "framed")
+    assert load_avatar(out, body=anny_model).config.expression_frames
+    doc = json.loads((out / "avatar.json").read_text())
+    del doc["avatar_config"]["expression_frames"]
+    (out / "avatar.json").write_text(json.dumps(doc))
+    old = load_avatar(out, body=anny_model)
+    assert not old.config.expression_frames
+    params = anny_model.params_from_pose({"expression": {"jawOpen": 0.8, "eyeBlinkLeft": 1.0}})
+    cam = front_camera(40)
+    assert torch.equal(old.render(params, cam), trained_like.render(params, cam))

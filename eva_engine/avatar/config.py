@@ -36,6 +36,9 @@ class AvatarConfig:
         training images and becomes a spike from any other view (``docs/novel-views.md``).
     init_normal_ratio: the initial Gaussians' extent along the body surface's normal, as a
         fraction of their extent along it (1: isotropic, as 3DGS).
+    expression_frames: an expression also turns and scales each Gaussian with the skin around
+        its vertex (a closing lid stretches and faces the camera; ``avatar/surface_frames.py``);
+        off: the vertex's offset only, as avatars saved before it have.
     """
 
     sh_degree: int = 3
@@ -54,6 +57,7 @@ class AvatarConfig:
     latent_bones: int = 0
     max_scale: tuple[float, float, float] | None = None
     init_normal_ratio: float = 1.0
+    expression_frames: bool = False
 
     def __post_init__(self) -> None:
         if not 0 <= self.sh_degree <= 3:

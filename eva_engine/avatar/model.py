@@ -8,7 +8,8 @@ subject's ``shape`` and no expression. Posing a frame (``pose``):
    avatar's shape (the ``shape`` of the input params is ignored: the avatar is one person);
 3. expression (and any shape blendshape) offsets: each Gaussian moves with its nearest template
    vertex, ``canonical(params)[v] - template[v]`` (Anny's jaw and eyelids move through
-   blendshapes, not bones);
+   blendshapes, not bones), and with ``AvatarConfig.expression_frames`` also turns and scales
+   with the skin around that vertex (``avatar/surface_frames.py``);
 4. skinning with w = softmax(log(w_body[v] + eps) + f_w(gamma(p_c))) (``skin_gaussians``), or
    with GART's learnable weight field and latent bones (``AvatarConfig.skinning == "field"``,
    ``avatar/skinning_field.py``);
@@ -27,6 +28,7 @@ from eva_engine.avatar.gaussians import CanonicalGaussians
 from eva_engine.avatar.networks import LBSWeightOffsets, PoseRefiner, blend_log_skinning_weights
 from eva_engine.avatar.skinning import skin_gaussians
 from eva_engine.avatar.skinning_field import LatentBones, SkinningField
+from eva_engine.avatar.surface_frames import follow_skin
 from eva_engine.body.model import BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.geometry import vertex_normals
@@ -234,10 +236,21 @@ class Avatar(nn.Module):
         if self.latent_bones is not None:  # children of the root: [J + K, 4, 4]
             transforms = torch.cat([transforms, transforms[0] @ self.latent_bones(refined.joints)])
         rest = self.body.canonical(refined)[0]  # [V, 3] with this frame's expression
-        offsets = (rest - g.template_vertices)[g.vertex_ids]
         weights = self.skinning_weights()
-        means, quats, rot = skin_gaussians(g.means + offsets, g.splats["quats"], weights, transforms)
-        return PosedGaussians(means, quats, g.scales(), g.opacities(), g.sh(), rot, refined, weights)
+        means, quats, scales, carried, turns = follow_skin(
+            g.means,
+            g.splats["quats"],
+            g.scales(),
+            g.vertex_ids,
+            g.template_vertices,
+            rest,
+            self.body.faces,
+            frames=self.config.expression_frames,
+        )
+        means, quats, rot = skin_gaussians(means, quats, weights, transforms)
+        if len(carried):  # view directions undo the turn too
+            rot = rot.index_copy(0, carried, rot[carried] @ turns)
+        return PosedGaussians(means, quats, scales, g.opacities(), g.sh(), rot, refined, weights)
 
     # -- rendering ---------------------------------------------------------------------------
     def forward(

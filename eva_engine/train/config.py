@@ -141,6 +141,9 @@ def preset(name: str, **overrides) -> TrainConfig:
       a 32-wide skinning field (GART's skinning), SH degree 1, learning rates x10 (colours), no
       pose correction: seconds at ~64 px.
 
+    Every preset carries the Gaussians an expression moves by the skin's frame
+    (``AvatarConfig.expression_frames``: closed lids cover the eye; ``docs/alignment.md``).
+
     Per-frame pose correction is off in every preset (its schedule is set, ``enabled=False``):
     test frames are rendered with uncorrected poses, and an avatar trained on corrected ones
     scores worse on them (``bench/results/time_to_quality_pose_correction.md`` against
@@ -149,11 +152,14 @@ def preset(name: str, **overrides) -> TrainConfig:
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {list(PRESETS)}")
     if name == "default":
-        cfg = TrainConfig(pose_correction=PoseCorrectionConfig(enabled=False, start_iter=400))
+        cfg = TrainConfig(
+            avatar=AvatarConfig(expression_frames=True),
+            pose_correction=PoseCorrectionConfig(enabled=False, start_iter=400),
+        )
     elif name == "fast":
         cfg = TrainConfig(
             iterations=600,
-            avatar=AvatarConfig(init_max_gaussians=6000, mlp_width=64),
+            avatar=AvatarConfig(init_max_gaussians=6000, mlp_width=64, expression_frames=True),
             optim=OptimConfig().faster(2000 / 600),
             strategy=DefaultStrategy(refine_start_iter=120, refine_stop_iter=300, refine_every=30),
             pose_correction=PoseCorrectionConfig(enabled=False, start_iter=120, lr=4e-3),
@@ -163,7 +169,12 @@ def preset(name: str, **overrides) -> TrainConfig:
         cfg = TrainConfig(
             iterations=100,
             avatar=AvatarConfig(
-                sh_degree=1, init_max_gaussians=1500, mlp_width=32, pe_frequencies=4, field_resolution=32
+                sh_degree=1,
+                init_max_gaussians=1500,
+                mlp_width=32,
+                pe_frequencies=4,
+                field_resolution=32,
+                expression_frames=True,
             ),
             optim=OptimConfig().faster(10.0),
             strategy=DefaultStrategy(refine_start_iter=30, refine_stop_iter=70, refine_every=20),
