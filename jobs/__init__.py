@@ -1,6 +1,7 @@
-"""The job queue and worker: huey (SQLite or Redis) carries job ids, SQLite holds the job records,
+"""The job queue and worker: huey (SQLite or Redis) carries job ids, ``JobStore`` holds the records,
 ``JobRunner`` runs each job in its own process, where ``JobRun`` runs its stages in ``eva_engine``;
-``Storage`` keeps avatars, animations and work folders, ``jobs.sweep`` what crashes leave behind.
+``Storage`` keeps avatars, animations and work folders (``jobs.backends``: SQLite and a disk on one
+host, or Redis and an S3 bucket across several), ``jobs.sweep`` what crashes leave behind.
 
     from jobs import JobQueue, JobsConfig
     queue = JobQueue(JobsConfig.from_env())
@@ -8,13 +9,14 @@
     queue.enqueue(job.id)           # a worker (``eva worker``) runs it
 """
 
+from jobs.backends import open_storage, open_store
 from jobs.config import JobsConfig
 from jobs.media import VideoInfo, VideoRejected, probe_in_subprocess, probe_video
 from jobs.options import JobOptions
 from jobs.pipeline import STAGE_SPANS, JobCancelled, JobRun
 from jobs.queue import JobQueue, QueueUnavailable, Recovery, make_huey
 from jobs.runner import Crashed, JobRunner
-from jobs.storage import InvalidIdError, Storage
+from jobs.storage import InvalidIdError, Storage, StorageUnavailable
 from jobs.store import (
     STAGES,
     STATES,
@@ -23,6 +25,7 @@ from jobs.store import (
     JobRecord,
     JobStore,
     JobStoreError,
+    SqliteJobStore,
     is_valid_id,
     new_id,
 )
@@ -45,16 +48,20 @@ __all__ = [
     "JobRunner",
     "JobStore",
     "JobStoreError",
+    "SqliteJobStore",
     "JobsConfig",
     "QueueUnavailable",
     "Recovery",
     "Storage",
+    "StorageUnavailable",
     "Sweep",
     "VideoInfo",
     "VideoRejected",
     "is_valid_id",
     "make_huey",
     "new_id",
+    "open_storage",
+    "open_store",
     "probe_in_subprocess",
     "probe_video",
     "run_worker",

@@ -105,11 +105,11 @@ def animation_stages(run: JobRun, job: JobRecord, report: Reporter) -> None:
 
     options = AnimationOptions.model_validate(job.options)
     storage = run.storage
-    work = storage.work_dir(job.id)
-    dataset_dir, rendered_dir = work / "dataset", work / "animation"
     animation_id = job.avatar_id
     if storage.animation_exists(animation_id):  # published before the last worker died
         return
+    work = storage.fetch_upload(job.id)
+    dataset_dir, rendered_dir = work / "dataset", work / "animation"
     if not rendered_dir.is_dir():
         avatar_dir = storage.avatar_dir(options.avatar_id)
         if not avatar_dir.is_dir():

@@ -6,12 +6,18 @@ from __future__ import annotations
 
 import os
 
-# The API key; the queue's URL, which holds its password (a job's process never uses the queue).
-SECRETS = ("EVA_API_KEY", "EVA_QUEUE_URL")
+# The API key; the queue's URL, which holds its password (a job's process never uses the queue);
+# the records' URL (a job's process gets it in its spec, the probe never needs it).
+SECRETS = ("EVA_API_KEY", "EVA_QUEUE_URL", "EVA_RECORDS_URL")
+# The bucket's credentials (``jobs.storage_s3``): a job reads its upload and publishes its result
+# there; the probe never touches the bucket.
+STORAGE_SECRETS = ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN")
 
 
-def child_environment(**extra: str) -> dict[str, str]:
-    """``os.environ`` without ``SECRETS``, plus ``extra``."""
-    env = {k: v for k, v in os.environ.items() if k not in SECRETS}
+def child_environment(storage: bool = False, **extra: str) -> dict[str, str]:
+    """``os.environ`` without ``SECRETS`` (and without ``STORAGE_SECRETS`` unless ``storage``),
+    plus ``extra``."""
+    hidden = SECRETS if storage else SECRETS + STORAGE_SECRETS
+    env = {k: v for k, v in os.environ.items() if k not in hidden}
     env.update(extra)
     return env

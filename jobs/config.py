@@ -7,6 +7,11 @@ Layout under ``data_dir`` (a shared folder when workers run on several machines)
 - ``jobs/jobs.db``: the job records (SQLite); ``jobs/queue.db``: huey's SQLite queue (default mode);
 - ``jobs/work/<job_id>/``: a job's upload and intermediate results, removed when it ends;
 - ``quarantine/``: avatars and animations found without a job record (never removed by the service).
+
+On several hosts (``docs/deployment.md``), nothing is shared but Redis and a bucket: with
+``records_url`` the job records live in Redis (``jobs.store_redis``), with ``storage_url`` the
+avatars, animations and uploads live in an S3-compatible bucket (``jobs.storage_s3``), and each
+host's ``data_dir`` holds only its cache of them and its own work folders.
 """
 
 from __future__ import annotations
@@ -20,7 +25,10 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 class JobsConfig(BaseModel):
     """data_dir: root of avatars and job files; queue_url: ``None`` or ``sqlite:///path`` for
     huey's SQLite queue (default ``<data_dir>/jobs/queue.db``), ``redis://host:port/db`` for Redis;
-    max_attempts: runs of one job (a worker killed mid-job costs one); stale_after_s: a running
+    max_attempts: runs of one job that may end in a crash of its own process (killed, out of
+    memory); max_worker_losses: runs of one job that may end because the worker under it died
+    (its host or container went away: not the job's doing, so a more generous count, after which
+    the job fails rather than loop for ever); stale_after_s: a running
     job whose worker has not written a heartbeat for this long is taken back (when the worker ran
     on another host; on the same host its process is checked instead); heartbeat_s: how often a
     busy worker writes one; threads: torch CPU threads per job (None: torch's default).
@@ -43,9 +51,13 @@ class JobsConfig(BaseModel):
     queue_url: str | None = None
     queue_name: str = "eva"
     max_attempts: int = Field(2, ge=1, le=10)
+    max_worker_losses: int = Field(5, ge=1, le=50)
     stale_after_s: float = Field(120.0, gt=0)
     heartbeat_s: float = Field(5.0, gt=0)
     threads: int | None = Field(None, ge=1)
+    records_url: str | None = None
+    storage_url: str | None = None
+    s3_endpoint_url: str | None = None
     job_memory_mb: int | None = Field(8192, ge=256)
     job_timeout_s: float = Field(6 * 3600.0, gt=0)
     max_frame_pixels: int = Field(150_000_000, ge=64 * 64)
@@ -63,15 +75,33 @@ class JobsConfig(BaseModel):
             raise ValueError(f"queue URL {url!r} must start with redis://, rediss://, unix:// or sqlite://")
         return url
 
+    @field_validator("records_url")
+    @classmethod
+    def _redis_records(cls, url: str | None) -> str | None:
+        if url is not None and not url.startswith(("redis://", "rediss://", "unix://")):
+            raise ValueError(f"records URL {url!r} must start with redis://, rediss:// or unix://")
+        return url
+
+    @field_validator("storage_url")
+    @classmethod
+    def _bucket(cls, url: str | None) -> str | None:
+        if url is not None and (not url.startswith("s3://") or not url.removeprefix("s3://").strip("/")):
+            raise ValueError(f"storage URL {url!r} must be s3://bucket or s3://bucket/prefix")
+        return url
+
     @classmethod
     def from_env(cls, **overrides) -> JobsConfig:
         """Defaults from the environment: ``EVA_SERVICE_DIR`` (else ``eva_engine.paths.data_dir()``),
-        ``EVA_QUEUE_URL``, ``EVA_JOB_THREADS``, ``EVA_JOB_MEMORY_MB`` (0: no limit),
+        ``EVA_QUEUE_URL``, ``EVA_RECORDS_URL``, ``EVA_STORAGE_URL``, ``EVA_S3_ENDPOINT_URL``,
+        ``EVA_JOB_THREADS``, ``EVA_JOB_MEMORY_MB`` (0: no limit),
         ``EVA_JOB_TIMEOUT_S``, ``EVA_MAX_FRAME_PIXELS``; ``overrides`` that are not None win."""
         from eva_engine.paths import data_dir
 
         names = {
             "queue_url": "EVA_QUEUE_URL",
+            "records_url": "EVA_RECORDS_URL",
+            "storage_url": "EVA_STORAGE_URL",
+            "s3_endpoint_url": "EVA_S3_ENDPOINT_URL",
             "threads": "EVA_JOB_THREADS",
             "job_memory_mb": "EVA_JOB_MEMORY_MB",
             "job_timeout_s": "EVA_JOB_TIMEOUT_S",

@@ -163,10 +163,10 @@ class JobRun:
 
     def _stages(self, job: JobRecord, report: Reporter) -> None:
         options = JobOptions.model_validate(job.options)
-        work = self.storage.work_dir(job.id)
-        dataset_dir, trained_dir = work / "dataset", work / "avatar"
         if self.storage.avatar_exists(job.avatar_id):  # published before the last worker died
             return
+        work = self.storage.fetch_upload(job.id)
+        dataset_dir, trained_dir = work / "dataset", work / "avatar"
         if not trained_dir.is_dir():
             if not dataset_dir.is_dir():
                 self._preprocess(work, dataset_dir, options, report)

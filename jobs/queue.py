@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 
 from huey import RedisHuey, SqliteHuey, crontab
 
+from jobs.backends import open_storage, open_store
 from jobs.config import JobsConfig
 from jobs.runner import Crashed, JobRunner, WorkerId
-from jobs.storage import Storage
-from jobs.store import STAGES, STAGES_OF, JobRecord, JobStore
+from jobs.store import STAGES, STAGES_OF, JobRecord
 
 logger = logging.getLogger("eva.jobs")
 
@@ -69,8 +69,8 @@ class JobQueue:
 
     def __init__(self, config: JobsConfig, immediate: bool = False) -> None:
         self.config = config
-        self.store = JobStore(config.db_path)
-        self.storage = Storage(config)
+        self.store = open_store(config)
+        self.storage = open_storage(config)
         self.huey = make_huey(config, immediate)
         self._runner: JobRunner | None = None
         self._run_task = self.huey.task(name=RUN_TASK)(self._run)
@@ -151,7 +151,7 @@ class JobQueue:
         for job in self.store.list(states=("running",), with_deleted=True):
             if not self._worker_gone(job, now, this_worker):
                 continue
-            outcome = self._give_back(job, f"its worker ({job.worker}) stopped", expect=job)
+            outcome = self._give_back(job, f"its worker ({job.worker}) stopped", worker_lost=True, expect=job)
             {"requeued": result.requeued, "failed": result.failed, "cancelled": result.cancelled}.get(
                 outcome or "", []
             ).append(job.id)
@@ -179,18 +179,28 @@ class JobQueue:
     def _pending_job_ids(self) -> set[str]:
         return {t.args[0] for t in self.huey.pending() if t.name == RUN_TASK and t.args}
 
-    def _give_back(self, job: JobRecord, why: str, **condition) -> str | None:
+    def _give_back(self, job: JobRecord, why: str, worker_lost: bool = False, **condition) -> str | None:
         """A running job whose attempt ended without ending it: back to the queue (resuming after
-        its last completed stage), or cancelled / failed with the reason. ``condition``:
-        ``owner=`` or ``expect=`` as in ``JobStore.update``. Returns what happened, or None if
-        the job had changed meanwhile."""
+        its last completed stage), or cancelled / failed with the reason. ``worker_lost``: the
+        worker under it died, which counts against ``max_worker_losses``, not ``max_attempts``
+        (a job killed with its worker twice kept failing, upload lost, in the soak run).
+        ``condition``: ``owner=`` or ``expect=`` as in ``JobStore.update``. Returns what happened,
+        or None if the job had changed meanwhile."""
         stage = job.stage or STAGES[0]
+        losses = job.worker_losses + int(worker_lost)
+        crashes = job.attempts - losses
         if job.cancel_requested:
             state, fields = "cancelled", {"message": f"cancelled ({why})"}
-        elif job.attempts >= self.config.max_attempts:
+        elif worker_lost and losses >= self.config.max_worker_losses:
             state = "failed"
             fields = {
-                "error": f"{why} during stage {stage!r}, {job.attempts} time(s); giving up after "
+                "error": f"{why} during stage {stage!r}; giving up after {losses} workers stopped "
+                "under this job"
+            }
+        elif not worker_lost and crashes >= self.config.max_attempts:
+            state = "failed"
+            fields = {
+                "error": f"{why} during stage {stage!r}, {crashes} time(s); giving up after "
                 f"{self.config.max_attempts} attempts"
             }
         else:
@@ -200,6 +210,7 @@ class JobQueue:
                 **condition,
                 state="queued",
                 worker=None,
+                worker_losses=losses,
                 stage=resume,
                 eta_s=None,
                 message=f"{why} during stage {stage!r}; retrying from stage {resume!r}",

@@ -26,6 +26,7 @@ import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
+from jobs.backends import open_storage, open_store
 from jobs.child_env import child_environment
 from jobs.config import JobsConfig
 from jobs.disk import EXIT_DISK_FULL, DiskFull
@@ -128,7 +129,7 @@ class JobRunner:
         try:
             child = subprocess.Popen(
                 [sys.executable, "-m", "jobs", "run", job.id],
-                env=child_environment(**{SPEC_ENV: json.dumps(spec)}),
+                env=child_environment(storage=True, **{SPEC_ENV: json.dumps(spec)}),
                 stdin=subprocess.DEVNULL,
                 start_new_session=True,  # a terminal's Ctrl-C goes to the worker, which decides
             )
@@ -302,12 +303,12 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     from jobs.pipeline import JobRun
 
-    store = JobStore(config.db_path)
+    store = open_store(config)
     job = store.get(argv[0])
     if job is None or job.state != "running" or job.worker != spec["worker"]:
         return 0  # taken from us before we started
     try:
-        JobRun(config, store, Storage(config), job, spec["worker"]).execute()
+        JobRun(config, store, open_storage(config), job, spec["worker"]).execute()
     except DiskFull:  # the worker gives the job back to the queue (exit_reason)
         return EXIT_DISK_FULL
     return 0

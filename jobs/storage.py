@@ -1,6 +1,7 @@
 """Avatar and work folders on disk. Ids are checked before they become paths, and a finished
 avatar appears only by an atomic rename of a complete folder (never half-written); so does each
-stage's result in a job's work folder (``move_into_place``)."""
+stage's result in a job's work folder (``move_into_place``). ``jobs.storage_s3.S3Storage`` keeps
+the same things in a bucket, with this class's folders as its local cache."""
 
 from __future__ import annotations
 
@@ -12,6 +13,10 @@ from pathlib import Path
 
 from jobs.config import JobsConfig
 from jobs.store import is_valid_id
+
+
+class StorageUnavailable(RuntimeError):
+    """Where avatars and uploads are kept (a bucket) could not be reached or refused."""
 
 
 class InvalidIdError(ValueError):
@@ -43,11 +48,11 @@ class Storage:
 
     def publish(self, src: Path, avatar_id: str) -> Path:
         """Move the complete folder ``src`` (same file system) to the avatar's place atomically."""
-        return _publish(src, self.avatar_dir(avatar_id), f"avatar {avatar_id}")
+        return publish_folder(src, self.avatar_dir(avatar_id), f"avatar {avatar_id}")
 
     def delete_avatar(self, avatar_id: str) -> None:
         """Remove an avatar; readers never see a partial folder."""
-        _remove(self.avatar_dir(avatar_id))
+        remove_folder(self.avatar_dir(avatar_id))
 
     # -- animations (the same rules: checked ids, atomic publish, renamed away before removal) ---
     def animation_dir(self, animation_id: str) -> Path:
@@ -57,23 +62,37 @@ class Storage:
         return self.animation_dir(animation_id).is_dir()
 
     def publish_animation(self, src: Path, animation_id: str) -> Path:
-        return _publish(src, self.animation_dir(animation_id), f"animation {animation_id}")
+        return publish_folder(src, self.animation_dir(animation_id), f"animation {animation_id}")
 
     def delete_animation(self, animation_id: str) -> None:
-        _remove(self.animation_dir(animation_id))
+        remove_folder(self.animation_dir(animation_id))
+
+    # -- a job's upload (the work folder's ``input.*``) ----------------------------------------
+    def save_upload(self, job_id: str) -> None:
+        """The API has written the job's upload into its work folder: keep it where any worker
+        can read it (here: it already is)."""
+
+    def fetch_upload(self, job_id: str) -> Path:
+        """The job's work folder, with its upload in it (here: it already is)."""
+        return self.work_dir(job_id)
+
+    def remote_uploads(self, now: float) -> list[tuple[str, float]]:
+        """Uploads kept away from this host's work folders, as (job id, age in seconds) for the
+        sweeper (here: none; the work folders are swept as folders)."""
+        return []
 
     def remove_work(self, job_id: str) -> None:
         shutil.rmtree(self.work_dir(job_id), ignore_errors=True)
 
 
-def _publish(src: Path, dst: Path, what: str) -> Path:
+def publish_folder(src: Path, dst: Path, what: str) -> Path:
     if dst.exists():
         raise FileExistsError(f"{what} already exists")
     os.replace(src, dst)
     return dst
 
 
-def _remove(path: Path) -> None:
+def remove_folder(path: Path) -> None:
     """Rename the folder away first, so readers never see it partial, then delete it."""
     if not path.exists():
         return

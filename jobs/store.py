@@ -1,7 +1,9 @@
-"""Job records in SQLite: state, stage, progress, error and timestamps that survive restarts of
-the API and the workers (several processes on one host share the file; WAL mode, one connection
-per call). WAL needs shared memory between the processes, so the file must be on a local disk:
-``JobStore`` refuses a network file system rather than corrupt it.
+"""Job records: state, stage, progress, error and timestamps that survive restarts of the API and
+the workers. ``JobStore`` is the contract; ``SqliteJobStore`` keeps the records in SQLite (several
+processes on one host share the file; WAL mode, one connection per call; WAL needs shared memory
+between the processes, so the file must be on a local disk: it refuses a network file system
+rather than corrupt it), ``jobs.store_redis.RedisJobStore`` in Redis (API and workers on several
+hosts); ``jobs.backends.open_store`` picks one from the configuration.
 
 States: ``queued`` -> ``running`` -> ``succeeded`` | ``failed`` | ``cancelled`` (a queued job
 can be cancelled directly; a worker found dead sends a running job back to ``queued``).
@@ -28,6 +30,7 @@ import logging
 import sqlite3
 import time
 import uuid
+from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -66,12 +69,18 @@ CREATE TABLE IF NOT EXISTS jobs (
     heartbeat_at REAL,
     enqueued_at REAL,
     kind TEXT NOT NULL DEFAULT 'avatar',
-    account TEXT
+    account TEXT,
+    worker_losses INTEGER NOT NULL DEFAULT 0
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state);
 """
 # Columns added since the first release: added to an older file when it is opened.
-_ADDED_COLUMNS = {"enqueued_at": "REAL", "kind": "TEXT NOT NULL DEFAULT 'avatar'", "account": "TEXT"}
+_ADDED_COLUMNS = {
+    "enqueued_at": "REAL",
+    "kind": "TEXT NOT NULL DEFAULT 'avatar'",
+    "account": "TEXT",
+    "worker_losses": "INTEGER NOT NULL DEFAULT 0",
+}
 # File systems where SQLite's WAL (shared-memory index, POSIX locks) is unsafe.
 NETWORK_FILESYSTEMS = frozenset(
     {
@@ -142,6 +151,8 @@ class JobRecord:
     kind: str = "avatar"
     account: str | None = None
     """The owner the job belongs to (``service.accounts``; None: the local mode, or older)."""
+    worker_losses: int = 0
+    """Attempts that ended because the worker under them died (``JobsConfig.max_worker_losses``)."""
 
     @property
     def finished(self) -> bool:
@@ -151,9 +162,76 @@ class JobRecord:
     def from_row(cls, row: sqlite3.Row) -> JobRecord:
         d = dict(row)
         d["options"] = json.loads(d["options"])
-        d["cancel_requested"] = bool(d["cancel_requested"])
-        d["avatar_deleted"] = bool(d["avatar_deleted"])
+        return cls.from_dict(d)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> JobRecord:
+        d = {
+            **d,
+            "cancel_requested": bool(d["cancel_requested"]),
+            "avatar_deleted": bool(d["avatar_deleted"]),
+        }
         return cls(**d)
+
+    def matches(
+        self,
+        where_state: tuple[str, ...] | None = None,
+        owner: str | None = None,
+        expect: JobRecord | None = None,
+    ) -> bool:
+        """The conditions of ``JobStore.update``, checked against this record."""
+        if where_state and self.state not in where_state:
+            return False
+        if owner is not None and (self.state != "running" or self.worker != owner):
+            return False
+        if expect is not None and (self.state, self.worker, self.heartbeat_at) != (
+            expect.state,
+            expect.worker,
+            expect.heartbeat_at,
+        ):
+            return False
+        return True
+
+
+def new_record(
+    options: dict[str, Any],
+    filename: str | None,
+    job_id: str | None,
+    avatar_id: str | None,
+    kind: str,
+    account: str | None,
+) -> JobRecord:
+    """A queued job's first record (``JobStore.create``)."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown job kind {kind!r}; choose one of {KINDS}")
+    now = time.time()
+    return JobRecord(
+        id=job_id or new_id(),
+        avatar_id=avatar_id or new_id(),
+        state="queued",
+        options=options,
+        created_at=now,
+        updated_at=now,
+        filename=filename,
+        message="waiting for a worker",
+        kind=kind,
+        account=account,
+    )
+
+
+def finished_fields(state: str, error: str | None, message: str | None) -> dict[str, Any]:
+    """What ``JobStore.finish`` sets."""
+    if state not in TERMINAL:
+        raise ValueError(f"{state!r} is not a terminal state")
+    extra: dict[str, Any] = {"progress": 1.0, "eta_s": 0.0} if state == "succeeded" else {"eta_s": None}
+    return {"state": state, "error": error, "message": message, "finished_at": time.time(), **extra}
+
+
+def purgeable(job: JobRecord, finished_before: float) -> bool:
+    """A record ``JobStore.purge`` deletes: ended before then, and left nothing to serve."""
+    ended = job.finished_at is not None and job.finished_at < finished_before
+    gone = job.state in ("failed", "cancelled") or (job.state == "succeeded" and job.avatar_deleted)
+    return ended and gone
 
 
 def _retry_busy(method):
@@ -195,7 +273,100 @@ def filesystem_type(path: Path) -> str | None:
     return kind
 
 
-class JobStore:
+class JobStore(ABC):
+    """The job records (see the module docstring); every method is safe to call from several
+    processes and hosts at once."""
+
+    # -- reads ---------------------------------------------------------------------------------
+    @abstractmethod
+    def get(self, job_id: str) -> JobRecord | None: ...
+
+    @abstractmethod
+    def by_avatar(
+        self, avatar_id: str, with_deleted: bool = False, kind: str | None = "avatar"
+    ) -> JobRecord | None:
+        """The job that made ``avatar_id`` (for ``kind="animation"``: the animation with that id;
+        ``kind=None``: either)."""
+
+    @abstractmethod
+    def list(
+        self,
+        states: tuple[str, ...] | None = None,
+        with_deleted: bool = False,
+        kind: str | None = None,
+        account: str | None = None,
+    ) -> list[JobRecord]:
+        """Jobs oldest first, of these ``states``, ``kind`` and ``account`` (None: any)."""
+
+    @abstractmethod
+    def queued(self, account: str | None = None) -> int:
+        """Jobs waiting for a worker (of ``account``; None: all)."""
+
+    @abstractmethod
+    def counts(self) -> dict[str, int]:
+        """Jobs per state."""
+
+    # -- writes --------------------------------------------------------------------------------
+    @abstractmethod
+    def create(
+        self,
+        options: dict[str, Any],
+        filename: str | None = None,
+        job_id: str | None = None,
+        avatar_id: str | None = None,
+        kind: str = "avatar",
+        account: str | None = None,
+    ) -> JobRecord:
+        """A new queued job; its id and its output id (``avatar_id``) are unique."""
+
+    @abstractmethod
+    def update(
+        self,
+        job_id: str,
+        *,
+        where_state: tuple[str, ...] | None = None,
+        owner: str | None = None,
+        expect: JobRecord | None = None,
+        **fields: Any,
+    ) -> bool:
+        """Set ``fields`` (column names) if the job still matches, and say whether it did (the
+        compare-and-set behind claims, cancels and recovery). Conditions: ``where_state``, the
+        job's state is one of these; ``owner``, it is running and claimed by this worker;
+        ``expect``, it is still exactly as in this record (state, worker and heartbeat)."""
+
+    @abstractmethod
+    def claim(self, job_id: str, worker: str) -> JobRecord | None:
+        """Atomically move a queued job to running for ``worker`` (None if someone else has it)."""
+
+    @abstractmethod
+    def heartbeat(self, job_id: str, worker: str) -> JobRecord | None:
+        """Mark the job alive; returns its record, or None when ``worker`` no longer owns it."""
+
+    @abstractmethod
+    def delete(self, job_id: str) -> None: ...
+
+    @abstractmethod
+    def purge(self, finished_before: float) -> list[JobRecord]:
+        """Delete the records of jobs that ended before ``finished_before`` and left nothing to
+        serve (failed, cancelled, or their avatar deleted); returns them."""
+
+    def finish(
+        self,
+        job_id: str,
+        state: str,
+        error: str | None = None,
+        message: str | None = None,
+        from_states: tuple[str, ...] = ("queued", "running"),
+        owner: str | None = None,
+        expect: JobRecord | None = None,
+    ) -> bool:
+        """Move a job to a terminal state (only from ``from_states``; ``owner`` / ``expect`` as in
+        ``update``)."""
+        fields = finished_fields(state, error, message)
+        return self.update(job_id, where_state=from_states, owner=owner, expect=expect, **fields)
+
+
+class SqliteJobStore(JobStore):
     """The job table at ``path`` (created on first use). ``timeout``: seconds a call waits for
     another process's write lock before it is retried."""
 
@@ -207,7 +378,8 @@ class JobStore:
         if kind in NETWORK_FILESYSTEMS:
             raise JobStoreError(
                 f"job records (SQLite, WAL) need a local disk, but {self.path.parent} is on {kind}: run the "
-                "API and the workers on one host with the data dir on a local disk (see README, Service)"
+                "API and the workers on one host with the data dir on a local disk, or keep the records "
+                "in Redis (EVA_RECORDS_URL; docs/deployment.md, Several hosts)"
             )
         self._init()
 
@@ -241,8 +413,6 @@ class JobStore:
     def by_avatar(
         self, avatar_id: str, with_deleted: bool = False, kind: str | None = "avatar"
     ) -> JobRecord | None:
-        """The job that made ``avatar_id`` (for ``kind="animation"``: the animation with that id;
-        ``kind=None``: either)."""
         query, args = "SELECT * FROM jobs WHERE avatar_id = ?", [avatar_id]
         if not with_deleted:
             query += " AND avatar_deleted = 0"
@@ -261,7 +431,6 @@ class JobStore:
         kind: str | None = None,
         account: str | None = None,
     ) -> list[JobRecord]:
-        """Jobs oldest first, of these ``states``, ``kind`` and ``account`` (None: any)."""
         query, args = "SELECT * FROM jobs WHERE 1 = 1", []
         if account is not None:
             query += " AND account = ?"
@@ -280,7 +449,6 @@ class JobStore:
 
     @_retry_busy
     def queued(self, account: str | None = None) -> int:
-        """Jobs waiting for a worker (of ``account``; None: all)."""
         query, args = "SELECT COUNT(*) FROM jobs WHERE state = 'queued'", []
         if account is not None:
             query, args = query + " AND account = ?", [account]
@@ -307,21 +475,8 @@ class JobStore:
         kind: str = "avatar",
         account: str | None = None,
     ) -> JobRecord:
-        if kind not in KINDS:
-            raise ValueError(f"unknown job kind {kind!r}; choose one of {KINDS}")
-        now = time.time()
-        job = JobRecord(
-            id=job_id or new_id(),
-            avatar_id=avatar_id or new_id(),
-            state="queued",
-            options=options,
-            created_at=now,
-            updated_at=now,
-            filename=filename,
-            message="waiting for a worker",
-            kind=kind,
-            account=account,
-        )
+        job = new_record(options, filename, job_id, avatar_id, kind, account)
+        now = job.created_at
         row = (job.id, job.avatar_id, kind, job.state, json.dumps(options), filename, job.message, now, now)
         with self._connect() as db:
             db.execute(
@@ -341,10 +496,6 @@ class JobStore:
         expect: JobRecord | None = None,
         **fields: Any,
     ) -> bool:
-        """Set ``fields`` (column names) if the job still matches, and say whether it did (the
-        compare-and-set behind claims, cancels and recovery). Conditions: ``where_state``, the
-        job's state is one of these; ``owner``, it is running and claimed by this worker;
-        ``expect``, it is still exactly as in this record (state, worker and heartbeat)."""
         fields["updated_at"] = time.time()
         if "options" in fields:
             fields["options"] = json.dumps(fields["options"])
@@ -364,7 +515,6 @@ class JobStore:
 
     @_retry_busy
     def claim(self, job_id: str, worker: str) -> JobRecord | None:
-        """Atomically move a queued job to running for ``worker`` (None if someone else has it)."""
         now = time.time()
         with self._connect() as db:
             changed = db.execute(
@@ -375,36 +525,8 @@ class JobStore:
             ).rowcount
         return self.get(job_id) if changed == 1 else None
 
-    def finish(
-        self,
-        job_id: str,
-        state: str,
-        error: str | None = None,
-        message: str | None = None,
-        from_states: tuple[str, ...] = ("queued", "running"),
-        owner: str | None = None,
-        expect: JobRecord | None = None,
-    ) -> bool:
-        """Move a job to a terminal state (only from ``from_states``; ``owner`` / ``expect`` as in
-        ``update``)."""
-        if state not in TERMINAL:
-            raise ValueError(f"{state!r} is not a terminal state")
-        extra: dict[str, Any] = {"progress": 1.0, "eta_s": 0.0} if state == "succeeded" else {"eta_s": None}
-        return self.update(
-            job_id,
-            where_state=from_states,
-            owner=owner,
-            expect=expect,
-            state=state,
-            error=error,
-            message=message,
-            finished_at=time.time(),
-            **extra,
-        )
-
     @_retry_busy
     def heartbeat(self, job_id: str, worker: str) -> JobRecord | None:
-        """Mark the job alive; returns its record, or None when ``worker`` no longer owns it."""
         with self._connect() as db:
             changed = db.execute(
                 "UPDATE jobs SET heartbeat_at = ? WHERE id = ? AND worker = ? AND state = 'running'",
@@ -420,8 +542,6 @@ class JobStore:
 
     @_retry_busy
     def purge(self, finished_before: float) -> list[JobRecord]:
-        """Delete the records of jobs that ended before ``finished_before`` and left nothing to
-        serve (failed, cancelled, or their avatar deleted); returns them."""
         where = "state IN ('failed', 'cancelled') OR (state = 'succeeded' AND avatar_deleted = 1)"
         with self._connect() as db:
             rows = db.execute(

@@ -10,6 +10,7 @@
   ``quarantine/<avatars|animations>/<id>/``, where nothing removes it: a restore from a backup,
   a fresh job store or a wrong data dir must not cost a finished avatar (``docs/deployment.md``
   says how to put one back);
+- uploads kept in a bucket (``jobs.storage_s3``) by the same rules as work folders;
 - the records of failed and cancelled jobs, and of deleted avatars and animations,
   ``keep_records_days`` after they ended.
 
@@ -35,9 +36,10 @@ FINISHED_GRACE_S = 60.0
 
 @dataclass
 class Sweep:
-    """What one sweep removed: folders (paths) and job records (ids)."""
+    """What one sweep removed: folders (paths), uploads in a bucket and job records (ids)."""
 
     folders: list[Path] = field(default_factory=list)
+    uploads: list[str] = field(default_factory=list)
     records: list[str] = field(default_factory=list)
     quarantined: list[Path] = field(default_factory=list)  # where each went
 
@@ -77,6 +79,16 @@ def sweep(config: JobsConfig, store: JobStore, storage: Storage, now: float | No
             remove(path, f"work folder of a {job.state} job")
         elif job is None and age > config.orphan_ttl_s:
             remove(path, "work folder without a job")
+    for job_id, age in storage.remote_uploads(now):
+        job = store.get(job_id)
+        if (job is not None and job.finished and age > FINISHED_GRACE_S) or (
+            job is None and age > config.orphan_ttl_s
+        ):
+            storage.remove_work(job_id)
+            done.uploads.append(job_id)
+            logger.info(
+                "swept the upload of job %s from the bucket (%s)", job_id, job.state if job else "no job"
+            )
     for kind, folder in (("avatar", config.avatars_dir), ("animation", config.animations_dir)):
         for path in sorted(folder.iterdir()) if folder.is_dir() else []:
             age = _age(path, now)
@@ -92,10 +104,11 @@ def sweep(config: JobsConfig, store: JobStore, storage: Storage, now: float | No
     done.records = [job.id for job in purged]
     for job in purged:
         storage.remove_work(job.id)
-    if done.folders or done.records or done.quarantined:
+    if done.folders or done.uploads or done.records or done.quarantined:
         logger.info(
-            "sweep: removed %d folder(s), %d record(s); quarantined %d folder(s)",
+            "sweep: removed %d folder(s), %d upload(s), %d record(s); quarantined %d folder(s)",
             len(done.folders),
+            len(done.uploads),
             len(done.records),
             len(done.quarantined),
         )

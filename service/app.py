@@ -18,6 +18,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.security import APIKeyHeader
 from fastapi.staticfiles import StaticFiles
+from redis.exceptions import RedisError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
@@ -27,7 +28,7 @@ from eva_engine.body import InvalidPoseError
 from jobs.disk import is_disk_full
 from jobs.media import VideoRejected
 from jobs.queue import JobQueue, QueueUnavailable
-from jobs.storage import InvalidIdError
+from jobs.storage import InvalidIdError, StorageUnavailable
 from jobs.store import JobStoreError
 from service.accounts import caller_keys
 from service.deps import ServiceContext
@@ -128,6 +129,16 @@ def _install_error_handlers(app: FastAPI) -> None:
         logger.error("job queue unavailable", exc_info=exc)
         return _reply(503, "the job queue is unavailable; retry later", retry=True)
 
+    @app.exception_handler(StorageUnavailable)
+    async def _storage_down(request: Request, exc: StorageUnavailable) -> JSONResponse:
+        logger.error("storage unavailable", exc_info=exc)
+        return _reply(503, "the avatar storage is unavailable; retry later", retry=True)
+
+    @app.exception_handler(RedisError)
+    async def _records_down(request: Request, exc: RedisError) -> JSONResponse:
+        logger.error("job records (Redis) unavailable", exc_info=exc)
+        return _reply(503, "the job records are unavailable; retry later", retry=True)
+
     @app.exception_handler(sqlite3.OperationalError)
     async def _store_busy(request: Request, exc: sqlite3.OperationalError) -> JSONResponse:
         logger.error("job store error", exc_info=exc)
@@ -177,7 +188,7 @@ def create_app(settings: ServiceSettings | None = None, queue: JobQueue | None =
     )
     try:
         job_queue = queue or JobQueue(settings.jobs)
-    except JobStoreError as err:
+    except (JobStoreError, StorageUnavailable) as err:
         raise ValueError(str(err)) from err
     app.state.context = ServiceContext(
         settings=settings,

@@ -38,6 +38,8 @@ class Health(BaseModel):
     status: Literal["ok"] = "ok"
     version: str
     queue: str = Field(description="sqlite or redis")
+    records: str = Field("sqlite", description="Where the job records are: sqlite or redis.")
+    storage: str = Field("disk", description="Where avatars and uploads are: disk or s3.")
     jobs: dict[str, int] = Field(description="Job count per state.")
     renders: dict[str, int] = Field(default_factory=dict, description="Renders running and waiting.")
 

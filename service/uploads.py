@@ -85,8 +85,9 @@ def queued_job(queue: JobQueue) -> Iterator[tuple[str, Path]]:
         remove_tree(work)
         raise
     try:
+        queue.storage.save_upload(job_id)
         queue.enqueue(job_id)
     except BaseException:
         queue.store.delete(job_id)
-        remove_tree(work)
+        queue.storage.remove_work(job_id)
         raise

@@ -143,6 +143,25 @@ def test_compose_caps_memory_and_needs_a_key():
     assert job_mb * 2**20 < int(worker["mem_limit"].rstrip("g")) * 2**30  # a job fails before the container
 
 
+def test_compose_for_several_hosts_shares_only_redis_and_a_bucket():
+    hosts = yaml.safe_load((ROOT / "docker" / "docker-compose.hosts.yml").read_text())["services"]
+    remote = yaml.safe_load((ROOT / "docker" / "docker-compose.worker-host.yml").read_text())["services"]
+    records_user = r"redis://records:\$\{EVA_RECORDS_PASSWORD:\?[^}]+\}@"
+    for env in (hosts["api"]["environment"], hosts["worker"]["environment"], remote["worker"]["environment"]):
+        assert re.match(records_user, env["EVA_RECORDS_URL"]), env
+        assert re.match(r"redis://:\$\{EVA_REDIS_PASSWORD:\?", env["EVA_QUEUE_URL"]), env
+        assert env["EVA_STORAGE_URL"].startswith("${EVA_STORAGE_URL:")
+        assert re.match(r"\$\{AWS_SECRET_ACCESS_KEY:\?", env["AWS_SECRET_ACCESS_KEY"])
+    # The records' Redis user reaches only the records' keys (a job's process holds its password).
+    command = " ".join(hosts["redis"]["command"])
+    assert '--user records on ">$$EVA_RECORDS_PASSWORD" "~eva:records:*" -@all' in command
+    assert all(p.startswith("${EVA_REDIS_BIND:?") for p in hosts["redis"]["ports"])  # no default address
+    # The bucket this host can run for itself only comes with its profile; every service is capped.
+    assert hosts["minio"]["profiles"] == ["minio"] and hosts["bucket"]["profiles"] == ["minio"]
+    assert all(hosts[name].get("mem_limit") for name in ("minio", "bucket")) and remote["worker"]["mem_limit"]
+    assert remote["worker"]["volumes"] == ["eva-work:/data/service"]  # its own volume, nothing shared
+
+
 def test_the_health_check_knows_the_worker_role(tmp_path):
     cmdline = tmp_path / "cmdline"
     cmdline.write_bytes(b"/app/.venv/bin/python\0/app/.venv/bin/eva\0worker\0--workers\0001\0")

@@ -20,7 +20,7 @@ from helpers.service import FAST_OPTIONS, gradient_video
 
 from eva_engine.avatar import read_avatar_meta
 from eva_engine.progress import ProgressEvent
-from jobs import JobLost, JobOptions, JobQueue, JobRun, JobsConfig, JobStore, JobStoreError, sweep
+from jobs import JobLost, JobOptions, JobQueue, JobRun, JobsConfig, JobStoreError, SqliteJobStore, sweep
 from jobs import store as store_module
 from jobs.pipeline import Reporter
 from jobs.queue import RUN_TASK
@@ -302,4 +302,4 @@ def test_job_records_refuse_a_network_file_system(tmp_path, monkeypatch):
     assert store_module.filesystem_type(tmp_path) not in (None, "nfs")  # the real type of this disk
     monkeypatch.setattr(store_module, "filesystem_type", lambda path: "nfs4")
     with pytest.raises(JobStoreError, match="local disk"):
-        JobStore(tmp_path / "jobs.db")
+        SqliteJobStore(tmp_path / "jobs.db")

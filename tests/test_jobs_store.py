@@ -12,7 +12,7 @@ import time
 import pytest
 from helpers.service import no_person_video, run_job_here
 
-from jobs import InvalidIdError, JobOptions, JobQueue, JobsConfig, JobStore, Storage
+from jobs import InvalidIdError, JobOptions, JobQueue, JobsConfig, SqliteJobStore, Storage
 
 HOST = socket.gethostname()
 
@@ -32,9 +32,9 @@ def submit(queue: JobQueue, video, **options) -> str:
 
 
 def test_records_persist_and_claims_are_exclusive(tmp_path):
-    store = JobStore(tmp_path / "jobs.db")
+    store = SqliteJobStore(tmp_path / "jobs.db")
     job = store.create({"preset": "tiny"}, filename="a.mp4")
-    again = JobStore(tmp_path / "jobs.db")  # a restarted process
+    again = SqliteJobStore(tmp_path / "jobs.db")  # a restarted process
     assert again.get(job.id).state == "queued" and again.get(job.id).options == {"preset": "tiny"}
     assert store.claim(job.id, "w1").state == "running"
     assert again.claim(job.id, "w2") is None
@@ -53,7 +53,7 @@ def test_storage_refuses_path_traversal(tmp_path):
 
 
 def test_dead_workers_jobs_are_retried_then_failed(tmp_path):
-    queue = JobQueue(JobsConfig(data_dir=tmp_path, max_attempts=2, stale_after_s=30))
+    queue = JobQueue(JobsConfig(data_dir=tmp_path, max_attempts=2, max_worker_losses=3, stale_after_s=30))
     dead = subprocess.Popen(["true"])
     dead.wait()
     job = queue.store.create(JobOptions().model_dump())
@@ -65,18 +65,40 @@ def test_dead_workers_jobs_are_retried_then_failed(tmp_path):
     result = queue.recover(this_worker=f"{HOST}:{os.getpid()}:me")
     assert result.requeued == [job.id] and result.failed == []
     record = queue.store.get(job.id)
-    assert record.state == "queued" and record.stage == "train"
+    assert record.state == "queued" and record.stage == "train" and record.worker_losses == 1
     assert "retrying from stage 'train'" in record.message
     assert queue.store.get(other.id).state == "running"
-    # Second death: attempts are used up, the job fails with the reason and its files go.
+    # A worker that dies under the job is not the job's doing: a second death (past max_attempts)
+    # sends it back again, with its upload.
     queue.store.claim(job.id, f"host-elsewhere:{dead.pid}:0000")
     queue.store.update(job.id, heartbeat_at=time.time() - 60)  # silent for longer than stale_after_s
     queue.storage.work_dir(job.id).mkdir(parents=True)
+    (queue.storage.work_dir(job.id) / "input.video").write_bytes(b"v")
+    assert queue.recover().requeued == [job.id]
+    assert queue.store.get(job.id).attempts == 2 and (queue.storage.work_dir(job.id) / "input.video").exists()
+    # The third lost worker uses up max_worker_losses: the job fails with the reason and its files go.
+    queue.store.claim(job.id, f"host-elsewhere:{dead.pid}:0001")
+    queue.store.update(job.id, heartbeat_at=time.time() - 60)
     result = queue.recover()
     assert result.failed == [job.id]
     record = queue.store.get(job.id)
-    assert record.state == "failed" and "giving up after 2 attempts" in record.error
+    assert record.state == "failed" and "giving up after 3 workers stopped" in record.error
     assert not queue.storage.work_dir(job.id).exists()
+
+
+def test_a_jobs_own_crashes_count_against_max_attempts_not_its_workers_deaths(tmp_path):
+    queue = JobQueue(JobsConfig(data_dir=tmp_path, max_attempts=2))
+    job = queue.store.create(JobOptions().model_dump())
+    queue.store.claim(job.id, "w1")
+    lost = queue._give_back(queue.store.get(job.id), "its worker stopped", worker_lost=True, owner="w1")
+    assert lost == "requeued"
+    queue.store.claim(job.id, "w2")
+    # Attempt 2 of max_attempts=2, but the first was a lost worker: one crash of its own is left.
+    assert queue._give_back(queue.store.get(job.id), "its process was killed", owner="w2") == "requeued"
+    queue.store.claim(job.id, "w1")
+    queue.store.claim(job.id, "w1")
+    assert queue._give_back(queue.store.get(job.id), "its process was killed", owner="w1") == "failed"
+    assert "2 time(s); giving up after 2 attempts" in queue.store.get(job.id).error
 
 
 def test_a_video_without_a_person_fails_cleanly(queue, tmp_path):

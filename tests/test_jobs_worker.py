@@ -6,9 +6,7 @@ process killed mid-job costs only that job an attempt; two workers sharing a rea
 from __future__ import annotations
 
 import os
-import shutil
 import signal
-import subprocess
 import time
 
 import pytest
@@ -17,7 +15,6 @@ from helpers import service as svc
 from helpers.service import (
     EVA,
     FAST_OPTIONS,
-    free_port,
     job_processes,
     log_tail,
     no_person_video,
@@ -33,6 +30,7 @@ from service.settings import ServiceSettings
 
 pytestmark = pytest.mark.slow
 signer_video = svc.signer_video  # a fixture
+redis_url = svc.redis_url  # a fixture
 
 
 def api(data_dir, queue_url=None) -> TestClient:
@@ -154,44 +152,6 @@ def test_a_killed_job_process_costs_only_that_job_an_attempt(tmp_path, signer_vi
         assert first["state"] == "succeeded" and first["attempts"] == 2, (first, text)
         assert second["state"] == "succeeded" and second["attempts"] == 1, (second, text)
         assert "the job's process was killed (SIGKILL; out of memory?" in text
-
-
-@pytest.fixture
-def redis_url(tmp_path):
-    server = shutil.which("redis-server")
-    if server is None:
-        pytest.fail("redis-server is not installed (scripts/install-system-deps.sh installs it)")
-    port = free_port()
-    subprocess.run(
-        [
-            server,
-            "--port",
-            str(port),
-            "--bind",
-            "127.0.0.1",
-            "--save",
-            "",
-            "--appendonly",
-            "no",
-            "--dir",
-            str(tmp_path),
-            "--daemonize",
-            "yes",
-        ],
-        check=True,
-    )
-    try:
-        wait_for(
-            lambda: (
-                subprocess.run(["redis-cli", "-p", str(port), "ping"], capture_output=True).stdout.strip()
-                == b"PONG"
-            ),
-            20,
-            "redis-server",
-        )
-        yield f"redis://127.0.0.1:{port}/0"
-    finally:
-        subprocess.run(["redis-cli", "-p", str(port), "shutdown", "nosave"], capture_output=True)
 
 
 def test_redis_mode_with_two_workers(tmp_path, signer_video, redis_url):

@@ -16,6 +16,8 @@ async def healthz(ctx: ServiceContext = Depends(context)) -> Health:
     return Health(
         version=eva_engine.__version__,
         queue="redis" if ctx.queue.config.uses_redis else "sqlite",
+        records="sqlite" if ctx.queue.config.records_url is None else "redis",
+        storage="disk" if ctx.queue.config.storage_url is None else "s3",
         jobs=counts,
         renders=renders,
     )

@@ -1,10 +1,11 @@
 """Shared pieces of the service and job tests (imported by them; holds no tests): the tiny
 synthetic signer video, a seeded (untrained) published avatar, and real ``eva serve`` / ``eva
-worker`` / ``redis-server`` / uvicorn processes on loopback."""
+worker`` / ``redis-server`` / S3 (moto's server) / uvicorn processes on loopback."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -92,8 +93,8 @@ def wait_for(predicate: Callable[[], object], timeout: float, what: str, every: 
     raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
-def start_process(args: list[str], log: Path) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+def start_process(args: list[str], log: Path, **env_extra: str) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **env_extra}
     env.pop("EVA_QUEUE_URL", None)
     with open(log, "ab") as out:
         return subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True)
@@ -166,9 +167,10 @@ def run_job_here(queue, job_id: str, *models) -> str | None:
     return run.execute()
 
 
+# The settings (the key among them) go through the environment, not the command line (ps shows it).
 SERVE_CODE = (
-    "import sys; from service.settings import ServiceSettings; from service.server import serve; "
-    "serve(ServiceSettings.model_validate_json(sys.argv[1]), log_level='warning')"
+    "import os; from service.settings import ServiceSettings; from service.server import serve; "
+    "serve(ServiceSettings.model_validate_json(os.environ.pop('EVA_TEST_SETTINGS')), log_level='warning')"
 )
 
 
@@ -177,7 +179,8 @@ def start_service(settings, log: Path) -> tuple[subprocess.Popen, str]:
     (a ``ServiceSettings``); returns the process and its base URL once ``/healthz`` answers."""
     import httpx
 
-    proc = start_process([sys.executable, "-c", SERVE_CODE, settings.model_dump_json()], log)
+    secret_env = {"EVA_TEST_SETTINGS": settings.model_dump_json()}
+    proc = start_process([sys.executable, "-c", SERVE_CODE], log, **secret_env)
     base = f"http://127.0.0.1:{settings.port}"
 
     def healthy():
@@ -256,3 +259,60 @@ def job_processes(job_id: str | None = None) -> dict[int, str]:
     from jobs.runner import job_processes as processes
 
     return {pid: p.job_id for pid, p in processes().items() if not p.forked and job_id in (None, p.job_id)}
+
+
+@pytest.fixture
+def redis_url(tmp_path):
+    """A real redis-server on a free loopback port, for this test only."""
+    server = shutil.which("redis-server")
+    if server is None:
+        pytest.fail("redis-server is not installed (scripts/install-system-deps.sh installs it)")
+    port = free_port()
+    args = ["--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"]
+    subprocess.run([server, *args, "--dir", str(tmp_path), "--daemonize", "yes"], check=True)
+    try:
+        wait_for(
+            lambda: (
+                subprocess.run(["redis-cli", "-p", str(port), "ping"], capture_output=True).stdout.strip()
+                == b"PONG"
+            ),
+            20,
+            "redis-server",
+        )
+        yield f"redis://127.0.0.1:{port}/0"
+    finally:
+        subprocess.run(["redis-cli", "-p", str(port), "shutdown", "nosave"], capture_output=True)
+
+
+@pytest.fixture
+def s3_bucket(tmp_path, monkeypatch) -> tuple[str, str]:
+    """An S3-compatible server (moto's server mode, a real HTTP endpoint on loopback) with an empty
+    bucket; returns (endpoint URL, ``s3://bucket/prefix``). The credentials are in this process's
+    environment, so the workers it starts inherit them."""
+    import boto3
+
+    for name, value in (
+        ("AWS_ACCESS_KEY_ID", "eva-test"),
+        ("AWS_SECRET_ACCESS_KEY", "eva-test-secret"),
+        ("AWS_DEFAULT_REGION", "us-east-1"),
+    ):
+        monkeypatch.setenv(name, value)
+    port = free_port()
+    log = tmp_path / "s3.log"
+    proc = start_process([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)], log)
+    endpoint = f"http://127.0.0.1:{port}"
+    try:
+        client = boto3.client("s3", endpoint_url=endpoint)
+
+        def up():
+            assert proc.poll() is None, log_tail(log)
+            try:
+                return client.list_buckets() is not None
+            except Exception:
+                return False
+
+        wait_for(up, 60, "the S3 server")
+        client.create_bucket(Bucket="eva-test")
+        yield endpoint, "s3://eva-test/service"
+    finally:
+        stop(proc)
