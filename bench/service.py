@@ -569,6 +569,23 @@ class SharedBackends:
                     raise
                 time.sleep(0.3)
 
+    def sweep_hosts(self, hosts: list[Path], now: float) -> list[str]:
+        """What each host's sweep at its next start removes (``jobs.sweep``): folder paths."""
+        from jobs import JobsConfig, open_storage, open_store, sweep
+
+        os.environ.update({k: v for k, v in self.env.items() if k.startswith("AWS_")})
+        removed = []
+        for host in hosts:
+            config = JobsConfig(
+                data_dir=host,
+                records_url=self.env["EVA_RECORDS_URL"],
+                storage_url=self.env["EVA_STORAGE_URL"],
+                s3_endpoint_url=self.env["EVA_S3_ENDPOINT_URL"],
+            )
+            done = sweep(config, open_store(config), open_storage(config), now=now)
+            removed += [str(p.relative_to(host.parent)) for p in done.folders]
+        return removed
+
     def keys(self, folder: str) -> list[str]:
         pages = self.client.get_paginator("list_objects_v2").paginate(
             Bucket=self.BUCKET, Prefix=f"service/{folder}/"
@@ -696,6 +713,9 @@ def run_soak(args) -> None:
         api.close()
         stop(server)
     hosts = sorted(p for p in work.iterdir() if p.is_dir() and (p / "jobs").is_dir())  # data dirs
+    # A killed host keeps the work folder of the job it was running, on its own disk, until it
+    # comes back: its worker sweeps at start. Do that for every host (as if 2 min later).
+    swept = shared.sweep_hosts(hosts, now=time.time() + 120) if shared else []
     leftovers = {
         "work_folders": sorted(
             str(p.relative_to(work)) for h in hosts for p in (h / "jobs" / "work").iterdir()
@@ -709,6 +729,7 @@ def run_soak(args) -> None:
         "job_processes_alive": {pid: dataclasses.asdict(p) for pid, p in job_processes().items()},
     }
     succeeded = {j for j, s in finals.items() if s["state"] == "succeeded"}
+    report_extra = {"swept_when_hosts_return": swept} if shared else {}
     if shared:
         leftovers["uploads_in_the_bucket"] = shared.keys("work")
         avatars = sorted({k.split("/")[2] for k in shared.keys("avatars") if k.endswith("/.published")})
@@ -758,6 +779,7 @@ def run_soak(args) -> None:
         "stuck": stuck,
         "failed_without_reason": no_reason,
         "leftovers": leftovers,
+        **report_extra,
     }
     counts: dict[str, int] = {}
     for s in finals.values():
@@ -791,6 +813,14 @@ def run_soak(args) -> None:
         "- orphan files (work folders, partial or deleted folders, avatars without a succeeded job, "
         "succeeded "
         f"jobs without an avatar, job processes alive): {orphans}",
+        *(
+            [
+                f"- work folders that killed hosts kept on their own disks, removed by each host's sweep "
+                f"when it starts again (run here for every host, as 2 min later): {len(swept)}"
+            ]
+            if shared
+            else []
+        ),
         f"- result: {VERDICT if ok else 'FAILED (see the JSON)'}",
         "",
         "| job | state | attempts | job processes seen | error |",

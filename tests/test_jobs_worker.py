@@ -15,6 +15,7 @@ from helpers import service as svc
 from helpers.service import (
     EVA,
     FAST_OPTIONS,
+    finish_real_and_nobody,
     job_processes,
     log_tail,
     no_person_video,
@@ -163,21 +164,11 @@ def test_redis_mode_with_two_workers(tmp_path, signer_video, redis_url):
         try:
             real = upload(client, signer_video, **FAST_OPTIONS)
             nobody = upload(client, no_person_video(tmp_path / "nobody.mp4"), preset="tiny")
-
-            def finished(job_id):
-                j = client.get(f"/jobs/{job_id}").json()
-                return j["state"] in ("succeeded", "failed", "cancelled") and j
-
-            first = wait_for(lambda: finished(real["job_id"]), 400, "the real job")
-            second = wait_for(lambda: finished(nobody["job_id"]), 120, "the no-person job")
-        finally:
+        except BaseException:
             for w in workers:
                 stop(w)
-        text = "\n".join(log_tail(log) for log in logs)
-        assert first["state"] == "succeeded" and first["attempts"] == 1, (first, text)
-        assert second["state"] == "failed" and "no person" in second["error"], (second, text)
+            raise
         # Each job ran exactly once, on one of the two workers; both workers were consuming.
-        ran = [sum(f"job {j['job_id']}: attempt" in log.read_text() for log in logs) for j in (first, second)]
-        assert ran == [1, 1], text
+        finish_real_and_nobody(client, workers, logs, real["job_id"], nobody["job_id"])
         res = client.post(f"/avatars/{real['avatar_id']}/render", json={"width": 64, "height": 64})
         assert res.status_code == 200

@@ -77,8 +77,10 @@ def surface_frames(rest: Tensor, deformed: Tensor, faces: Tensor, moved: Tensor)
     ``moved.nonzero()``: the turn of the vertex normal and sqrt(deformed area / rest area),
     clamped to ``SCALE_RANGE``.
     """
-    n0, a0 = _normals_and_areas(rest, faces)
-    n1, a1 = _normals_and_areas(deformed, faces)
+    # A vertex's normal and area come from the triangles around it: only those of moved vertices.
+    around = faces[moved[faces].any(dim=-1)]
+    n0, a0 = _normals_and_areas(rest, around)
+    n1, a1 = _normals_and_areas(deformed, around)
     n0, a0, n1, a1 = n0[moved], a0[moved], n1[moved], a1[moved]
     scale = (a1.clamp_min(_EPS) / a0.clamp_min(_EPS)).sqrt().clamp(*SCALE_RANGE)
     return rotation_between(n0, n1), scale

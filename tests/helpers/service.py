@@ -118,6 +118,29 @@ def stop(proc: subprocess.Popen, sig: int = signal.SIGTERM, timeout: float = 20.
             proc.wait()
 
 
+def finish_real_and_nobody(client, workers, logs: list[Path], real_job: str, nobody_job: str):
+    """Wait for a signer job and a no-person job (ids) through ``client``, stop the ``workers``
+    (whose logs are ``logs``), and check that the first succeeded and the second failed with its
+    reason, each on its first attempt and run by exactly one worker; returns both jobs' states."""
+
+    def finished(job_id):
+        j = client.get(f"/jobs/{job_id}").json()
+        return j["state"] in ("succeeded", "failed", "cancelled") and j
+
+    try:
+        first = wait_for(lambda: finished(real_job), 400, "the real job")
+        second = wait_for(lambda: finished(nobody_job), 120, "the no-person job")
+    finally:
+        for w in workers:
+            stop(w)
+    text = "\n".join(log_tail(log) for log in logs)
+    assert first["state"] == "succeeded" and first["attempts"] == 1, (first, text)
+    assert second["state"] == "failed" and "no person" in second["error"], (second, text)
+    ran = [sum(f"job {j['job_id']}: attempt" in log.read_text() for log in logs) for j in (first, second)]
+    assert ran == [1, 1], text
+    return first, second
+
+
 def log_tail(log: Path, chars: int = 3000) -> str:
     return log.read_text(errors="replace")[-chars:] if log.is_file() else "(no log)"
 
