@@ -43,13 +43,14 @@ from eva_engine.align import (
 )
 from eva_engine.align.clip import fit_clip
 from eva_engine.align.evaluate import (
+    EXPRESSION_GROUPS,
     expression_error,
     expression_error_by_group,
     head_rotation_error,
     targets_from_params,
 )
 from eva_engine.align.fit import POSE_BODY, FitConfig, fit_sequence, reprojection_distances
-from eva_engine.body import EXPRESSION_GROUPS, BodyParams, load_body_model
+from eva_engine.body import BodyParams, load_body_model
 from eva_engine.data import load_dataset
 from eva_engine.geometry import project_points, to_camera
 from eva_engine.paths import data_dir

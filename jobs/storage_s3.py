@@ -148,6 +148,8 @@ class S3Storage(Storage):
         try:
             self._get_folder(self._key(kind, item_id), partial)
             move_into_place(partial, local)  # another thread may have fetched it first: keep that
+        except FileNotFoundError:  # deleted while we read it: it no longer exists
+            return local
         finally:
             shutil.rmtree(partial, ignore_errors=True)
         logger.info("fetched %s %s from the bucket", kind[:-1], item_id)

@@ -4,7 +4,6 @@ trivial predictor clearly, runs are deterministic, bad data gives a clear error;
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import pytest
 import torch
@@ -102,11 +101,6 @@ def test_deterministic_given_a_seed(scene, anny_model, one_thread):
     b = train_avatar(ds, cfg, body=anny_model)
     assert a.losses == b.losses
     assert torch.equal(a.avatar.gaussians.means, b.avatar.gaussians.means)
-    # Frames drawn toward rare expressions: another order, as repeatable, and finite.
-    weighted = dataclasses.replace(cfg, expression_sampling=5.0)
-    c, d = train_avatar(ds, weighted, body=anny_model), train_avatar(ds, weighted, body=anny_model)
-    assert c.losses == d.losses and all(math.isfinite(x) for x in c.losses)
-    assert c.losses != a.losses
 
 
 def test_training_leaves_the_process_state_alone(scene, anny_model, one_thread):

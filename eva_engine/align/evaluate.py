@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from eva_engine.align.fit import LEFT_HIP, POSE_BODY, RIGHT_HIP, FitTargets
-from eva_engine.body import EXPRESSION_GROUPS, KEYPOINT_GROUPS, BodyModel, BodyParams
+from eva_engine.body import KEYPOINT_GROUPS, BodyModel, BodyParams
 from eva_engine.geometry import project_points, to_camera
 
 
@@ -115,6 +115,15 @@ def expression_error(model: BodyModel, params: BodyParams, truth: BodyParams, mo
     if not bool(active.any()):
         return 0.0
     return float((a - b).norm(dim=-1)[active].mean() * 1000)
+
+
+EXPRESSION_GROUPS: dict[str, tuple[str, ...]] = {
+    "jaw": ("jaw",),
+    "lips": ("mouth",),
+    "lids": ("eyeBlink", "eyeSquint", "eyeWide"),
+    "brows": ("brow",),
+}
+"""Facial-action groups by name prefix (ARKit names): what :func:`expression_error_by_group` splits."""
 
 
 def expression_error_by_group(model: BodyModel, params: BodyParams, truth: BodyParams) -> dict[str, float]:

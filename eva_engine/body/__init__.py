@@ -21,12 +21,10 @@ from eva_engine.body.keypoints import (
     POSE_NAMES,
 )
 from eva_engine.body.model import (
-    EXPRESSION_GROUPS,
     PART_NAMES,
     SIDED_PART_NAMES,
     BodyModel,
     BodyOutput,
-    expression_group_masks,
     lbs,
     nearest_vertex_index,
     nearest_vertex_weights,
@@ -60,8 +58,6 @@ __all__ = [
     "FACE_MESH_INDEX",
     "HAND_NAMES",
     "KEYPOINT_GROUPS",
-    "EXPRESSION_GROUPS",
-    "expression_group_masks",
     "KEYPOINT_NAMES",
     "PART_NAMES",
     "SIDED_PART_NAMES",

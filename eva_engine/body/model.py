@@ -22,30 +22,6 @@ from eva_engine.body.params import BodyParams, BodyPose, params_from_poses, pose
 PART_NAMES = ("body", "hand", "face")
 """Names of the values of ``BodyModel.part_ids``."""
 SIDED_PART_NAMES = ("body", "hand_left", "hand_right", "face")
-EXPRESSION_GROUPS: dict[str, tuple[str, ...]] = {
-    "jaw": ("jaw",),
-    "lips": ("mouth",),
-    "lids": ("eyeBlink", "eyeSquint", "eyeWide"),
-    "brows": ("brow",),
-}
-"""Facial-action groups by name prefix (ARKit names, as Anny's): the fit's per-group error
-(``align.evaluate``) and the expression-weighted frame order (``train.frame_order``)."""
-
-
-def expression_group_masks(names: Sequence[str]) -> list[torch.Tensor]:
-    """[E] bool masks of the ``EXPRESSION_GROUPS`` that ``names`` has, then one of the remaining
-    actions (if any): a model whose names match no group (SMPL-X's PCA expressions) is one group."""
-    masks, taken = [], torch.zeros(len(names), dtype=torch.bool)
-    for prefixes in EXPRESSION_GROUPS.values():
-        mask = torch.tensor([n.startswith(prefixes) for n in names], dtype=torch.bool)
-        if bool(mask.any()):
-            masks.append(mask)
-            taken |= mask
-    if bool((~taken).any()):
-        masks.append(~taken)
-    return masks
-
-
 """Names of the values of ``BodyModel.sided_part_ids``: the parts with the two hands apart."""
 
 

@@ -92,10 +92,6 @@ class TrainConfig:
         (not the fingers' or the face's) of a step's frame, drawn anew each step: the avatar
         learns its shape near each pose, not only at it.
     image_scale: resample frames (and intrinsics) by this factor before training.
-    expression_sampling: 0 draws every training frame equally often (3DGS, EVA); above 0, frames
-        whose fitted facial expression is far from the clip's median (a blink, a wide-open mouth)
-        are drawn up to ``1 + expression_sampling * rarity`` times as often
-        (``train/frame_order.py``).
     seed: the initial weights, the seed vertices and the frame order (the density-control strategy
     has its own ``seed``). Runs on one CPU thread are bit-identical given it; with more threads,
     oneDNN's convolution backward may sum in another order and the last bits differ.
@@ -115,7 +111,6 @@ class TrainConfig:
     random_background: bool = False
     pose_noise: float = 0.0
     image_scale: float = 1.0
-    expression_sampling: float = 0.0
     seed: int = 0
     device: str = "cpu"
     progress_every: int = 10
@@ -125,8 +120,6 @@ class TrainConfig:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         if not 0.0 < self.image_scale <= 4.0:
             raise ValueError(f"image_scale must be in (0, 4], got {self.image_scale}")
-        if not 0.0 <= self.expression_sampling <= 100.0:
-            raise ValueError(f"expression_sampling must be in [0, 100], got {self.expression_sampling}")
         if not 0.0 <= self.pose_noise <= 1.0:
             raise ValueError(f"pose_noise must be in [0, 1] radians, got {self.pose_noise}")
 

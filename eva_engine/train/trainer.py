@@ -1,7 +1,6 @@
 """``train_avatar``: fit an :class:`~eva_engine.avatar.Avatar` to a dataset's training frames.
 
-One frame per step (a seeded random order, epoch by epoch, as 3DGS does; optionally weighted
-toward rare facial expressions: ``train/frame_order.py``):
+One frame per step (a seeded random order, epoch by epoch), as 3DGS does:
 pose (skinning) -> rasterize -> losses -> backward -> Adam steps -> density control. Progress
 goes to an optional callback (``eva_engine.progress.ProgressEvent``: stages "setup", "train",
 "done"); per-stage wall time is accumulated in ``TrainResult.timings`` (what ``bench/train.py``
@@ -22,13 +21,12 @@ from torch import Tensor
 
 from eva_engine.avatar import Avatar, AvatarFrames, Camera, TrainingRecord
 from eva_engine.avatar.coverage import Coverage
-from eva_engine.body.model import PART_NAMES, BodyModel, expression_group_masks
+from eva_engine.body.model import PART_NAMES, BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.data.dataset import Dataset, DatasetLike
 from eva_engine.data.resampled import ResampledDataset
 from eva_engine.progress import Progress, ProgressEvent
 from eva_engine.train.config import TrainConfig
-from eva_engine.train.frame_order import FrameOrder
 from eva_engine.train.losses import AvatarLoss, composite_target
 from eva_engine.train.pose_correction import PoseCorrection
 from eva_engine.train.regularizers import regularization
@@ -302,12 +300,7 @@ def train_avatar(
         len(avatar.gaussians),
     )
 
-    frame_order = FrameOrder(
-        params.expression,
-        config.expression_sampling,
-        torch.Generator().manual_seed(config.seed),
-        groups=expression_group_masks(body.expression_names),
-    )
+    frame_order = torch.Generator().manual_seed(config.seed)
     # Draws of the options that perturb a step (their own generator: turning one on leaves the
     # frame order and the initial weights as they were).
     perturb = torch.Generator().manual_seed(config.seed + 1)
@@ -315,6 +308,7 @@ def train_avatar(
     max_scale = (
         torch.tensor(config.avatar.max_scale, device=device) if config.avatar.max_scale is not None else None
     )
+    order: list[int] = []
     timings = dict.fromkeys(STAGES, 0.0)
     losses: list[float] = []
     refinements: list[dict] = []
@@ -330,7 +324,9 @@ def train_avatar(
 
     for step in range(config.iterations):
         t = time.perf_counter()
-        i = frame_order.next()
+        if not order:
+            order = torch.randperm(len(train_ids), generator=frame_order).tolist()
+        i = order.pop()
         if step > 0 and step % config.sh_degree_interval == 0:
             avatar.active_sh_degree = min(avatar.active_sh_degree + 1, avatar.gaussians.sh_degree)
         for g in optimizers["means"].param_groups:
