@@ -22,21 +22,32 @@ from service.settings import ServiceSettings
 
 @dataclass
 class JobCounts:
-    """Jobs per state for ``/healthz``, which is polled often and must answer at once: it gets
-    the last counts read; when they are older than ``max_age_s``, a background task reads them
-    again from the store (in a thread)."""
+    """Jobs per state for ``/healthz``, which must answer at once even while the store is locked:
+    counts older than ``max_age_s`` are read again from the store (in a thread), and waited for
+    at most ``wait_s``; a store that takes longer leaves the last counts read, with their age.
+    (Returning the last counts and reading anew only behind them showed a rarely polled
+    ``/healthz`` counts as old as its previous poll.)"""
 
     max_age_s: float = 1.0
+    wait_s: float = 0.25
     _value: dict[str, int] | None = None
     _at: float = field(default=float("-inf"))
     _refresh: asyncio.Task | None = None
 
-    async def get(self, queue: JobQueue) -> dict[str, int]:
-        if self._value is None:
-            await self._read(queue)
-        elif time.monotonic() - self._at > self.max_age_s and (self._refresh is None or self._refresh.done()):
-            self._refresh = asyncio.create_task(self._read(queue))
-        return self._value
+    async def get(self, queue: JobQueue) -> tuple[dict[str, int], float]:
+        """(counts, their age in seconds)."""
+        if time.monotonic() - self._at > self.max_age_s:
+            if self._refresh is None or self._refresh.done():
+                self._refresh = asyncio.create_task(self._read(queue))
+            wait = None if self._value is None else self.wait_s  # the very first read: its answer
+            try:
+                await asyncio.wait_for(asyncio.shield(self._refresh), timeout=wait)
+            except TimeoutError:
+                pass
+            except Exception:  # a store error: health shows the last counts and their age
+                if self._value is None:
+                    raise
+        return self._value, round(time.monotonic() - self._at, 3)
 
     async def _read(self, queue: JobQueue) -> None:
         self._value, self._at = await run_in_threadpool(queue.store.counts), time.monotonic()

@@ -41,6 +41,9 @@ class Health(BaseModel):
     records: str = Field("sqlite", description="Where the job records are: sqlite or redis.")
     storage: str = Field("disk", description="Where avatars and uploads are: disk or s3.")
     jobs: dict[str, int] = Field(description="Job count per state.")
+    jobs_age_s: float = Field(
+        0.0, description="How old those counts are, s (under 1 unless the job store is slow)."
+    )
     renders: dict[str, int] = Field(default_factory=dict, description="Renders running and waiting.")
 
 

@@ -4,6 +4,7 @@ lifecycle of a job nobody runs yet (409 until ready, cancel), the API key and th
 from __future__ import annotations
 
 import re
+import time
 
 import pytest
 from fastapi.testclient import TestClient
@@ -269,3 +270,20 @@ def test_render_body_is_validated_before_the_avatar_is_loaded(client, tmp_path):
     ids = upload(client, (tmp_path / "nobody.mp4").read_bytes()).json()
     res = client.post(f"/avatars/{ids['avatar_id']}/render", json={"pose": {"joints": {"x": [0, 0]}}})
     assert res.status_code == 422, res.text  # not 409 "still queued": the body was judged first
+
+
+def test_health_counts_are_fresh_and_say_their_age(client, monkeypatch):
+    from service.deps import JobCounts
+
+    store = client.app.state.context.queue.store
+    assert client.get("/healthz").json()["jobs"]["queued"] == 0
+    time.sleep(JobCounts.max_age_s + 0.1)
+    store.create({})  # the next poll sees it (the counts used to lag one poll behind)
+    health = client.get("/healthz").json()
+    assert health["jobs"]["queued"] == 1 and health["jobs_age_s"] < 0.5
+    # A store too slow to answer: health answers at once with the last counts, and their age.
+    monkeypatch.setattr(type(store), "counts", lambda self: time.sleep(2.0) or {"queued": 99})
+    time.sleep(JobCounts.max_age_s + 0.1)
+    t0 = time.perf_counter()
+    health = client.get("/healthz").json()
+    assert time.perf_counter() - t0 < 1.0 and health["jobs"]["queued"] == 1 and health["jobs_age_s"] > 1.0

@@ -11,7 +11,7 @@ router = APIRouter(tags=["health"])
 
 @router.get("/healthz", response_model=Health, summary="Liveness, queue kind, job counts, renders")
 async def healthz(ctx: ServiceContext = Depends(context)) -> Health:
-    counts = await ctx.job_counts.get(ctx.queue)  # one grouped query a second at most, in a thread
+    counts, age = await ctx.job_counts.get(ctx.queue)  # one grouped query a second at most, in a thread
     renders = {"running": ctx.renders.running, "waiting": ctx.renders.queued}
     return Health(
         version=eva_engine.__version__,
@@ -19,5 +19,6 @@ async def healthz(ctx: ServiceContext = Depends(context)) -> Health:
         records="sqlite" if ctx.queue.config.records_url is None else "redis",
         storage="disk" if ctx.queue.config.storage_url is None else "s3",
         jobs=counts,
+        jobs_age_s=age,
         renders=renders,
     )
