@@ -16,7 +16,7 @@ from helpers.service import (
     EVA,
     FAST_OPTIONS,
     finish_real_and_nobody,
-    job_processes,
+    freeze_in_stage,
     log_tail,
     no_person_video,
     start_process,
@@ -55,16 +55,8 @@ def test_a_killed_worker_is_replaced_and_the_job_resumes(tmp_path, signer_video)
         ids = upload(client, signer_video, **options)
         worker = start_worker(data, log)
         try:
-            job = wait_for(
-                lambda: (
-                    (j := client.get(f"/jobs/{ids['job_id']}").json())["stage"] == "train"
-                    and j["state"] == "running"
-                    and j
-                ),
-                300,
-                "the training stage",
-            )
-            worker.send_signal(signal.SIGKILL)
+            freeze_in_stage(client, ids["job_id"], "train", others=(worker.pid,))
+            worker.send_signal(signal.SIGKILL)  # its job's process dies with it
             worker.wait()
             job = client.get(f"/jobs/{ids['job_id']}").json()
             assert job["state"] == "running"  # nobody has noticed yet
@@ -102,17 +94,7 @@ def test_a_silent_worker_is_not_raced_by_another(tmp_path, signer_video):
         a = start_worker(data, logs[0], stale_after=2)
         b = None
         try:
-            wait_for(
-                lambda: (
-                    (j := client.get(f"/jobs/{ids['job_id']}").json())["stage"] == "train"
-                    and j["state"] == "running"
-                ),
-                300,
-                "the training stage",
-            )
-            paused = [a.pid, *job_processes(ids["job_id"])]
-            for pid in paused:
-                os.kill(pid, signal.SIGSTOP)
+            paused = freeze_in_stage(client, ids["job_id"], "train", others=(a.pid,))
             time.sleep(4)  # silent for twice stale_after
             b = start_worker(data, logs[1], stale_after=2)
             wait_for(lambda: "recovered" in logs[1].read_text(), 120, "worker B to start")
@@ -140,9 +122,7 @@ def test_a_killed_job_process_costs_only_that_job_an_attempt(tmp_path, signer_vi
         try:
             victim = upload(client, signer_video, **{**FAST_OPTIONS, "iterations": "40"})
             other = upload(client, signer_video, **FAST_OPTIONS)
-            url = f"/jobs/{victim['job_id']}"
-            wait_for(lambda: client.get(url).json()["stage"] == "train", 300, "training")
-            for pid in job_processes(victim["job_id"]):
+            for pid in freeze_in_stage(client, victim["job_id"], "train"):
                 os.kill(pid, signal.SIGKILL)
             first = wait_for(lambda: finished(client, victim["job_id"]), 400, "the killed job")
             second = wait_for(lambda: finished(client, other["job_id"]), 400, "the other job")

@@ -284,6 +284,36 @@ def job_processes(job_id: str | None = None) -> dict[int, str]:
     return {pid: p.job_id for pid, p in processes().items() if not p.forked and job_id in (None, p.job_id)}
 
 
+def freeze_in_stage(client, job_id: str, stage: str, others: tuple[int, ...] = (), timeout: float = 300.0):
+    """Stop (SIGSTOP) job ``job_id``'s process, with the processes ``others``, at a moment its
+    record says it is running ``stage``, and return the stopped pids. The record is read again
+    once they are stopped: a stopped job cannot leave its stage, so what the test does next
+    happens in that stage however short it is (if it moved on in between, they are let go and
+    the next moment is tried)."""
+
+    def status() -> dict:
+        return client.get(f"/jobs/{job_id}").json()
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        pids = [*others, *job_processes(job_id)]
+        job = status()
+        if len(pids) > len(others) and job["state"] == "running" and job["stage"] == stage:
+            for pid in pids:
+                os.kill(pid, signal.SIGSTOP)
+            job = status()
+            if (
+                job["state"] == "running"
+                and job["stage"] == stage
+                and set(pids) <= {*others, *job_processes(job_id)}
+            ):
+                return pids
+            for pid in pids:
+                os.kill(pid, signal.SIGCONT)
+        time.sleep(0.05)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for job {job_id} in stage {stage!r}")
+
+
 @pytest.fixture
 def redis_url(tmp_path):
     """A real redis-server on a free loopback port, for this test only."""
