@@ -110,9 +110,8 @@ class S3Storage(Storage):
                 rel = path.relative_to(src).as_posix()
                 self._call("store a file", self.client.put_object, Key=f"{folder}/{rel}", Body=body)
 
-    def _get_folder(self, folder: str, dst: Path, only=None) -> int:
-        """Download ``folder``'s files (those ``only`` accepts) into ``dst``; returns how many."""
-        count = 0
+    def _get_folder(self, folder: str, dst: Path, only=None) -> None:
+        """Download ``folder``'s files (those ``only`` accepts) into ``dst``."""
         for key in self._keys(folder):
             rel = key[len(folder) + 1 :]
             if rel == MARKER or (only is not None and not only(rel)):
@@ -124,8 +123,6 @@ class S3Storage(Storage):
             body = self._call("read a file", self.client.get_object, Key=key)["Body"]
             with open(target, "wb") as out:
                 shutil.copyfileobj(body, out, 1 << 20)
-            count += 1
-        return count
 
     def _delete_keys(self, keys: list[str]) -> None:
         for start in range(0, len(keys), 1000):

@@ -113,9 +113,7 @@ class RedisJobStore(JobStore):
         ]
 
     def queued(self, account: str | None = None) -> int:
-        return sum(
-            1 for job in self._all() if job.state == "queued" and (account is None or job.account == account)
-        )
+        return len(self.list(states=("queued",), with_deleted=True, account=account))
 
     def counts(self) -> dict[str, int]:
         counts = dict.fromkeys(STATES, 0)
@@ -133,48 +131,50 @@ class RedisJobStore(JobStore):
         kind: str = "avatar",
         account: str | None = None,
     ) -> JobRecord:
-        from redis.exceptions import WatchError
-
         job = new_record(options, filename, job_id, avatar_id, kind, account)
         key, output = self._key(job.id), self._output_key(job.avatar_id)
+
+        def insert(pipe) -> JobRecord:
+            if pipe.exists(key) or pipe.exists(output):
+                raise DuplicateJobError(f"a job {job.id} or one making {job.avatar_id} exists already")
+            pipe.multi()
+            pipe.set(key, self._encode(job))
+            pipe.set(output, job.id)
+            pipe.zadd(self._ids, {job.id: job.created_at})
+            pipe.execute()
+            return job
+
+        return self._atomically([key, output], insert)
+
+    def _atomically(self, keys: list[str], step: Callable[[Any], Any]) -> Any:
+        """``step(pipe)`` under WATCH of ``keys``: it reads, decides, and either queues its writes
+        after ``pipe.multi()`` and executes them, or returns without writing; when another client
+        changed a watched key meanwhile, it runs again on what is there now. Returns its result."""
+        from redis.exceptions import WatchError
+
         with self.redis.pipeline() as pipe:
             while True:
                 try:
-                    pipe.watch(key, output)
-                    if pipe.exists(key) or pipe.exists(output):
-                        raise DuplicateJobError(
-                            f"a job {job.id} or one making {job.avatar_id} exists already"
-                        )
-                    pipe.multi()
-                    pipe.set(key, self._encode(job))
-                    pipe.set(output, job.id)
-                    pipe.zadd(self._ids, {job.id: job.created_at})
-                    pipe.execute()
-                    return job
+                    pipe.watch(*keys)
+                    return step(pipe)
                 except WatchError:
                     continue
 
     def _change(self, job_id: str, change: Callable[[JobRecord], JobRecord | None]) -> JobRecord | None:
         """Apply ``change`` (the new record, or None to leave it) to the current record atomically;
         returns the record written, or None."""
-        from redis.exceptions import WatchError
-
         key = self._key(job_id)
-        with self.redis.pipeline() as pipe:
-            while True:
-                try:
-                    pipe.watch(key)
-                    current = self._decode(pipe.get(key))
-                    new = change(current) if current is not None else None
-                    if new is None:
-                        pipe.unwatch()
-                        return None
-                    pipe.multi()
-                    pipe.set(key, self._encode(new))
-                    pipe.execute()
-                    return new
-                except WatchError:
-                    continue
+
+        def apply(pipe) -> JobRecord | None:
+            current = self._decode(pipe.get(key))
+            new = change(current) if current is not None else None
+            if new is not None:
+                pipe.multi()
+                pipe.set(key, self._encode(new))
+                pipe.execute()
+            return new
+
+        return self._atomically([key], apply)
 
     def update(
         self,
@@ -237,29 +237,22 @@ class RedisJobStore(JobStore):
 
     def _delete(self, job: JobRecord, finished_before: float | None = None) -> bool:
         """Remove ``job``'s keys (only while it is still purgeable, with ``finished_before``)."""
-        from redis.exceptions import WatchError
-
         key, output = self._key(job.id), self._output_key(job.avatar_id)
-        with self.redis.pipeline() as pipe:
-            while True:
-                try:
-                    pipe.watch(key, output)
-                    current = self._decode(pipe.get(key))
-                    if current is None or (
-                        finished_before is not None and not purgeable(current, finished_before)
-                    ):
-                        pipe.unwatch()
-                        return False
-                    owner = pipe.get(output)
-                    pipe.multi()
-                    pipe.delete(key)
-                    if owner is not None and owner.decode() == job.id:
-                        pipe.delete(output)
-                    pipe.zrem(self._ids, job.id)
-                    pipe.execute()
-                    return True
-                except WatchError:
-                    continue
+
+        def remove(pipe) -> bool:
+            current = self._decode(pipe.get(key))
+            if current is None or (finished_before is not None and not purgeable(current, finished_before)):
+                return False
+            owner = pipe.get(output)
+            pipe.multi()
+            pipe.delete(key)
+            if owner is not None and owner.decode() == job.id:
+                pipe.delete(output)
+            pipe.zrem(self._ids, job.id)
+            pipe.execute()
+            return True
+
+        return self._atomically([key, output], remove)
 
     def purge(self, finished_before: float) -> list[JobRecord]:
         gone = [job for job in self._all() if purgeable(job, finished_before)]

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from jobs.config import JobsConfig
 from jobs.storage import Storage
-from jobs.store import JobStore, is_valid_id
+from jobs.store import JobRecord, JobStore, is_valid_id
 
 logger = logging.getLogger("eva.jobs")
 
@@ -53,6 +53,16 @@ def _age(path: Path, now: float) -> float:
     return now - max(times)
 
 
+def _work_expired(job: JobRecord | None, age: float, config: JobsConfig) -> str | None:
+    """Why a job's work (a folder, or its upload in a bucket) of this age goes, or None if it stays:
+    its job ended a grace period ago, or it has no job past ``orphan_ttl_s``."""
+    if job is not None and job.finished and age > FINISHED_GRACE_S:
+        return f"of a {job.state} job"
+    if job is None and age > config.orphan_ttl_s:
+        return "without a job"
+    return None
+
+
 def sweep(config: JobsConfig, store: JobStore, storage: Storage, now: float | None = None) -> Sweep:
     """One pass (see the module docstring)."""
     now = time.time() if now is None else now
@@ -74,21 +84,15 @@ def sweep(config: JobsConfig, store: JobStore, storage: Storage, now: float | No
 
     for path in sorted(config.work_dir.iterdir()) if config.work_dir.is_dir() else []:
         job = store.get(path.name) if is_valid_id(path.name) else None
-        age = _age(path, now)
-        if job is not None and job.finished and age > FINISHED_GRACE_S:
-            remove(path, f"work folder of a {job.state} job")
-        elif job is None and age > config.orphan_ttl_s:
-            remove(path, "work folder without a job")
+        why = _work_expired(job, _age(path, now), config)
+        if why:
+            remove(path, f"work folder {why}")
     for job_id, age in storage.remote_uploads(now):
-        job = store.get(job_id)
-        if (job is not None and job.finished and age > FINISHED_GRACE_S) or (
-            job is None and age > config.orphan_ttl_s
-        ):
+        why = _work_expired(store.get(job_id), age, config)
+        if why:
             storage.remove_work(job_id)
             done.uploads.append(job_id)
-            logger.info(
-                "swept the upload of job %s from the bucket (%s)", job_id, job.state if job else "no job"
-            )
+            logger.info("swept the upload of job %s from the bucket (%s)", job_id, why)
     for kind, folder in (("avatar", config.avatars_dir), ("animation", config.animations_dir)):
         for path in sorted(folder.iterdir()) if folder.is_dir() else []:
             age = _age(path, now)
