@@ -42,9 +42,9 @@ def main() -> None:
     from eva_engine.data import load_dataset
     from eva_engine.eval import ImageMetrics, quality_report
     from eva_engine.train import preset, train_avatar
+    from jobs.avatar import _training_metrics
     from jobs.media import probe_video
     from jobs.options import JobOptions
-    from jobs.pipeline import _training_metrics
 
     options = JobOptions()
     config = options.preprocess_config(probe_video(video, 4096, decode_first=False).frame_count())

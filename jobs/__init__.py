@@ -11,14 +11,14 @@ host, or Redis and an S3 bucket across several), ``jobs.sweep`` what crashes lea
 
 from jobs.backends import open_storage, open_store
 from jobs.config import JobsConfig
+from jobs.kinds import KIND_MODULES, job_kind, job_kinds
 from jobs.media import VideoInfo, VideoRejected, probe_in_subprocess, probe_video
 from jobs.options import JobOptions
-from jobs.pipeline import STAGE_SPANS, JobCancelled, JobRun
+from jobs.pipeline import JobCancelled, JobKind, JobRun
 from jobs.queue import JobQueue, QueueUnavailable, Recovery, make_huey
 from jobs.runner import Crashed, JobRunner
 from jobs.storage import InvalidIdError, Storage, StorageUnavailable
 from jobs.store import (
-    STAGES,
     STATES,
     TERMINAL,
     JobLost,
@@ -33,13 +33,13 @@ from jobs.sweep import Sweep, sweep
 from jobs.worker import run_worker
 
 __all__ = [
-    "STAGES",
-    "STAGE_SPANS",
+    "KIND_MODULES",
     "STATES",
     "TERMINAL",
     "Crashed",
     "InvalidIdError",
     "JobCancelled",
+    "JobKind",
     "JobLost",
     "JobOptions",
     "JobQueue",
@@ -58,6 +58,8 @@ __all__ = [
     "VideoInfo",
     "VideoRejected",
     "is_valid_id",
+    "job_kind",
+    "job_kinds",
     "make_huey",
     "new_id",
     "open_storage",

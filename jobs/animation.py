@@ -1,16 +1,17 @@
 """Animation jobs: an existing avatar performs the motion of an uploaded driving video (or JSON pose
-sequence), rendered to an mp4 (``eva_engine.animate``). They run like avatar jobs, in the job's
-own process (``jobs.runner``, ``JobRun``), and follow the same rules: every stage's result lands
-by an atomic rename, so a retried job starts after its last completed stage; every record write
-is conditional on the attempt still owning the job (``JobLost`` stops it otherwise, checked again
-before each result is put in place); partial results carry the attempt's own suffix:
+sequence), rendered to an mp4 (``eva_engine.animate``): the job kind ``ANIMATION``. They run like
+avatar jobs (``jobs.avatar``), in the job's own process (``jobs.runner``, ``JobRun``), and
+follow the same rules: every stage's result lands by an atomic rename, so a retried job starts
+after its last completed stage; every record write is conditional on the attempt still owning
+the job (``JobLost`` stops it otherwise, checked again before each result is put in place);
+partial results carry the attempt's own suffix:
 
     work/<job_id>/input.video      the upload: a video (any container), or input.json (poses)
     work/<job_id>/dataset/         the driving video preprocessed and aligned (stages preprocess, align)
     work/<job_id>/animation/       animation.mp4 + animation.json (stage render)
     animations/<animation_id>/     the same folder, renamed (stage export)
 
-The job record's ``avatar_id`` column holds the animation's id; ``options["avatar_id"]`` is the
+The job record's ``output_id`` is the animation's id; ``options["avatar_id"]`` is the
 avatar it animates (see ``jobs.store``). Its memory is bounded like an avatar job's: the driving
 video's decoded frames, and the rendered frames (held until encoded), within
 ``JobsConfig.max_frame_pixels`` (``check_animation_budget``, at upload and again in the job).
@@ -22,18 +23,15 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from pydantic import Field
 
 from eva_engine.animate.animation import AnimationConfig, AnimationError, output_frames, output_size
 from eva_engine.progress import ProgressEvent
 from jobs.options import MAX_FRAMES, MAX_SIZE, MIN_SIZE
+from jobs.pipeline import JobKind, JobRun, Reporter
 from jobs.progress import preprocess_progress
-
-if TYPE_CHECKING:
-    from jobs.pipeline import JobRun, Reporter
-    from jobs.store import JobRecord
+from jobs.store import JobRecord
 
 logger = logging.getLogger("eva.jobs")
 
@@ -105,7 +103,7 @@ def animation_stages(run: JobRun, job: JobRecord, report: Reporter) -> None:
 
     options = AnimationOptions.model_validate(job.options)
     storage = run.storage
-    animation_id = job.avatar_id
+    animation_id = job.output_id
     if storage.animation_exists(animation_id):  # published before the last worker died
         return
     work = storage.fetch_upload(job.id)
@@ -200,7 +198,7 @@ def _render(
     write_animation(partial / VIDEO_NAME, result)
     h, w = result.frames.shape[1:3]
     info = {
-        "animation_id": job.avatar_id,
+        "animation_id": job.output_id,
         "avatar_id": options.avatar_id,
         "job_id": job.id,
         "source": job.filename,
@@ -226,3 +224,13 @@ def read_animation_info(folder: Path) -> dict:
         return json.loads((folder / INFO_NAME).read_text())
     except (OSError, ValueError):
         return {}
+
+
+ANIMATION = JobKind(
+    name="animation",
+    output_field="animation_id",
+    stage_spans=ANIMATION_STAGE_SPANS,
+    options=AnimationOptions,
+    run=animation_stages,
+    input_fields=("avatar_id",),
+)

@@ -1,14 +1,10 @@
-"""One avatar job, stage by stage, resumable, run inside the job's own process (``jobs.runner``
-starts it; an animation job runs the stages of ``jobs.animation`` the same way): video ->
-dataset (preprocess + align) -> trained avatar -> published avatar. Every
-stage's result lands in the job's work folder by an atomic rename, so a process killed at any
-moment leaves either the previous stage's result or the next one, and a retry starts after the
-last completed stage.
-
-    work/<job_id>/input.video   the upload (written by the API, whatever its name was)
-    work/<job_id>/dataset/      eva_engine.align.preprocess_video (stages preprocess, align)
-    work/<job_id>/avatar/       eva_engine.avatar.save_avatar: with its metrics and frames (stage train)
-    avatars/<avatar_id>/        the same folder, renamed (stage export)
+"""One attempt at one job, stage by stage, resumable, run inside the job's own process
+(``jobs.runner`` starts it): ``JobRun`` runs the stages of the job's kind (an avatar from a
+video, ``jobs.avatar``, or an animation, ``jobs.animation``) and ends the job with their outcome.
+A kind (``JobKind``) names its stages with their share of the progress, its options and the
+function that runs them; ``jobs.kinds`` registers the kinds. Every stage's result lands in the
+job's work folder by an atomic rename, so a process killed at any moment leaves either the
+previous stage's result or the next one, and a retry starts after the last completed stage.
 
 Every record write is conditional on this attempt still owning the job (``JobStore`` ``owner=``);
 when it does not (recovery gave the job to another worker), the stage stops with ``JobLost`` and
@@ -18,28 +14,66 @@ attempts never write into one folder.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import re
 import time
 import uuid
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from pydantic import BaseModel
 
 from eva_engine.progress import ProgressEvent
 from jobs.config import JobsConfig
 from jobs.disk import DiskFull, is_disk_full
-from jobs.options import JobOptions
-from jobs.progress import preprocess_progress
-from jobs.storage import Storage, input_file, move_into_place
-from jobs.store import STAGES, JobLost, JobRecord, JobStore
+from jobs.storage import Storage
+from jobs.store import JobLost, JobRecord, JobStore
 
 logger = logging.getLogger("eva.jobs")
 
-# Share of the whole job each stage stands for in ``progress`` (measured roughly on CPU).
-STAGE_SPANS = {"preprocess": (0.0, 0.25), "align": (0.25, 0.5), "train": (0.5, 0.97), "export": (0.97, 1.0)}
-METRIC_FRAMES = 8
+
+@dataclass(frozen=True)
+class JobKind:
+    """One kind of job.
+
+    name: the record's ``kind``; output_field: the API's name for its output id (``avatar_id``,
+    ``animation_id``); stage_spans: stage -> (start, end) of its share of ``progress``, in order,
+    covering 0..1; options: the model of the record's ``options``; input_fields: the options'
+    fields that name other outputs (an animation's ``avatar_id``); run: ``run(job_run, job,
+    report)`` runs (or resumes) the stages, raising on failure."""
+
+    name: str
+    output_field: str
+    stage_spans: Mapping[str, tuple[float, float]]
+    options: type[BaseModel]
+    run: Callable[[JobRun, JobRecord, Reporter], None]
+    input_fields: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        spans = list(self.stage_spans.values())
+        if not spans or spans[0][0] != 0.0 or spans[-1][1] != 1.0:
+            raise ValueError(f"job kind {self.name!r}: its stages must cover progress 0..1")
+        if any(a[1] != b[0] for a, b in zip(spans, spans[1:], strict=False)):
+            raise ValueError(f"job kind {self.name!r}: its stages' spans must follow each other")
+
+    @property
+    def stages(self) -> tuple[str, ...]:
+        return tuple(self.stage_spans)
+
+    def next_stage(self, completed: str | None) -> str:
+        """The stage a retry starts at, after ``completed`` (None: the first)."""
+        if completed is None:
+            return self.stages[0]
+        index = self.stages.index(completed)
+        return self.stages[min(index + 1, len(self.stages) - 1)]
+
+    def ids(self, job: JobRecord) -> dict[str, str]:
+        """The ids a client sees for ``job``: its output's, and the inputs its options name."""
+        options = self.options.model_validate(job.options)
+        inputs = {name: getattr(options, name) for name in self.input_fields}
+        return {**inputs, self.output_field: job.output_id}
 
 
 class JobCancelled(Exception):
@@ -48,18 +82,19 @@ class JobCancelled(Exception):
 
 class Reporter:
     """Turns engine callbacks into job-record updates (throttled) and stops the stage when the
-    job was cancelled (``JobCancelled``) or this attempt no longer owns it (``JobLost``)."""
+    job was cancelled (``JobCancelled``) or this attempt no longer owns it (``JobLost``).
+    spans: stage -> its share of the job's progress (``JobKind.stage_spans``)."""
 
     def __init__(
         self,
         store: JobStore,
         job: JobRecord,
         worker: str,
+        spans: Mapping[str, tuple[float, float]],
         interval: float = 0.5,
-        spans: dict[str, tuple[float, float]] | None = None,
     ) -> None:
         self.store, self.job, self.worker, self.interval = store, job, worker, interval
-        self.spans = spans or STAGE_SPANS
+        self.spans = spans
         self._last = 0.0
         self._stage: str | None = None
 
@@ -95,13 +130,15 @@ class Reporter:
 
 @dataclass
 class JobRun:
-    """One attempt at one job, by ``worker`` (which has claimed it), in the job's process."""
+    """One attempt at one job of ``kind`` (``jobs.kinds.job_kind(job.kind)``), by ``worker`` (which
+    has claimed it), in the job's process."""
 
     config: JobsConfig
     store: JobStore
     storage: Storage
     job: JobRecord
     worker: str
+    kind: JobKind
     attempt: str = field(default_factory=lambda: uuid.uuid4().hex[:8])
     _models: dict = field(default_factory=dict)
 
@@ -117,20 +154,17 @@ class JobRun:
         return self._models[name]
 
     def execute(self) -> str | None:
-        """Run the stages of the job's kind (an avatar, or an animation: ``jobs.animation``) and
-        end the job with its outcome; returns the final state, or None when this attempt lost
-        the job (it then leaves the record and the files alone). Raises ``DiskFull`` (leaving
-        the record and the files alone) when the disk is full."""
+        """Run the stages of the job's kind and end the job with its outcome; returns the final
+        state, or None when this attempt lost the job (it then leaves the record and the files
+        alone). Raises ``DiskFull`` (leaving the record and the files alone) when the disk is
+        full."""
         job = self.job
-        stages, spans = self._stages, STAGE_SPANS
-        if job.kind == "animation":
-            from jobs.animation import ANIMATION_STAGE_SPANS, animation_stages
-
-            stages, spans = (lambda j, r: animation_stages(self, j, r)), ANIMATION_STAGE_SPANS
-        report = Reporter(self.store, job, self.worker, spans=spans)
+        if job.kind != self.kind.name:
+            raise ValueError(f"job {job.id} is of kind {job.kind!r}, not {self.kind.name!r}")
+        report = Reporter(self.store, job, self.worker, self.kind.stage_spans)
         stage = job.completed_stage
         try:
-            stages(job, report)
+            self.kind.run(self, job, report)
         except JobLost:
             logger.warning("job %s: %s no longer owns it; this attempt stops", job.id, self.worker)
             return None
@@ -160,109 +194,6 @@ class JobRun:
             logger.warning("job %s: lost before it could be marked %s", job.id, state)
             return None
         return state
-
-    def _stages(self, job: JobRecord, report: Reporter) -> None:
-        options = JobOptions.model_validate(job.options)
-        if self.storage.avatar_exists(job.avatar_id):  # published before the last worker died
-            return
-        work = self.storage.fetch_upload(job.id)
-        dataset_dir, trained_dir = work / "dataset", work / "avatar"
-        if not trained_dir.is_dir():
-            if not dataset_dir.is_dir():
-                self._preprocess(work, dataset_dir, options, report)
-            report.completed("align")
-            self._train(job, dataset_dir, trained_dir, options, report)
-        report.completed("train")
-        report(ProgressEvent("export", message="publishing the avatar"), force=True)  # ownership checked here
-        try:
-            self.storage.publish(trained_dir, job.avatar_id)
-        except FileExistsError:  # another attempt published the same job's avatar first
-            logger.warning("job %s: avatar %s was already published", job.id, job.avatar_id)
-        report.completed("export")
-
-    def _preprocess(self, work: Path, out: Path, options: JobOptions, report: Reporter) -> None:
-        from eva_engine.align import preprocess_video
-        from jobs.media import check_frame_budget, probe_video
-
-        video = input_file(work)
-        if video is None:
-            raise FileNotFoundError("the uploaded video is missing from the job's folder")
-        report(ProgressEvent("preprocess", message="checking the video"), force=True)
-        # Again here, not only at upload: the budget may have changed, and this is what decodes.
-        info = probe_video(video, self.config.max_video_side, decode_first=False)
-        check_frame_budget(info, options.max_frames, options.max_size, self.config.max_frame_pixels)
-        report(ProgressEvent("preprocess", message="decoding the video"), force=True)
-        model = self.body_model(options.body_model)
-
-        progress = preprocess_progress(report)
-
-        # Decoded as what the probe approved: its demuxer (never one FFmpeg guesses) and size limit.
-        config = dataclasses.replace(
-            options.preprocess_config(info.frame_count()),
-            demuxer=info.container,
-            max_video_side=self.config.max_video_side,
-        )
-        partial = out.with_name(f"{out.name}.partial-{self.attempt}")
-        preprocess_video(video, partial, config, model=model, progress=progress, overwrite=True)
-        report(ProgressEvent("align", 1, 1, "dataset ready"), force=True)  # still ours: put it in place
-        move_into_place(partial, out)
-        video.unlink(missing_ok=True)  # the dataset holds the frames now
-
-    def _train(
-        self, job: JobRecord, dataset_dir: Path, out: Path, options: JobOptions, report: Reporter
-    ) -> None:
-
-        from eva_engine.avatar import save_avatar
-        from eva_engine.data import load_dataset
-        from eva_engine.eval import ImageMetrics, quality_report
-        from eva_engine.train import train_avatar
-
-        ds = load_dataset(dataset_dir)
-        body = self.body_model(ds.meta.body_model or options.body_model)
-        config = options.train_config(self.config.max_gaussians, self.config.max_gaussian_std_m)
-        report(ProgressEvent("train", message="setting up training"), force=True)
-
-        def progress(event: ProgressEvent) -> None:  # the last 5%: the fit on training frames
-            report(event.rescaled("train", 0.0, 0.95))
-
-        result = train_avatar(ds, config, body=body, progress=progress)
-        report(ProgressEvent("train", 0.95, 1, "scoring the avatar on unseen frames"), force=True)
-        metrics = ImageMetrics()  # LPIPS networks loaded once for both
-        quality = quality_report(result.avatar, ds, metrics)
-        record = result.record(
-            config,
-            preset=options.preset,
-            method=options.method,
-            options=options.model_dump(),
-            metrics=_training_metrics(result.avatar, ds, metrics),
-            quality=quality.model_dump(),
-            avatar_id=job.avatar_id,
-            job_id=job.id,
-            source_video=job.filename,
-            created_at=time.time(),
-        )
-        partial = out.with_name(f"{out.name}.partial-{self.attempt}")
-        # Each training frame's pose (as trained) and camera: a client renders one to compare with the input.
-        save_avatar(result.avatar, partial, record, frames=result.frames(ds))
-        report(ProgressEvent("train", 1, 1, "avatar trained"), force=True)  # still ours: put it in place
-        move_into_place(partial, out)
-
-
-def _training_metrics(avatar, ds, metrics=None) -> dict:
-    """PSNR / SSIM / LPIPS of the avatar on up to METRIC_FRAMES of its training frames."""
-    from eva_engine.eval import evaluate_avatar
-
-    train = list(ds.splits.get("train", []))
-    if not train:
-        return {}
-    step = max(1, math.ceil(len(train) / METRIC_FRAMES))
-    ds.splits["fit_check"] = train[::step][:METRIC_FRAMES]
-    result = evaluate_avatar(avatar, ds, split="fit_check", metrics=metrics)
-    full = result.regions.get("full")
-    out = {"split": "train", "frames": result.num_frames, "render_fps": result.render_fps}
-    if full is not None:
-        out.update(psnr=full.psnr, ssim=full.ssim, lpips_vgg=full.lpips_vgg, lpips_alex=full.lpips_alex)
-    return out
 
 
 def is_input_error(err: Exception) -> bool:
@@ -322,4 +253,4 @@ def failure_reason(err: Exception, stage: str | None, config: JobsConfig) -> str
     return f"internal error{where}: {type(err).__name__} (details in the worker's log)"
 
 
-__all__ = ["STAGES", "STAGE_SPANS", "JobCancelled", "JobRun", "Reporter", "failure_reason"]
+__all__ = ["JobCancelled", "JobKind", "JobRun", "Reporter", "failure_reason"]

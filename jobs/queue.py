@@ -19,8 +19,9 @@ from huey import RedisHuey, SqliteHuey, crontab
 
 from jobs.backends import open_storage, open_store
 from jobs.config import JobsConfig
+from jobs.kinds import job_kind
 from jobs.runner import Crashed, JobRunner, WorkerId
-from jobs.store import STAGES, STAGES_OF, JobRecord
+from jobs.store import JobRecord
 
 logger = logging.getLogger("eva.jobs")
 
@@ -186,7 +187,8 @@ class JobQueue:
         (a job killed with its worker twice kept failing, upload lost, in the soak run).
         ``condition``: ``owner=`` or ``expect=`` as in ``JobStore.update``. Returns what happened,
         or None if the job had changed meanwhile."""
-        stage = job.stage or STAGES[0]
+        kind = job_kind(job.kind)
+        stage = job.stage or kind.stages[0]
         losses = job.worker_losses + int(worker_lost)
         crashes = job.attempts - losses
         if job.cancel_requested:
@@ -204,7 +206,7 @@ class JobQueue:
                 f"{self.config.max_attempts} attempts"
             }
         else:
-            resume = _next_stage(job.completed_stage, job.kind)
+            resume = kind.next_stage(job.completed_stage)
             changed = self.store.update(
                 job.id,
                 **condition,
@@ -234,11 +236,3 @@ class JobQueue:
             return not worker.alive()
         beat = job.heartbeat_at or job.updated_at
         return now - beat > self.config.stale_after_s
-
-
-def _next_stage(completed: str | None, kind: str = "avatar") -> str:
-    stages = STAGES_OF[kind]
-    if completed is None:
-        return stages[0]
-    index = stages.index(completed)
-    return stages[min(index + 1, len(stages) - 1)]

@@ -301,6 +301,7 @@ def main(argv: list[str] | None = None) -> int:
 
         torch.set_num_threads(config.threads)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    from jobs.kinds import job_kind
     from jobs.pipeline import JobRun
 
     store = open_store(config)
@@ -308,7 +309,7 @@ def main(argv: list[str] | None = None) -> int:
     if job is None or job.state != "running" or job.worker != spec["worker"]:
         return 0  # taken from us before we started
     try:
-        JobRun(config, store, open_storage(config), job, spec["worker"]).execute()
+        JobRun(config, store, open_storage(config), job, spec["worker"], job_kind(job.kind)).execute()
     except DiskFull:  # the worker gives the job back to the queue (exit_reason)
         return EXIT_DISK_FULL
     return 0

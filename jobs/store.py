@@ -7,14 +7,12 @@ hosts); ``jobs.backends.open_store`` picks one from the configuration.
 
 States: ``queued`` -> ``running`` -> ``succeeded`` | ``failed`` | ``cancelled`` (a queued job
 can be cancelled directly; a worker found dead sends a running job back to ``queued``).
-Stages, in order: ``preprocess`` (decode + detect), ``align`` (body-model fit), ``train``,
-``export`` (publish the avatar). ``completed_stage`` is the last one whose result is on disk.
-
-Kinds: an ``avatar`` job makes the avatar ``avatar_id`` from a video; an ``animation`` job makes
-an animation of an existing avatar (``jobs.animation``): its ``avatar_id`` column holds the id of
-the animation it makes (the column is the job's unique output id) and ``options["avatar_id"]``
-the avatar it animates. Its stages: ``preprocess``, ``align`` (the driving video), ``render``,
-``export``.
+Kinds (``jobs.kinds``) name a job's stages, in order, and what it makes, whose id is the record's
+unique ``output_id``: an ``avatar`` job makes that avatar from a video (``preprocess``,
+``align``, ``train``, ``export``); an ``animation`` job makes that animation of an existing avatar,
+``options["avatar_id"]`` (``jobs.animation``). ``output_deleted``: the output was deleted;
+``stage``: the stage running (or last run); ``completed_stage``: the last one whose result is on
+disk.
 
 Ownership: a running job belongs to the worker that claimed it (``worker``). Every write a worker
 makes is conditional on still owning it (``owner=``), and recovery's writes are conditional on the
@@ -41,14 +39,11 @@ logger = logging.getLogger("eva.jobs")
 
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 TERMINAL = ("succeeded", "failed", "cancelled")
-STAGES = ("preprocess", "align", "train", "export")
-KINDS = ("avatar", "animation")
-STAGES_OF = {"avatar": STAGES, "animation": ("preprocess", "align", "render", "export")}
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS jobs (
     id TEXT PRIMARY KEY,
-    avatar_id TEXT NOT NULL UNIQUE,
+    output_id TEXT NOT NULL UNIQUE,
     state TEXT NOT NULL,
     stage TEXT,
     completed_stage TEXT,
@@ -61,7 +56,7 @@ CREATE TABLE IF NOT EXISTS jobs (
     attempts INTEGER NOT NULL DEFAULT 0,
     worker TEXT,
     cancel_requested INTEGER NOT NULL DEFAULT 0,
-    avatar_deleted INTEGER NOT NULL DEFAULT 0,
+    output_deleted INTEGER NOT NULL DEFAULT 0,
     created_at REAL NOT NULL,
     started_at REAL,
     finished_at REAL,
@@ -74,7 +69,8 @@ CREATE TABLE IF NOT EXISTS jobs (
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state);
 """
-# Columns added since the first release: added to an older file when it is opened.
+# Columns renamed and added since the first release: done to an older file when it is opened.
+_RENAMED_COLUMNS = {"avatar_id": "output_id", "avatar_deleted": "output_deleted"}
 _ADDED_COLUMNS = {
     "enqueued_at": "REAL",
     "kind": "TEXT NOT NULL DEFAULT 'avatar'",
@@ -128,7 +124,7 @@ class JobRecord:
     """One row of ``jobs`` (timestamps: Unix seconds)."""
 
     id: str
-    avatar_id: str
+    output_id: str
     state: str
     options: dict[str, Any]
     created_at: float
@@ -143,7 +139,7 @@ class JobRecord:
     attempts: int = 0
     worker: str | None = None
     cancel_requested: bool = False
-    avatar_deleted: bool = False
+    output_deleted: bool = False
     started_at: float | None = None
     finished_at: float | None = None
     heartbeat_at: float | None = None
@@ -166,10 +162,11 @@ class JobRecord:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> JobRecord:
+        d = {_RENAMED_COLUMNS.get(k, k): v for k, v in d.items()}  # a record written before the rename
         d = {
             **d,
             "cancel_requested": bool(d["cancel_requested"]),
-            "avatar_deleted": bool(d["avatar_deleted"]),
+            "output_deleted": bool(d["output_deleted"]),
         }
         return cls(**d)
 
@@ -197,17 +194,17 @@ def new_record(
     options: dict[str, Any],
     filename: str | None,
     job_id: str | None,
-    avatar_id: str | None,
+    output_id: str | None,
     kind: str,
     account: str | None,
 ) -> JobRecord:
     """A queued job's first record (``JobStore.create``)."""
-    if kind not in KINDS:
-        raise ValueError(f"unknown job kind {kind!r}; choose one of {KINDS}")
+    if not kind.isidentifier():  # which kinds exist is ``jobs.kinds``'; a record holds any name
+        raise ValueError(f"a job kind is a name, got {kind!r}")
     now = time.time()
     return JobRecord(
         id=job_id or new_id(),
-        avatar_id=avatar_id or new_id(),
+        output_id=output_id or new_id(),
         state="queued",
         options=options,
         created_at=now,
@@ -230,7 +227,7 @@ def finished_fields(state: str, error: str | None, message: str | None) -> dict[
 def purgeable(job: JobRecord, finished_before: float) -> bool:
     """A record ``JobStore.purge`` deletes: ended before then, and left nothing to serve."""
     ended = job.finished_at is not None and job.finished_at < finished_before
-    gone = job.state in ("failed", "cancelled") or (job.state == "succeeded" and job.avatar_deleted)
+    gone = job.state in ("failed", "cancelled") or (job.state == "succeeded" and job.output_deleted)
     return ended and gone
 
 
@@ -282,10 +279,10 @@ class JobStore(ABC):
     def get(self, job_id: str) -> JobRecord | None: ...
 
     @abstractmethod
-    def by_avatar(
-        self, avatar_id: str, with_deleted: bool = False, kind: str | None = "avatar"
+    def by_output(
+        self, output_id: str, with_deleted: bool = False, kind: str | None = "avatar"
     ) -> JobRecord | None:
-        """The job that made ``avatar_id`` (for ``kind="animation"``: the animation with that id;
+        """The job that made ``output_id`` (for ``kind="animation"``: the animation with that id;
         ``kind=None``: either)."""
 
     @abstractmethod
@@ -313,11 +310,11 @@ class JobStore(ABC):
         options: dict[str, Any],
         filename: str | None = None,
         job_id: str | None = None,
-        avatar_id: str | None = None,
+        output_id: str | None = None,
         kind: str = "avatar",
         account: str | None = None,
     ) -> JobRecord:
-        """A new queued job; its id and its output id (``avatar_id``) are unique."""
+        """A new queued job; its id and its ``output_id`` are unique."""
 
     @abstractmethod
     def update(
@@ -389,6 +386,10 @@ class SqliteJobStore(JobStore):
             db.execute("PRAGMA journal_mode=WAL")
             db.executescript(_SCHEMA)
             have = {row["name"] for row in db.execute("PRAGMA table_info(jobs)")}
+            for old, new in _RENAMED_COLUMNS.items():
+                if old in have:
+                    db.execute(f"ALTER TABLE jobs RENAME COLUMN {old} TO {new}")
+                    have = (have - {old}) | {new}
             for name, kind in _ADDED_COLUMNS.items():
                 if name not in have:
                     db.execute(f"ALTER TABLE jobs ADD COLUMN {name} {kind}")
@@ -410,12 +411,12 @@ class SqliteJobStore(JobStore):
         return JobRecord.from_row(row) if row else None
 
     @_retry_busy
-    def by_avatar(
-        self, avatar_id: str, with_deleted: bool = False, kind: str | None = "avatar"
+    def by_output(
+        self, output_id: str, with_deleted: bool = False, kind: str | None = "avatar"
     ) -> JobRecord | None:
-        query, args = "SELECT * FROM jobs WHERE avatar_id = ?", [avatar_id]
+        query, args = "SELECT * FROM jobs WHERE output_id = ?", [output_id]
         if not with_deleted:
-            query += " AND avatar_deleted = 0"
+            query += " AND output_deleted = 0"
         if kind is not None:
             query += " AND kind = ?"
             args.append(kind)
@@ -442,7 +443,7 @@ class SqliteJobStore(JobStore):
             query += f" AND state IN ({','.join('?' * len(states))})"
             args += list(states)
         if not with_deleted:
-            query += " AND avatar_deleted = 0"
+            query += " AND output_deleted = 0"
         with self._connect() as db:
             rows = db.execute(query + " ORDER BY created_at", args).fetchall()
         return [JobRecord.from_row(r) for r in rows]
@@ -471,16 +472,16 @@ class SqliteJobStore(JobStore):
         options: dict[str, Any],
         filename: str | None = None,
         job_id: str | None = None,
-        avatar_id: str | None = None,
+        output_id: str | None = None,
         kind: str = "avatar",
         account: str | None = None,
     ) -> JobRecord:
-        job = new_record(options, filename, job_id, avatar_id, kind, account)
+        job = new_record(options, filename, job_id, output_id, kind, account)
         now = job.created_at
-        row = (job.id, job.avatar_id, kind, job.state, json.dumps(options), filename, job.message, now, now)
+        row = (job.id, job.output_id, kind, job.state, json.dumps(options), filename, job.message, now, now)
         with self._connect() as db:
             db.execute(
-                "INSERT INTO jobs (id, avatar_id, kind, state, options, filename, message, created_at,"
+                "INSERT INTO jobs (id, output_id, kind, state, options, filename, message, created_at,"
                 " updated_at, account) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (*row, account),
             )
@@ -542,7 +543,7 @@ class SqliteJobStore(JobStore):
 
     @_retry_busy
     def purge(self, finished_before: float) -> list[JobRecord]:
-        where = "state IN ('failed', 'cancelled') OR (state = 'succeeded' AND avatar_deleted = 1)"
+        where = "state IN ('failed', 'cancelled') OR (state = 'succeeded' AND output_deleted = 1)"
         with self._connect() as db:
             rows = db.execute(
                 f"SELECT * FROM jobs WHERE finished_at < ? AND ({where})", (finished_before,)

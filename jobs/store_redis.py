@@ -4,7 +4,7 @@ them (``JobsConfig.records_url``; SQLite needs one host's local disk).
 Keys, under ``<prefix>`` (``eva:records`` by default):
 
 - ``<prefix>:job:<id>``: the record, as JSON (``JobRecord``'s fields);
-- ``<prefix>:output:<avatar_id>``: the id of the job that makes that avatar or animation (what
+- ``<prefix>:output:<output_id>``: the id of the job that makes that avatar or animation (what
   SQLite's UNIQUE column keeps unique);
 - ``<prefix>:ids``: every job id, scored by its creation time (listings are oldest first).
 
@@ -54,8 +54,8 @@ class RedisJobStore(JobStore):
     def _key(self, job_id: str) -> str:
         return f"{self.prefix}:job:{job_id}"
 
-    def _output_key(self, avatar_id: str) -> str:
-        return f"{self.prefix}:output:{avatar_id}"
+    def _output_key(self, output_id: str) -> str:
+        return f"{self.prefix}:output:{output_id}"
 
     @property
     def _ids(self) -> str:
@@ -83,14 +83,14 @@ class RedisJobStore(JobStore):
     def get(self, job_id: str) -> JobRecord | None:
         return self._decode(self.redis.get(self._key(job_id)))
 
-    def by_avatar(
-        self, avatar_id: str, with_deleted: bool = False, kind: str | None = "avatar"
+    def by_output(
+        self, output_id: str, with_deleted: bool = False, kind: str | None = "avatar"
     ) -> JobRecord | None:
-        job_id = self.redis.get(self._output_key(avatar_id))
+        job_id = self.redis.get(self._output_key(output_id))
         job = self.get(job_id.decode()) if job_id else None
         if (
             job is None
-            or (job.avatar_deleted and not with_deleted)
+            or (job.output_deleted and not with_deleted)
             or (kind is not None and job.kind != kind)
         ):
             return None
@@ -109,7 +109,7 @@ class RedisJobStore(JobStore):
             if (account is None or job.account == account)
             and (kind is None or job.kind == kind)
             and (not states or job.state in states)
-            and (with_deleted or not job.avatar_deleted)
+            and (with_deleted or not job.output_deleted)
         ]
 
     def queued(self, account: str | None = None) -> int:
@@ -127,16 +127,16 @@ class RedisJobStore(JobStore):
         options: dict[str, Any],
         filename: str | None = None,
         job_id: str | None = None,
-        avatar_id: str | None = None,
+        output_id: str | None = None,
         kind: str = "avatar",
         account: str | None = None,
     ) -> JobRecord:
-        job = new_record(options, filename, job_id, avatar_id, kind, account)
-        key, output = self._key(job.id), self._output_key(job.avatar_id)
+        job = new_record(options, filename, job_id, output_id, kind, account)
+        key, output = self._key(job.id), self._output_key(job.output_id)
 
         def insert(pipe) -> JobRecord:
             if pipe.exists(key) or pipe.exists(output):
-                raise DuplicateJobError(f"a job {job.id} or one making {job.avatar_id} exists already")
+                raise DuplicateJobError(f"a job {job.id} or one making {job.output_id} exists already")
             pipe.multi()
             pipe.set(key, self._encode(job))
             pipe.set(output, job.id)
@@ -189,7 +189,7 @@ class RedisJobStore(JobStore):
         if unknown:
             raise ValueError(f"unknown job record fields {sorted(unknown)}")
         fields["updated_at"] = time.time()
-        for flag in ("cancel_requested", "avatar_deleted"):
+        for flag in ("cancel_requested", "output_deleted"):
             if flag in fields:
                 fields[flag] = bool(fields[flag])
 
@@ -237,7 +237,7 @@ class RedisJobStore(JobStore):
 
     def _delete(self, job: JobRecord, finished_before: float | None = None) -> bool:
         """Remove ``job``'s keys (only while it is still purgeable, with ``finished_before``)."""
-        key, output = self._key(job.id), self._output_key(job.avatar_id)
+        key, output = self._key(job.id), self._output_key(job.output_id)
 
         def remove(pipe) -> bool:
             current = self._decode(pipe.get(key))

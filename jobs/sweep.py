@@ -99,11 +99,11 @@ def sweep(config: JobsConfig, store: JobStore, storage: Storage, now: float | No
             if path.name.startswith(".deleted-") and age > FINISHED_GRACE_S:
                 remove(path, f"a deleted {kind}'s leftovers")
             elif is_valid_id(path.name) and age > config.orphan_ttl_s:
-                job = store.by_avatar(path.name, with_deleted=True, kind=kind)
+                job = store.by_output(path.name, with_deleted=True, kind=kind)
                 if job is None:
                     quarantine(path, config.quarantine_dir / folder.name)
-                elif job.state in ("failed", "cancelled") or job.avatar_deleted:
-                    remove(path, f"{kind} of a {'deleted' if job.avatar_deleted else job.state} job")
+                elif job.state in ("failed", "cancelled") or job.output_deleted:
+                    remove(path, f"{kind} of a {'deleted' if job.output_deleted else job.state} job")
     purged = store.purge(finished_before=now - config.keep_records_days * 86400.0)
     done.records = [job.id for job in purged]
     for job in purged:

@@ -88,7 +88,7 @@ class AnimationInfo(BaseModel):
         info = info or {}
         done = job.state == "succeeded" and bool(info)
         return cls(
-            animation_id=job.avatar_id,
+            animation_id=job.output_id,
             avatar_id=job.options["avatar_id"],
             job_id=job.id,
             **job_progress(job),
@@ -96,7 +96,7 @@ class AnimationInfo(BaseModel):
             options=AnimationOptions.model_validate(job.options),
             created_at=utc_time(job.created_at),
             finished_at=utc_time(job.finished_at),
-            video_url=f"/animations/{job.avatar_id}/video" if done else None,
+            video_url=f"/animations/{job.output_id}/video" if done else None,
             **{
                 k: info.get(k)
                 for k in ("frames", "fps", "width", "height", "duration_s", "driving_frames_without_person")

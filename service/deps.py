@@ -104,14 +104,14 @@ def avatar_record(
     avatar_id: str, ctx: ServiceContext = Depends(context), who: Caller = Depends(caller)
 ) -> JobRecord:
     """The job record behind an avatar (one job makes one avatar)."""
-    return _record("avatar", avatar_id, ctx.queue.store.by_avatar, who)
+    return _record("avatar", avatar_id, ctx.queue.store.by_output, who)
 
 
 def animation_record(
     animation_id: str, ctx: ServiceContext = Depends(context), who: Caller = Depends(caller)
 ) -> JobRecord:
-    """The job record behind an animation (its ``avatar_id`` column is the animation's id)."""
-    return _record("animation", animation_id, partial(ctx.queue.store.by_avatar, kind="animation"), who)
+    """The job record behind an animation (its ``output_id`` is the animation's id)."""
+    return _record("animation", animation_id, partial(ctx.queue.store.by_output, kind="animation"), who)
 
 
 def ready_avatar(
@@ -131,9 +131,9 @@ def check_ready(job: JobRecord, ctx: ServiceContext) -> JobRecord:
             "failed": f"its job failed: {job.error}",
             "cancelled": "its job was cancelled",
         }[job.state]
-        raise HTTPException(409, f"avatar {job.avatar_id} is not ready: {reason}")
-    if not ctx.queue.storage.avatar_exists(job.avatar_id):
-        raise HTTPException(409, f"avatar {job.avatar_id} has no files on disk (deleted?)")
+        raise HTTPException(409, f"avatar {job.output_id} is not ready: {reason}")
+    if not ctx.queue.storage.avatar_exists(job.output_id):
+        raise HTTPException(409, f"avatar {job.output_id} has no files on disk (deleted?)")
     return job
 
 

@@ -17,11 +17,14 @@ from eva_engine.avatar.render_spec import (  # noqa: F401  (the bounds, re-expor
 from eva_engine.eval.quality import QualityReport
 from eva_engine.render.view import CAMERA_PRESETS, CameraSpec  # noqa: F401
 from jobs.animation import AnimationOptions
+from jobs.kinds import KIND_MODULES, job_kind, job_kinds
 from jobs.options import JobOptions
 from jobs.store import JobRecord
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-JobStage = Literal["preprocess", "align", "train", "render", "export"]
+# From the registry, so a new kind's name and stages reach the API's schema.
+JobKindName = Literal[tuple(KIND_MODULES)]  # type: ignore[valid-type]
+JobStage = Literal[tuple(dict.fromkeys(s for kind in job_kinds().values() for s in kind.stages))]  # type: ignore[valid-type]
 AvatarStatus = Literal["pending", "ready", "failed", "cancelled"]
 
 
@@ -120,7 +123,7 @@ class JobInfo(BaseModel):
     )
 
     job_id: str
-    kind: Literal["avatar", "animation"] = "avatar"
+    kind: JobKindName = "avatar"
     avatar_id: str
     animation_id: str | None = None
     state: JobState
@@ -140,19 +143,16 @@ class JobInfo(BaseModel):
 
     @classmethod
     def of(cls, job: JobRecord) -> JobInfo:
-        if job.kind == "animation":  # its avatar_id column is the animation's id (see jobs.store)
-            options = AnimationOptions.model_validate(job.options)
-            ids = {"kind": "animation", "avatar_id": options.avatar_id, "animation_id": job.avatar_id}
-        else:
-            options, ids = JobOptions.model_validate(job.options), {"avatar_id": job.avatar_id}
+        kind = job_kind(job.kind)
         return cls(
             job_id=job.id,
-            **ids,
+            kind=kind.name,
+            **kind.ids(job),
             **job_progress(job),
             attempts=job.attempts,
             cancel_requested=job.cancel_requested,
             filename=job.filename,
-            options=options,
+            options=kind.options.model_validate(job.options),
             created_at=utc_time(job.created_at),
             started_at=utc_time(job.started_at),
             finished_at=utc_time(job.finished_at),

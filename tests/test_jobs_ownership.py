@@ -22,6 +22,7 @@ from eva_engine.avatar import read_avatar_meta
 from eva_engine.progress import ProgressEvent
 from jobs import JobLost, JobOptions, JobQueue, JobRun, JobsConfig, JobStoreError, SqliteJobStore, sweep
 from jobs import store as store_module
+from jobs.avatar import AVATAR
 from jobs.pipeline import Reporter
 from jobs.queue import RUN_TASK
 from jobs.runner import JobRunner, _pid_namespace, _start_time
@@ -70,14 +71,15 @@ def test_a_worker_that_lost_its_job_cannot_write_to_it(queue):
     assert not store.update(job.id, owner=a.worker, progress=0.9)
     assert not store.finish(job.id, "succeeded", owner=a.worker)
     assert store.heartbeat(job.id, a.worker) is None
-    report = Reporter(store, a, a.worker)
+    report = Reporter(store, a, a.worker, AVATAR.stage_spans)
     with pytest.raises(JobLost):
         report(ProgressEvent("train", 1, 2), force=True)
     with pytest.raises(JobLost):
         report.completed("train")
     current = store.get(job.id)
     assert current.state == "running" and current.worker == b.worker and current.progress == 0.0
-    Reporter(store, b, b.worker)(ProgressEvent("train", 1, 2), force=True)  # the owner's do
+    owner = Reporter(store, b, b.worker, AVATAR.stage_spans)
+    owner(ProgressEvent("train", 1, 2), force=True)  # the owner's do
     assert store.finish(job.id, "succeeded", owner=b.worker)
 
 
@@ -150,7 +152,7 @@ def test_two_attempts_racing_one_job_end_with_one_result(queue, signer_video, an
     store, storage = queue.store, queue.storage
     job_id = submit(queue, signer_video, enqueue=False)
     a_job = store.claim(job_id, "elsewhere:1:10:100:a")
-    a = JobRun(queue.config, store, storage, a_job, a_job.worker)
+    a = JobRun(queue.config, store, storage, a_job, a_job.worker, AVATAR)
     a.add_body_model(anny_model)
     # A is parked inside its preprocess stage (where it asks for the body model) while recovery
     # hands the job to B: waiting on events, not polling for a stage that may last 0.2 s.
@@ -174,13 +176,13 @@ def test_two_attempts_racing_one_job_end_with_one_result(queue, signer_video, an
     a_resume.set()  # A runs on: its next report finds the job gone and stops without writing
     runner_a.join(300)
     assert not runner_a.is_alive()
-    b = JobRun(queue.config, store, storage, b_job, b_job.worker)
+    b = JobRun(queue.config, store, storage, b_job, b_job.worker, AVATAR)
     b.add_body_model(anny_model)
     outcome["b"] = b.execute()
     assert outcome == {"a": None, "b": "succeeded"}, outcome
     final = store.get(job_id)
     assert final.state == "succeeded" and final.worker == b_job.worker and final.attempts == 2
-    assert sorted(p.name for p in queue.config.avatars_dir.iterdir()) == [final.avatar_id]
+    assert sorted(p.name for p in queue.config.avatars_dir.iterdir()) == [final.output_id]
     assert not storage.work_dir(job_id).exists()
     assert not [p for p in queue.config.data_dir.rglob("*") if ".partial" in p.name]
 
@@ -224,7 +226,7 @@ def test_the_sweeper_removes_what_crashes_leave(queue, signer_video):
     trash = config.avatars_dir / ".deleted-xyz"
     trash.mkdir()
     aged(trash)
-    stray = config.avatars_dir / done.avatar_id
+    stray = config.avatars_dir / done.output_id
     stray.mkdir()
     aged(stray)
     live = submit(queue, signer_video)
@@ -235,14 +237,14 @@ def test_the_sweeper_removes_what_crashes_leave(queue, signer_video):
     animation_trash = config.animations_dir / ".deleted-abc"
     animation_trash.mkdir()
     aged(animation_trash)
-    cancelled = store.create({"avatar_id": kept.avatar_id}, kind="animation")
+    cancelled = store.create({"avatar_id": kept.output_id}, kind="animation")
     store.finish(cancelled.id, "cancelled")
-    stray_animation = config.animations_dir / cancelled.avatar_id
+    stray_animation = config.animations_dir / cancelled.output_id
     stray_animation.mkdir()
     aged(stray_animation)
-    made = store.create({"avatar_id": kept.avatar_id}, kind="animation")
+    made = store.create({"avatar_id": kept.output_id}, kind="animation")
     store.update(made.id, state="succeeded")
-    published = config.animations_dir / made.avatar_id
+    published = config.animations_dir / made.output_id
     published.mkdir()
     aged(published)
     # Finished results with no record at all (a backup restored beside a fresh job store):
@@ -285,7 +287,7 @@ def test_a_job_over_its_memory_limit_fails_alone_with_the_reason(tmp_path, signe
     assert failed.state == "failed" and "ran out of memory" in failed.error, failed
     assert "2600 MB" in failed.error
     assert done.state == "succeeded", done
-    info = read_avatar_meta(queue.storage.avatar_dir(done.avatar_id))
+    info = read_avatar_meta(queue.storage.avatar_dir(done.output_id))
     assert info.train_config["strategy"]["max_gaussians"] == config.max_gaussians  # the service's cap
 
 

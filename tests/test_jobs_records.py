@@ -3,6 +3,8 @@ one host and Redis (a real redis-server) for the API and workers on several."""
 
 from __future__ import annotations
 
+import json
+import sqlite3
 import threading
 import time
 
@@ -96,13 +98,13 @@ def test_conditional_writes(stores):
 def test_lookups_listings_and_counts(stores):
     store = stores()
     a = store.create({}, account="ann")
-    b = store.create({"avatar_id": a.avatar_id}, kind="animation", account="bob")
+    b = store.create({"avatar_id": a.output_id}, kind="animation", account="bob")
     c = store.create({}, account="ann")
     with pytest.raises(ValueError, match="kind"):
-        store.create({}, kind="poem")
-    assert store.by_avatar(a.avatar_id).id == a.id
-    assert store.by_avatar(b.avatar_id) is None and store.by_avatar(b.avatar_id, kind="animation").id == b.id
-    assert store.by_avatar(b.avatar_id, kind=None).id == b.id
+        store.create({}, kind="not a name")  # which kinds exist is jobs.kinds'; a record needs a name
+    assert store.by_output(a.output_id).id == a.id
+    assert store.by_output(b.output_id) is None and store.by_output(b.output_id, kind="animation").id == b.id
+    assert store.by_output(b.output_id, kind=None).id == b.id
     assert [j.id for j in store.list()] == [a.id, b.id, c.id]  # oldest first
     assert [j.id for j in store.list(account="ann")] == [a.id, c.id]
     assert [j.id for j in store.list(kind="animation")] == [b.id]
@@ -111,12 +113,12 @@ def test_lookups_listings_and_counts(stores):
     assert store.queued() == 2 and store.queued("ann") == 1 and store.queued("eve") == 0
     assert store.counts() == {"queued": 2, "running": 1, "succeeded": 0, "failed": 0, "cancelled": 0}
     store.finish(c.id, "succeeded")
-    store.update(c.id, avatar_deleted=1)
-    assert store.by_avatar(c.avatar_id) is None and store.by_avatar(c.avatar_id, with_deleted=True).id == c.id
+    store.update(c.id, output_deleted=1)
+    assert store.by_output(c.output_id) is None and store.by_output(c.output_id, with_deleted=True).id == c.id
     assert [j.id for j in store.list(account="ann")] == [a.id]
     assert [j.id for j in store.list(account="ann", with_deleted=True)] == [a.id, c.id]
     store.delete(b.id)
-    assert store.get(b.id) is None and store.by_avatar(b.avatar_id, kind=None) is None
+    assert store.get(b.id) is None and store.by_output(b.output_id, kind=None) is None
     assert [j.id for j in store.list()] == [a.id]
 
 
@@ -127,7 +129,7 @@ def test_purge_takes_only_what_left_nothing_to_serve(stores):
     for job in (kept, deleted):
         store.claim(job.id, "w")
         store.finish(job.id, "succeeded")
-    store.update(deleted.id, avatar_deleted=1)
+    store.update(deleted.id, output_deleted=1)
     store.finish(failed.id, "failed", error="x")
     store.finish(cancelled.id, "cancelled")
     cutoff = time.time() + 1
@@ -142,10 +144,41 @@ def test_redis_refuses_a_second_job_for_one_output(redis_url):
     store = RedisJobStore(redis_url)
     job = store.create({})
     with pytest.raises(DuplicateJobError):
-        store.create({}, avatar_id=job.avatar_id)
+        store.create({}, output_id=job.output_id)
     with pytest.raises(DuplicateJobError):
         store.create({}, job_id=job.id)
     with pytest.raises(ValueError, match="unknown job record fields"):
         store.update(job.id, colour="red")
     # Two services on one Redis keep apart by their queue names.
     assert RedisJobStore(redis_url, prefix="other:records").get(job.id) is None
+
+
+def test_records_written_before_the_output_rename_are_read(tmp_path, redis_url):
+    """A jobs.db of the first release (``avatar_id``, ``avatar_deleted``, none of the later
+    columns) is migrated when opened; a Redis record of that time is read as it is."""
+    path, job_id, output_id = tmp_path / "jobs.db", "a" * 32, "b" * 32
+    with sqlite3.connect(path) as db:
+        db.execute(
+            "CREATE TABLE jobs (id TEXT PRIMARY KEY, avatar_id TEXT NOT NULL UNIQUE, state TEXT NOT NULL, "
+            "stage TEXT, completed_stage TEXT, progress REAL NOT NULL DEFAULT 0, eta_s REAL, message TEXT, "
+            "error TEXT, options TEXT NOT NULL, filename TEXT, attempts INTEGER NOT NULL DEFAULT 0, "
+            "worker TEXT, cancel_requested INTEGER NOT NULL DEFAULT 0, "
+            "avatar_deleted INTEGER NOT NULL DEFAULT 0, created_at REAL NOT NULL, started_at REAL, "
+            "finished_at REAL, updated_at REAL NOT NULL, heartbeat_at REAL)"
+        )
+        db.execute(
+            "INSERT INTO jobs (id, avatar_id, state, options, avatar_deleted, created_at, updated_at) "
+            "VALUES (?, ?, 'succeeded', '{}', 1, 1.0, 2.0)",
+            (job_id, output_id),
+        )
+    store = SqliteJobStore(path)
+    job = store.get(job_id)
+    assert (job.output_id, job.output_deleted, job.kind, job.worker_losses) == (output_id, True, "avatar", 0)
+    assert store.by_output(output_id) is None and store.by_output(output_id, with_deleted=True).id == job_id
+    assert store.create({}).output_id != output_id  # the table takes new records
+    assert SqliteJobStore(path).get(job_id) == job  # opened again: nothing left to migrate
+
+    redis = RedisJobStore(redis_url)
+    old = {k: v for k, v in vars(job).items() if k not in ("output_id", "output_deleted")}
+    redis.redis.set(redis._key(job_id), json.dumps({**old, "avatar_id": output_id, "avatar_deleted": 1}))
+    assert redis.get(job_id) == job

@@ -108,7 +108,7 @@ def test_a_video_without_a_person_fails_cleanly(queue, tmp_path):
     assert job.state == "failed" and "no person" in job.error and "stage preprocess" in job.error
     assert str(queue.storage.work_dir(job_id)) not in job.error
     assert "frames of the uploaded video: the video must show one person" in job.error  # its colon kept
-    assert not queue.storage.work_dir(job_id).exists() and not queue.storage.avatar_exists(job.avatar_id)
+    assert not queue.storage.work_dir(job_id).exists() and not queue.storage.avatar_exists(job.output_id)
 
 
 def test_the_job_decodes_the_upload_as_the_probe_approved_it(queue, tmp_path, monkeypatch, anny_model):

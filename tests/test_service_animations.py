@@ -23,7 +23,7 @@ from helpers.service import no_person_video, run_job_here
 from eva_engine.avatar import TrainingRecord, save_avatar
 from eva_engine.data import read_video
 from jobs import JobQueue, JobRun, JobsConfig
-from jobs.animation import AnimationOptions
+from jobs.animation import ANIMATION, AnimationOptions
 from service.app import create_app
 from service.settings import ServiceSettings
 
@@ -43,9 +43,9 @@ def ready_avatar(queue: JobQueue, body) -> str:
     job = queue.store.create({"preset": "tiny"}, filename="teacher.mp4")
     partial = queue.config.data_dir / "teacher.partial"
     save_avatar(teacher_avatar(body, n=2000), partial, TrainingRecord(preset="tiny"))
-    queue.storage.publish(partial, job.avatar_id)
+    queue.storage.publish(partial, job.output_id)
     queue.store.update(job.id, state="succeeded", progress=1.0, completed_stage="export")
-    return job.avatar_id
+    return job.output_id
 
 
 @pytest.fixture
@@ -184,7 +184,7 @@ def test_an_avatar_that_does_not_exist_is_404(service):
 def test_an_avatar_still_being_made_is_409(service):
     client, queue, _ = service
     pending = queue.store.create({"preset": "tiny"}, filename="later.mp4")
-    res = client.post(f"/avatars/{pending.avatar_id}/animations", files={"poses": poses_file([{}])})
+    res = client.post(f"/avatars/{pending.output_id}/animations", files={"poses": poses_file([{}])})
     assert res.status_code == 409 and "not ready" in res.json()["detail"]
 
 
@@ -314,7 +314,7 @@ def test_an_attempt_that_lost_its_animation_job_writes_nothing(service):
     store = queue.store
     lost = store.claim(created["job_id"], "elsewhere:1:10:100:a")
     store.update(lost.id, worker="elsewhere:1:11:101:b")  # taken over (as recovery + a claim would)
-    run = JobRun(queue.config, store, queue.storage, lost, lost.worker)
+    run = JobRun(queue.config, store, queue.storage, lost, lost.worker, ANIMATION)
     run.add_body_model(queue.test_body_model)
     assert run.execute() is None  # it stopped at its first write
     job = store.get(lost.id)

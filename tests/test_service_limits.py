@@ -33,7 +33,7 @@ def seeded(tmp_path, anny_model):
     job = publish_seeded_avatar(queue, anny_model)
     app = create_app(config, queue=queue)
     app.state.context.avatars._bodies["anny"] = anny_model  # the session's model: no second load
-    return app, job.avatar_id
+    return app, job.output_id
 
 
 @pytest.fixture
@@ -230,7 +230,7 @@ def test_renders_past_the_gate_are_503_with_retry_after(tmp_path, anny_model):
     async def burst():
         transport = httpx.ASGITransport(app=app)
         async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1") as c:
-            url, body = f"/avatars/{job.avatar_id}/render", {"width": 64, "height": 64}
+            url, body = f"/avatars/{job.output_id}/render", {"width": 64, "height": 64}
             return await asyncio.gather(*[c.post(url, json=body) for _ in range(6)])
 
     answers = asyncio.run(burst())

@@ -53,7 +53,7 @@ NOT_FOUND = error(404, "Unknown or malformed id")
 
 
 def _info(job: JobRecord, ctx: ServiceContext) -> AnimationInfo:
-    folder = ctx.queue.storage.animation_dir(job.avatar_id)
+    folder = ctx.queue.storage.animation_dir(job.output_id)
     return AnimationInfo.of(job, read_animation_info(folder) if job.state == "succeeded" else None)
 
 
@@ -84,7 +84,7 @@ async def create_animation(
     ctx: ServiceContext = Depends(context),
     who: Caller = Depends(caller),
 ) -> AnimationCreated:
-    options = AnimationOptions(**form.model_dump(), avatar_id=avatar.avatar_id)
+    options = AnimationOptions(**form.model_dump(), avatar_id=avatar.output_id)
     upload = _one_upload(video, poses)
     if poses is not None and (options.camera == "driving" or options.side_by_side):
         raise HTTPException(422, "camera 'driving' and side_by_side need a driving video, not poses")
@@ -128,7 +128,7 @@ def _create(
             options.model_dump(mode="json"),
             filename=name,
             job_id=job_id,
-            avatar_id=animation_id,
+            output_id=animation_id,
             kind="animation",
             account=who.account,
         )
@@ -191,7 +191,7 @@ def _check_poses(
             raise HTTPException(422, f"{len(poses)} poses: at most {MAX_POSES} in one animation")
         if isinstance(fps, int | float) and 0 < fps <= MAX_POSES_FPS:  # else validation says what is wrong
             _check_render_size(options, len(poses), float(fps), None, ctx)
-    body = ctx.avatars.body(read_avatar_meta(ctx.queue.storage.avatar_dir(avatar.avatar_id)).body_model)
+    body = ctx.avatars.body(read_avatar_meta(ctx.queue.storage.avatar_dir(avatar.output_id)).body_model)
     try:
         driving = driving_from_poses(doc, body)
     except DrivingError as err:
@@ -220,11 +220,11 @@ def get_animation(job: JobRecord = Depends(animation_record), ctx: ServiceContex
     },
 )
 def animation_video(job: JobRecord = Depends(animation_record), ctx: ServiceContext = Depends(context)):
-    file = ctx.queue.storage.animation_dir(job.avatar_id) / VIDEO_NAME
+    file = ctx.queue.storage.animation_dir(job.output_id) / VIDEO_NAME
     if job.state != "succeeded" or not file.is_file():
         reason = job.error if job.state == "failed" else f"its job is {job.state}"
-        raise HTTPException(409, f"animation {job.avatar_id} has no video: {reason}")
-    return FileResponse(file, media_type="video/mp4", filename=f"animation-{job.avatar_id}.mp4")
+        raise HTTPException(409, f"animation {job.output_id} has no video: {reason}")
+    return FileResponse(file, media_type="video/mp4", filename=f"animation-{job.output_id}.mp4")
 
 
 @router.delete(
@@ -235,9 +235,9 @@ def animation_video(job: JobRecord = Depends(animation_record), ctx: ServiceCont
 )
 def delete_animation(job: JobRecord = Depends(animation_record), ctx: ServiceContext = Depends(context)):
     if not job.finished:
-        raise HTTPException(409, f"animation {job.avatar_id} is still being made; cancel job {job.id} first")
-    ctx.queue.storage.delete_animation(job.avatar_id)
-    ctx.queue.store.update(job.id, avatar_deleted=1)
+        raise HTTPException(409, f"animation {job.output_id} is still being made; cancel job {job.id} first")
+    ctx.queue.storage.delete_animation(job.output_id)
+    ctx.queue.store.update(job.id, output_deleted=1)
     return Response(status_code=204)
 
 
@@ -253,7 +253,7 @@ def list_animations(
     who: Caller = Depends(caller),
 ):
     jobs = ctx.queue.store.list(kind="animation", account=who.listed_account)
-    jobs = [j for j in jobs if j.options.get("avatar_id") == avatar.avatar_id]
+    jobs = [j for j in jobs if j.options.get("avatar_id") == avatar.output_id]
     return AnimationList(animations=[_info(j, ctx) for j in jobs])
 
 
@@ -279,7 +279,7 @@ def _controls(ctx: ServiceContext, avatar: JobRecord, aspect: float) -> PoseCont
     from eva_engine.animate.controls import pose_controls as controls_of
     from eva_engine.avatar.framing import framing
 
-    loaded = ctx.avatars.get(avatar.avatar_id, ctx.queue.storage.avatar_dir(avatar.avatar_id))
+    loaded = ctx.avatars.get(avatar.output_id, ctx.queue.storage.avatar_dir(avatar.output_id))
     with loaded.lock:
         controls = controls_of(loaded.avatar.body, loaded.avatar.shape)
         fit = framing(loaded.avatar, aspect=aspect)

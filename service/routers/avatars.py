@@ -72,7 +72,7 @@ def _create(
         check_video(path, options, settings)
         name = Path(filename or "video").name[:200]
         queue.store.create(
-            options.model_dump(), filename=name, job_id=job_id, avatar_id=avatar_id, account=who.account
+            options.model_dump(), filename=name, job_id=job_id, output_id=avatar_id, account=who.account
         )
     return AvatarCreated(avatar_id=avatar_id, job_id=job_id)
 
@@ -92,7 +92,7 @@ def _quality(doc: dict | None, avatar_id: str) -> QualityReport | None:
 def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
     status = {"queued": "pending", "running": "pending", "succeeded": "ready"}.get(job.state, job.state)
     info = AvatarInfo(
-        avatar_id=job.avatar_id,
+        avatar_id=job.output_id,
         job_id=job.id,
         status=status,  # type: ignore[arg-type]
         created_at=job.created_at,
@@ -101,8 +101,8 @@ def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
         preset=job.options.get("preset"),
         body_model=job.options.get("body_model"),
     )
-    if status == "ready" and ctx.queue.storage.avatar_exists(job.avatar_id):
-        meta = read_avatar_meta(ctx.queue.storage.avatar_dir(job.avatar_id))
+    if status == "ready" and ctx.queue.storage.avatar_exists(job.output_id):
+        meta = read_avatar_meta(ctx.queue.storage.avatar_dir(job.output_id))
         info = info.model_copy(
             update={
                 "body_model": meta.body_model,
@@ -111,7 +111,7 @@ def _info(job: JobRecord, ctx: ServiceContext) -> AvatarInfo:
                 "train_seconds": meta.train_seconds,
                 "final_loss": meta.final_loss,
                 "metrics": meta.metrics,
-                "quality": _quality(meta.quality, job.avatar_id),
+                "quality": _quality(meta.quality, job.output_id),
                 "num_frames": meta.frames.count if meta.frames else None,
                 "frame_size": meta.frames.image_size if meta.frames else None,
             }
@@ -140,10 +140,10 @@ def delete_avatar(
     job: JobRecord = Depends(avatar_record), ctx: ServiceContext = Depends(context)
 ) -> Response:
     if not job.finished:
-        raise HTTPException(409, f"avatar {job.avatar_id} is still being made; cancel job {job.id} first")
-    ctx.queue.storage.delete_avatar(job.avatar_id)
-    ctx.queue.store.update(job.id, avatar_deleted=1)
-    ctx.avatars.forget(job.avatar_id)
+        raise HTTPException(409, f"avatar {job.output_id} is still being made; cancel job {job.id} first")
+    ctx.queue.storage.delete_avatar(job.output_id)
+    ctx.queue.store.update(job.id, output_deleted=1)
+    ctx.avatars.forget(job.output_id)
     return Response(status_code=204)
 
 
@@ -183,11 +183,11 @@ async def render_avatar(
     # Here, not as a dependency: a malformed body is a 422 whatever the avatar's state.
     await run_in_threadpool(check_ready, job, ctx)
     req = req or RenderRequest()
-    folder = ctx.queue.storage.avatar_dir(job.avatar_id)
+    folder = ctx.queue.storage.avatar_dir(job.output_id)
     limits = ctx.settings.max_render_side, ctx.settings.max_render_pixels
     width, height = await run_in_threadpool(rendering.checked_size, req, folder, *limits)  # before loading
     async with ctx.renders.slot():
-        data, warnings = await run_in_threadpool(_render, ctx, job.avatar_id, folder, req, width, height)
+        data, warnings = await run_in_threadpool(_render, ctx, job.output_id, folder, req, width, height)
     media_type = "image/png" if req.format == "png" else "image/jpeg"
     return Response(data, media_type=media_type, headers={WARNINGS_HEADER: json.dumps(warnings)})
 
@@ -222,18 +222,18 @@ async def export_avatar(
     job: JobRecord = Depends(ready_avatar),
     ctx: ServiceContext = Depends(context),
 ) -> Response:
-    folder = ctx.queue.storage.avatar_dir(job.avatar_id)
+    folder = ctx.queue.storage.avatar_dir(job.output_id)
     if format == "ply":
         if frame is not None:
             raise HTTPException(422, "'frame' applies to format=glb only (the PLY is the rest pose)")
         from eva_engine.avatar.io import PLY_NAME
 
         return FileResponse(
-            folder / PLY_NAME, media_type="application/octet-stream", filename=f"avatar-{job.avatar_id}.ply"
+            folder / PLY_NAME, media_type="application/octet-stream", filename=f"avatar-{job.output_id}.ply"
         )
     async with ctx.renders.slot():  # posing the mesh costs like a render
-        data = await run_in_threadpool(_glb, ctx, job.avatar_id, folder, frame)
-    disposition = f'attachment; filename="avatar-{job.avatar_id}.glb"'
+        data = await run_in_threadpool(_glb, ctx, job.output_id, folder, frame)
+    disposition = f'attachment; filename="avatar-{job.output_id}.glb"'
     return Response(data, media_type="model/gltf-binary", headers={"Content-Disposition": disposition})
 
 

@@ -162,7 +162,7 @@ def publish_seeded_avatar(queue, model, frames: int = 3, size: tuple[int, int] =
     queue.store.update(job.id, state="running", worker=worker)
     config = AvatarConfig(init_max_gaussians=800, mlp_width=16, pe_frequencies=2, sh_degree=1)
     avatar = Avatar.create(model, model.shape_defaults, config)
-    folder = queue.storage.avatar_dir(job.avatar_id)
+    folder = queue.storage.avatar_dir(job.output_id)
     kept = AvatarFrames(
         params=model.default_params(frames),
         K=intrinsics(size[1], size[0], 40.0).expand(frames, 3, 3),
@@ -180,11 +180,11 @@ def publish_seeded_avatar(queue, model, frames: int = 3, size: tuple[int, int] =
 def run_job_here(queue, job_id: str, *models) -> str | None:
     """Claim the job and run it in this process, as its own process would (``jobs.runner``
     starts ``JobRun`` there), with already loaded body ``models``; returns its final state."""
-    from jobs import JobRun
+    from jobs import JobRun, job_kind
 
     job = queue.store.claim(job_id, f"tests:0:{os.getpid()}:0:here")
     assert job is not None, f"job {job_id} could not be claimed"
-    run = JobRun(queue.config, queue.store, queue.storage, job, job.worker)
+    run = JobRun(queue.config, queue.store, queue.storage, job, job.worker, job_kind(job.kind))
     for model in models:
         run.add_body_model(model)
     return run.execute()
