@@ -21,7 +21,7 @@ def dataset(anny_model, tmp_path_factory):
 def test_train_then_eval(dataset, tmp_path):
     runner = CliRunner()
     out = tmp_path / "avatar"
-    args = ["--preset", "tiny", "--iterations", "30", "--method", "eva"]
+    args = ["--preset", "tiny", "--iterations", "30", "--method", "eva", "--set", "loss.lambda_ssim=0.05"]
     res = runner.invoke(app, ["train", str(dataset), "--out", str(out), *args])
     assert res.exit_code == 0, res.output
     assert (out / "avatar.ply").is_file() and (out / "avatar.safetensors").is_file()
@@ -29,6 +29,7 @@ def test_train_then_eval(dataset, tmp_path):
     assert info.iterations == 30 and info.method == "eva"
     assert info.train_config["strategy"]["name"] == "ContextAwareStrategy"
     assert info.train_config["loss"]["photometric"] == "confidence"
+    assert info.train_config["loss"]["lambda_ssim"] == 0.05  # --set, after the method
     per_part = info.gaussians_per_part
     assert per_part["before"]["hand"] > 0 and sum(per_part["after"].values()) == info.num_gaussians
     assert info.num_gaussians > 0 and info.train_seconds > 0
@@ -67,3 +68,6 @@ def test_cli_errors(tmp_path, dataset):
     assert res.exit_code == 2 and "unknown preset" in res.output
     res = runner.invoke(app, ["train", str(dataset), "--out", str(tmp_path / "a"), "--method", "gart"])
     assert res.exit_code == 2 and "unknown method" in res.output
+    for bad in ("loss.nope=1", "loss.lpips_every=0", "iterations"):
+        res = runner.invoke(app, ["train", str(dataset), "--out", str(tmp_path / "a"), "--set", bad])
+        assert res.exit_code == 2 and "--set" in res.output, res.output

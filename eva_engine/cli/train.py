@@ -28,6 +28,12 @@ def train(
     quality: bool = typer.Option(
         True, help="Score the avatar on the dataset's held-out frames and keep the report in avatar.json."
     ),
+    settings: list[str] = typer.Option(
+        [],
+        "--set",
+        help="A training-config field, dotted, its value as JSON (e.g. loss.lambda_ssim=0.01); repeat "
+        "for more. Applied after --preset and --method; avatar.json's train_config keeps the result.",
+    ),
 ) -> None:
     """Train an avatar on the dataset's training frames (EVA: 2,000 iterations), then score it on
     the frames it did not train on (its quality report)."""
@@ -37,7 +43,7 @@ def train(
     from eva_engine.avatar import save_avatar
     from eva_engine.data import DatasetError, load_dataset
     from eva_engine.progress import ProgressEvent
-    from eva_engine.train import TrainingError, train_avatar, with_method
+    from eva_engine.train import TrainingError, train_avatar, with_method, with_overrides
     from eva_engine.train import preset as make_preset
 
     console = Console(stderr=True)
@@ -67,6 +73,10 @@ def train(
     config = make_preset(preset, **overrides)
     if method is not None:
         config = with_method(config, method)
+    try:
+        config = with_overrides(config, settings)
+    except (ValueError, TypeError) as err:
+        raise typer.BadParameter(str(err), param_hint="--set") from err
 
     columns = (
         TextColumn("{task.description}"),
