@@ -71,6 +71,7 @@ def test_lbs_with_transforms_reproduces_posed_vertices(model):
     out = model(params)
     skinned = lbs(model.canonical(params), model.skinning_weights, out.transforms)
     assert (skinned - out.vertices).abs().max() <= 1e-5
+    assert torch.equal(out.rest, model.canonical(params))  # the rest it carries is canonical's
     # Transforms are rigid: rotation part orthonormal, last row [0, 0, 0, 1].
     rot = out.transforms[..., :3, :3]
     assert torch.allclose(rot @ rot.transpose(-1, -2), torch.eye(3).expand_as(rot), atol=1e-5)

@@ -232,10 +232,11 @@ class Avatar(nn.Module):
             raise ValueError(f"pose one frame at a time, got a batch of {params.batch_size}")
         g = self.gaussians
         refined = self.refine_pose(params)
-        transforms = self.body(refined).transforms[0]  # [J, 4, 4]
+        body = self.body(refined)
+        transforms = body.transforms[0]  # [J, 4, 4]
         if self.latent_bones is not None:  # children of the root: [J + K, 4, 4]
             transforms = torch.cat([transforms, transforms[0] @ self.latent_bones(refined.joints)])
-        rest = self.body.canonical(refined)[0]  # [V, 3] with this frame's expression
+        rest = body.rest[0]  # [V, 3] with this frame's expression
         weights = self.skinning_weights()
         means, quats, scales, carried, turns = follow_skin(
             g.means,

@@ -207,7 +207,7 @@ class AnnyBody(BodyModel):
             axis_angle_to_matrix(rotvecs), heads, params.transl.to(self.dtype)
         )
         vertices = lbs(rest, self.skinning_weights, transforms)
-        return BodyOutput(vertices=vertices, joints=joints, transforms=transforms)
+        return BodyOutput(vertices=vertices, joints=joints, transforms=transforms, rest=rest)
 
     def keypoints(self, output: BodyOutput) -> torch.Tensor:
         return self.keypoint_regressor(output.vertices, output.joints)

@@ -30,12 +30,15 @@ class BodyOutput:
     """A posed body in world coordinates.
 
     vertices: [B, V, 3]; joints: [B, J, 3] (posed joint positions, ``model.joint_names`` order);
-    transforms: [B, J, 4, 4] rest-pose (canonical) -> posed rigid transforms for LBS.
+    transforms: [B, J, 4, 4] rest-pose (canonical) -> posed rigid transforms for LBS; rest:
+    [B, V, 3] ``model.canonical(params)``, computed on the way (a caller that needs both poses
+    once).
     """
 
     vertices: torch.Tensor
     joints: torch.Tensor
     transforms: torch.Tensor
+    rest: torch.Tensor
 
 
 class BodyModel(torch.nn.Module, abc.ABC):

@@ -147,7 +147,7 @@ class SmplxBody(BodyModel):
 
     def forward(self, params: BodyParams) -> BodyOutput:
         s = self.smplx
-        rest = self._shaped(params)  # [B, V, 3]
+        shaped = rest = self._shaped(params)  # [B, V, 3]
         heads = torch.einsum("jv,bvd->bjd", s.J_regressor, rest)
         rotvecs = torch.cat([params.root_orient[:, None], params.joints], dim=1).to(self.dtype)
         rotations = axis_angle_to_matrix(rotvecs)  # [B, J, 3, 3]
@@ -157,7 +157,7 @@ class SmplxBody(BodyModel):
             rest = rest + (feature @ s.posedirs).view_as(rest)
         transforms, joints = self.tree.forward_kinematics(rotations, heads, params.transl.to(self.dtype))
         vertices = lbs(rest, self.skinning_weights, transforms)
-        return BodyOutput(vertices=vertices, joints=joints, transforms=transforms)
+        return BodyOutput(vertices=vertices, joints=joints, transforms=transforms, rest=shaped)
 
     def keypoints(self, output: BodyOutput) -> torch.Tensor:
         if self.keypoint_regressor is None:
