@@ -23,19 +23,7 @@ from machine import describe  # noqa: E402
 from eva_engine.avatar import load_saved_avatar, read_avatar_meta  # noqa: E402
 from eva_engine.body import load_body_model  # noqa: E402
 from eva_engine.data import load_dataset  # noqa: E402
-from eva_engine.render.camera import Camera  # noqa: E402
-
-
-def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
-    """[4, 4] OpenCV world->camera (x right, y down, z forward) at ``eye`` looking at ``target``."""
-    z = torch.nn.functional.normalize(target - eye, dim=0)
-    y = -up - (-up @ z) * z
-    y = torch.nn.functional.normalize(y, dim=0)
-    x = torch.linalg.cross(y, z)
-    view = torch.eye(4)
-    view[:3, :3] = torch.stack([x, y, z])
-    view[:3, 3] = -view[:3, :3] @ eye
-    return view
+from eva_engine.render.camera import Camera, intrinsics, look_at  # noqa: E402
 
 
 def rotate(v: torch.Tensor, axis: torch.Tensor, degrees: float) -> torch.Tensor:
@@ -79,8 +67,7 @@ def main() -> None:
     chosen = pick_frames(ds, ids, body.expression_names)
     head = body.joint_names.index("head")
     s = args.size
-    focal = s / 2 / math.tan(math.radians(args.fov) / 2)
-    K = torch.tensor([[focal, 0.0, s / 2], [0.0, focal, s / 2], [0.0, 0.0, 1.0]])
+    K = intrinsics(s, s, args.fov)
     rows = []
     for i in chosen.values():
         frame, params = ds[i], ds.params[i]

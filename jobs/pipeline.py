@@ -69,9 +69,9 @@ class JobKind:
         index = self.stages.index(completed)
         return self.stages[min(index + 1, len(self.stages) - 1)]
 
-    def ids(self, job: JobRecord) -> dict[str, str]:
-        """The ids a client sees for ``job``: its output's, and the inputs its options name."""
-        options = self.options.model_validate(job.options)
+    def ids(self, job: JobRecord, options: BaseModel) -> dict[str, str]:
+        """The ids a client sees for ``job``: its output's, and the inputs its ``options`` (the
+        record's, validated by ``self.options``) name."""
         inputs = {name: getattr(options, name) for name in self.input_fields}
         return {**inputs, self.output_field: job.output_id}
 

@@ -144,15 +144,16 @@ class JobInfo(BaseModel):
     @classmethod
     def of(cls, job: JobRecord) -> JobInfo:
         kind = job_kind(job.kind)
+        options = kind.options.model_validate(job.options)
         return cls(
             job_id=job.id,
             kind=kind.name,
-            **kind.ids(job),
+            **kind.ids(job, options),
             **job_progress(job),
             attempts=job.attempts,
             cancel_requested=job.cancel_requested,
             filename=job.filename,
-            options=kind.options.model_validate(job.options),
+            options=options,
             created_at=utc_time(job.created_at),
             started_at=utc_time(job.started_at),
             finished_at=utc_time(job.finished_at),
