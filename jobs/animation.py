@@ -26,8 +26,8 @@ from pathlib import Path
 
 from pydantic import Field
 
-from eva_engine.animate.animation import AnimationConfig, AnimationError, output_frames, output_size
 from eva_engine.progress import ProgressEvent
+from eva_engine.specs.animation import AnimationConfig, AnimationError, output_frames, output_size
 from jobs.options import MAX_FRAMES, MAX_SIZE, MIN_SIZE
 from jobs.pipeline import JobKind, JobRun, Reporter
 from jobs.progress import preprocess_progress

@@ -1,7 +1,7 @@
 """The job kinds the queue runs, by name (``JobKind``): a new kind is one module that defines its
-``JobKind``, named here. A kind's module is imported when the kind is first asked for: the
-animation kind's imports torch, which neither ``python -m jobs probe`` nor the worker's parent
-process should load."""
+``JobKind``, named here. A kind's module is imported when the kind is first asked for, and loads
+no torch until its stages run (in the job's own process): neither ``python -m jobs probe`` nor
+the worker's parent process should pay for it."""
 
 from __future__ import annotations
 

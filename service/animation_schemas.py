@@ -10,7 +10,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, computed_field, field_validator
 
 from eva_engine.animate.controls import PoseControl
-from eva_engine.render.view import CameraSpec
+from eva_engine.specs.camera import CameraSpec
 from jobs.animation import AnimationOptions, AnimationRequest
 from jobs.store import JobRecord
 from service.schemas import JobCreated, JobState, job_progress, utc_time

@@ -15,7 +15,7 @@ from eva_engine.avatar.render_spec import (  # noqa: F401  (the bounds, re-expor
     RenderSpec,
 )
 from eva_engine.eval.quality import QualityReport
-from eva_engine.render.view import CAMERA_PRESETS, CameraSpec  # noqa: F401
+from eva_engine.specs.camera import CAMERA_PRESETS, CameraSpec  # noqa: F401
 from jobs.animation import AnimationOptions
 from jobs.kinds import KIND_MODULES, job_kind, job_kinds
 from jobs.options import JobOptions

@@ -173,8 +173,8 @@ def test_pose_controls_move_the_right_joints(anny_model):
 def test_the_budget_counts_the_frames_a_variable_frame_rate_will_render():
     """Ten driving frames whose timestamps span 100 s (a variable frame rate): the rendered
     animation has a frame per 1/fps of that span, and the job's budget counts those, not ten."""
-    from eva_engine.animate.animation import AnimationConfig, AnimationError, output_frames
     from eva_engine.animate.timing import frame_times
+    from eva_engine.specs.animation import AnimationConfig, AnimationError, output_frames
     from jobs.animation import check_animation_budget
 
     times = torch.tensor([0.0, 0.1, 0.2, 0.3, 0.4, 50.0, 99.6, 99.7, 99.8, 100.0], dtype=torch.float64)

@@ -98,11 +98,13 @@ def test_the_api_shows_each_kind_s_ids(queue):
 
 
 def test_the_registry_imports_a_kind_only_when_it_is_asked_for():
-    """The probe's process and the worker's parent import ``jobs`` but run no kind: the animation
-    kind's module imports torch, which they must not pay for (the probe's memory cap)."""
+    """The probe's process and the worker's parent import ``jobs`` and read kinds (a recovered
+    job's next stage, its options) but run none: they must not load torch (the probe's memory
+    cap), which a kind's stages import when they run, in the job's own process."""
     code = (
         "import sys, jobs, jobs.queue, jobs.worker; print('torch' in sys.modules); "
-        "jobs.job_kind('avatar'); print('torch' in sys.modules)"
+        "jobs.job_kind('avatar'); print('torch' in sys.modules); "
+        "jobs.job_kinds(); print('torch' in sys.modules)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.split() == ["False", "False"]
+    assert out.split() == ["False", "False", "False"]

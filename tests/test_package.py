@@ -20,6 +20,7 @@ class Block:
 sys.meta_path.insert(0, Block())
 import eva_engine, eva_engine.render, eva_engine.body, eva_engine.data, eva_engine.metrics, eva_engine.cli
 import eva_engine.avatar, eva_engine.animate, eva_engine.animate.controls, eva_engine.render.view
+import eva_engine.specs.camera, eva_engine.specs.animation
 print("ok")
 """
 

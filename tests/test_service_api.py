@@ -13,7 +13,7 @@ from helpers.service import FAST_OPTIONS, no_person_video
 from pydantic import ValidationError
 
 from eva_engine.recipes import METHODS, PRESETS
-from eva_engine.render.view import CAMERA_PRESETS
+from eva_engine.specs.camera import CAMERA_PRESETS
 from jobs import JobsConfig
 from jobs.options import MAX_FRAMES, JobOptions
 from service.animation_schemas import AnimationForm

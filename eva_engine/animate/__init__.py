@@ -10,7 +10,7 @@ another's body), ``timing`` (smoothing and resampling over time), ``animation`` 
 ``controls`` (named pose sliders for people).
 """
 
-from eva_engine.animate.animation import Animation, AnimationConfig, AnimationError, animate, write_animation
+from eva_engine.animate.animation import Animation, animate, write_animation
 from eva_engine.animate.driving import (
     DrivingError,
     DrivingSequence,
@@ -22,6 +22,7 @@ from eva_engine.animate.driving import (
 )
 from eva_engine.animate.retarget import body_height, recenter, retarget
 from eva_engine.animate.timing import resample_params, smooth_params
+from eva_engine.specs.animation import AnimationConfig, AnimationError
 
 __all__ = [
     "Animation",

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import torch
 
 from eva_engine.avatar.model import Avatar
-from eva_engine.render.view import CameraSpec
+from eva_engine.specs.camera import CameraSpec
 
 
 @dataclass(frozen=True)

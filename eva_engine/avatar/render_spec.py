@@ -34,17 +34,17 @@ from eva_engine.body.kinematics import axis_angle_to_matrix
 from eva_engine.body.model import BodyModel
 from eva_engine.body.params import BodyParams, BodyPose
 from eva_engine.render.camera import Camera
-from eva_engine.render.view import (
+from eva_engine.render.view import camera_from_spec
+from eva_engine.specs.camera import (
     CAMERA_PRESETS,
     DEFAULT_SIZE,
     MAX_FRAME_INDEX,
     CameraSpec,
     Position,
-    camera_from_spec,
     camera_preset,
 )
 
-# Physical bounds of what a pose may ask for (the camera's are in ``eva_engine.render.view``):
+# Physical bounds of what a pose may ask for (the camera's are in ``eva_engine.specs.camera``):
 # finite is not enough (1e300 becomes inf in float32 and renders a blank image), and a bounded
 # request has a bounded cost.
 MAX_POSE_KEYS = 256

@@ -30,7 +30,7 @@ def json_value(text: str, what: str, param: str):
 def camera_value(text: str | None, param: str = "--camera", allow_driving: bool = False):
     """``--camera``: a preset name (front, left, ...), ``driving`` (where allowed), or a
     ``CameraSpec`` as inline JSON or a JSON file. Returns what the schema's ``camera`` takes."""
-    from eva_engine.render.view import CAMERA_PRESETS
+    from eva_engine.specs.camera import CAMERA_PRESETS
 
     if text is None:
         return None

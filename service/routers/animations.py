@@ -17,7 +17,7 @@ from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Respon
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
-from eva_engine.animate.animation import AnimationError
+from eva_engine.specs.animation import AnimationError
 from jobs.animation import (
     VIDEO_NAME,
     AnimationOptions,

@@ -18,7 +18,7 @@ from fastapi.responses import HTMLResponse
 from pydantic import BaseModel
 
 from eva_engine.recipes import METHODS, PRESETS
-from eva_engine.render.view import CAMERA_PRESETS
+from eva_engine.specs.camera import CAMERA_PRESETS
 from jobs.options import JobOptions
 from service.animation_schemas import AnimationForm
 from service.schemas import AvatarForm
