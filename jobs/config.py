@@ -16,13 +16,17 @@ host's ``data_dir`` holds only its cache of them and its own work folders.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from eva_engine.paths import data_dir as engine_data_dir
+
+ENV_PREFIX = "EVA_"
 
 
-class JobsConfig(BaseModel):
+class JobsConfig(BaseSettings):
     """data_dir: root of avatars and job files; queue_url: ``None`` or ``sqlite:///path`` for
     huey's SQLite queue (default ``<data_dir>/jobs/queue.db``), ``redis://host:port/db`` for Redis;
     max_attempts: runs of one job that may end in a crash of its own process (killed, out of
@@ -43,18 +47,27 @@ class JobsConfig(BaseModel):
     message in the queue for this long is sent again; orphan_ttl_s, age after which work folders
     without a live job are removed; keep_records_days, failed / cancelled / deleted jobs' records
     are kept this long.
+
+    Every field can be set from the environment as ``EVA_<FIELD>`` (``EVA_QUEUE_URL``,
+    ``EVA_MAX_ATTEMPTS``, ...; empty values are ignored), but two keep their older names:
+    ``data_dir`` is ``EVA_SERVICE_DIR`` (default: ``eva_engine.paths.data_dir()``, which
+    ``EVA_DATA_DIR`` sets) and ``threads`` is ``EVA_JOB_THREADS``. ``EVA_JOB_MEMORY_MB=0`` is
+    no limit. Arguments given to the constructor win over the environment
+    (``docs/configuration.md`` lists every variable).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = SettingsConfigDict(
+        env_prefix=ENV_PREFIX, env_ignore_empty=True, extra="forbid", frozen=True, populate_by_name=True
+    )
 
-    data_dir: Path
+    data_dir: Path = Field(default_factory=engine_data_dir, validation_alias="EVA_SERVICE_DIR")
     queue_url: str | None = None
     queue_name: str = "eva"
     max_attempts: int = Field(2, ge=1, le=10)
     max_worker_losses: int = Field(5, ge=1, le=50)
     stale_after_s: float = Field(120.0, gt=0)
     heartbeat_s: float = Field(5.0, gt=0)
-    threads: int | None = Field(None, ge=1)
+    threads: int | None = Field(None, ge=1, validation_alias="EVA_JOB_THREADS")
     records_url: str | None = None
     storage_url: str | None = None
     s3_endpoint_url: str | None = None
@@ -89,30 +102,15 @@ class JobsConfig(BaseModel):
             raise ValueError(f"storage URL {url!r} must be s3://bucket or s3://bucket/prefix")
         return url
 
+    @field_validator("job_memory_mb", mode="before")
+    @classmethod
+    def _zero_is_no_limit(cls, value):
+        return None if value in (0, "0") else value
+
     @classmethod
     def from_env(cls, **overrides) -> JobsConfig:
-        """Defaults from the environment: ``EVA_SERVICE_DIR`` (else ``eva_engine.paths.data_dir()``),
-        ``EVA_QUEUE_URL``, ``EVA_RECORDS_URL``, ``EVA_STORAGE_URL``, ``EVA_S3_ENDPOINT_URL``,
-        ``EVA_JOB_THREADS``, ``EVA_JOB_MEMORY_MB`` (0: no limit),
-        ``EVA_JOB_TIMEOUT_S``, ``EVA_MAX_FRAME_PIXELS``; ``overrides`` that are not None win."""
-        from eva_engine.paths import data_dir
-
-        names = {
-            "queue_url": "EVA_QUEUE_URL",
-            "records_url": "EVA_RECORDS_URL",
-            "storage_url": "EVA_STORAGE_URL",
-            "s3_endpoint_url": "EVA_S3_ENDPOINT_URL",
-            "threads": "EVA_JOB_THREADS",
-            "job_memory_mb": "EVA_JOB_MEMORY_MB",
-            "job_timeout_s": "EVA_JOB_TIMEOUT_S",
-            "max_frame_pixels": "EVA_MAX_FRAME_PIXELS",
-        }
-        env: dict = {k: os.environ[v] for k, v in names.items() if os.environ.get(v)}
-        env["data_dir"] = os.environ.get("EVA_SERVICE_DIR") or data_dir()
-        if env.get("job_memory_mb", "").strip() == "0":
-            env["job_memory_mb"] = None
-        env.update({k: v for k, v in overrides.items() if v is not None})
-        return cls(**env)
+        """The environment's configuration (class docstring), with ``overrides`` that are not None."""
+        return cls(**{k: v for k, v in overrides.items() if v is not None})
 
     @property
     def uses_redis(self) -> bool:

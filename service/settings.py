@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import ipaddress
-import os
+from pathlib import Path
+from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from jobs.config import JobsConfig
+from jobs.config import ENV_PREFIX, JobsConfig
 from service.accounts import MIN_KEY_LENGTH, Account, read_accounts
 from service.connections import ConnectionLimits
 
@@ -23,7 +25,14 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-class ServiceSettings(BaseModel):
+def _comma_list(value):
+    """``"a, b"`` (an environment variable) -> ``("a", "b")``; anything else as it is."""
+    if isinstance(value, str):
+        return tuple(part.strip() for part in value.split(",") if part.strip())
+    return value
+
+
+class ServiceSettings(BaseSettings):
     """host / port: where ``eva serve`` binds (loopback by default; any other address needs an
     ``api_key`` or ``accounts``); api_key: when set, every endpoint but ``/healthz`` (the docs
     included) needs the header ``X-API-Key``; accounts: several keys, each with its owner, who
@@ -48,16 +57,29 @@ class ServiceSettings(BaseModel):
     Renders: max_render_side, largest width or height; max_render_pixels, width x height;
     max_renders at once, up to render_queue more waiting at most render_wait_s; avatar_cache:
     avatars kept loaded; preload_body_models: loaded in the background at start-up so the first
-    render does not wait for them."""
+    render does not wait for them.
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    Every field can be set from the environment as ``EVA_<FIELD>`` (``EVA_HOST``,
+    ``EVA_MAX_RENDERS``, ...; empty values are ignored; lists comma-separated; ``connections``'
+    fields as ``EVA_CONNECTIONS__HEADER_TIMEOUT_S``), and ``jobs`` from ``JobsConfig``'s own
+    variables; ``accounts`` is read from the keys file that ``EVA_API_KEYS_FILE`` names.
+    Arguments given to the constructor win over the environment (``docs/configuration.md``)."""
 
-    jobs: JobsConfig
+    model_config = SettingsConfigDict(
+        env_prefix=ENV_PREFIX,
+        env_nested_delimiter="__",
+        env_ignore_empty=True,
+        extra="forbid",
+        frozen=True,
+        populate_by_name=True,
+    )
+
+    jobs: JobsConfig = Field(default_factory=JobsConfig)
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
     api_key: str | None = None
-    accounts: tuple[Account, ...] = ()
-    allowed_hosts: tuple[str, ...] | None = None
+    accounts: Annotated[tuple[Account, ...], NoDecode] = Field((), validation_alias="EVA_API_KEYS_FILE")
+    allowed_hosts: Annotated[tuple[str, ...] | None, NoDecode] = None
     max_upload_mb: float = Field(512.0, gt=0)
     max_json_kb: float = Field(64.0, gt=0)
     max_uploads: int = Field(2, ge=1)
@@ -77,7 +99,17 @@ class ServiceSettings(BaseModel):
     render_queue: int = Field(8, ge=0)
     render_wait_s: float = Field(10.0, gt=0)
     avatar_cache: int = Field(4, ge=1)
-    preload_body_models: tuple[str, ...] = ("anny",)
+    preload_body_models: Annotated[tuple[str, ...], NoDecode] = ("anny",)
+
+    @field_validator("allowed_hosts", "preload_body_models", mode="before")
+    @classmethod
+    def _lists(cls, value):
+        return _comma_list(value)
+
+    @field_validator("accounts", mode="before")
+    @classmethod
+    def _keys_file(cls, value):
+        return read_accounts(value) if isinstance(value, str | Path) else value
 
     @field_validator("api_key")
     @classmethod
@@ -132,28 +164,7 @@ class ServiceSettings(BaseModel):
 
     @classmethod
     def from_env(cls, jobs: JobsConfig | None = None, **overrides) -> ServiceSettings:
-        """From ``EVA_HOST``, ``EVA_PORT``, ``EVA_API_KEY`` or ``EVA_API_KEYS_FILE`` (accounts:
-        ``service.accounts``), ``EVA_ALLOWED_HOSTS`` (comma-separated),
-        ``EVA_MAX_UPLOAD_MB``, ``EVA_MAX_VIDEO_SECONDS``, ``EVA_MAX_RENDER_PIXELS`` (width x
-        height), ``EVA_MAX_RENDER_SIDE``, ``EVA_MAX_QUEUED_JOBS``, ``EVA_MAX_RENDERS`` (and
-        ``JobsConfig.from_env``); ``overrides`` that are not None win."""
-        names = {
-            "host": "EVA_HOST",
-            "port": "EVA_PORT",
-            "api_key": "EVA_API_KEY",
-            "max_upload_mb": "EVA_MAX_UPLOAD_MB",
-            "max_video_seconds": "EVA_MAX_VIDEO_SECONDS",
-            "max_render_pixels": "EVA_MAX_RENDER_PIXELS",
-            "max_render_side": "EVA_MAX_RENDER_SIDE",
-            "max_queued_jobs": "EVA_MAX_QUEUED_JOBS",
-            "max_renders": "EVA_MAX_RENDERS",
-        }
-        values: dict = {k: os.environ[v] for k, v in names.items() if os.environ.get(v)}
-        if os.environ.get("EVA_ALLOWED_HOSTS"):
-            values["allowed_hosts"] = tuple(
-                h.strip() for h in os.environ["EVA_ALLOWED_HOSTS"].split(",") if h.strip()
-            )
-        if os.environ.get("EVA_API_KEYS_FILE"):
-            values["accounts"] = read_accounts(os.environ["EVA_API_KEYS_FILE"])
-        values.update({k: v for k, v in overrides.items() if v is not None})
-        return cls(jobs=jobs or JobsConfig.from_env(), **values)
+        """The environment's settings (class docstring), with ``jobs`` and the ``overrides`` that
+        are not None."""
+        given = {k: v for k, v in {"jobs": jobs, **overrides}.items() if v is not None}
+        return cls(**given)

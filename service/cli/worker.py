@@ -43,10 +43,8 @@ def worker(
             queue_url=queue_url,
             threads=threads,
             stale_after_s=stale_after,
-            job_memory_mb=memory_mb or None,
+            job_memory_mb=memory_mb,  # 0: no limit
         )
-        if memory_mb == 0:
-            config = config.model_copy(update={"job_memory_mb": None})
     except ValueError as err:
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(2) from err
