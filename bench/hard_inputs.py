@@ -3,7 +3,8 @@
 and the clean reference), each clip put through the job path at the job defaults
 (``JobOptions()``: preprocess with held-out frames, train, the quality report; the training
 without the service's bound on Gaussian size, ``JobsConfig.max_gaussian_std_m``, which these
-runs led to: ``--budgets 600 --max-scale-cm 10`` measures it), then scored
+runs led to: ``--max-scale-cm 10`` measures it, on the cases or with ``--budgets 600`` on the
+clean clip), then scored
 against the truth: the held-out frames as they would look filmed well (sharp, the subject
 alone). Also per case: the largest Gaussian's standard deviation, the time taken, and a contact
 sheet of held-out frames (input | truth | render). The refusal cases (a hand alone, two people,
@@ -13,9 +14,11 @@ Each case and seed is claimed (``<work>/<case>_s<seed>/claimed``) by the first p
 and writes its ``result.json`` there, so several processes can share the runs (``--seeds``,
 ``--cases``); ``--reclaim`` runs claimed cases without a result (their process died); delete a
 folder to run it again.
-``--report`` gathers them into ``bench/results/hard_inputs.{json,md}`` and the contact sheets.
+``--report`` gathers them into ``bench/results/hard_inputs.{json,md}`` and the contact sheets
+(``--previous``: an earlier report's JSON, for the runs whose work folders are gone).
 
     .venv/bin/python bench/hard_inputs.py --seeds 0 1 2       # run (about 7 min a case and seed)
+    .venv/bin/python bench/hard_inputs.py --seeds 0 --max-scale-cm 10   # the jobs' bound
     .venv/bin/python bench/hard_inputs.py --report            # gather
 """
 
@@ -74,20 +77,34 @@ class TruthView:
         return dataclasses.replace(frame, image=image, mask=mask)
 
 
-def run_case(case: str, seed: int, work: Path, model) -> dict:
+def bounded(config, max_scale_cm: float | None):
+    """``config`` with every part's Gaussians bounded to ``max_scale_cm`` (``AvatarConfig.max_scale``,
+    as a job's ``JobsConfig.max_gaussian_std_m`` sets it); unchanged for None."""
+    if not max_scale_cm:
+        return config
+    bound = (max_scale_cm / 100,) * 3
+    return dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, max_scale=bound))
+
+
+def run_case(case: str, seed: int, work: Path, model, max_scale_cm: float | None = None) -> dict:
     from eva_engine.align import PreprocessError, preprocess_video
     from eva_engine.data import load_dataset
     from eva_engine.synth.hard import HARD_CASES, render_hard_video
     from eva_engine.train import preset, train_avatar
     from jobs.options import JobOptions
 
-    out = work / f"{case}_s{seed}"
+    out = work / run_name({"case": case, "seed": seed, "max_scale_cm": max_scale_cm})
     size = SIZE if case in HARD_CASES else REFUSAL_SIZE  # too_small is sized for 256 px
     hv = render_hard_video(case, seed, out / "clip", frames=FRAMES, size=size, model=model)
     options = JobOptions()
     config = options.preprocess_config(FRAMES)
     seconds: dict[str, float] = {}
-    result: dict = {"case": case, "seed": seed, "refusal_case": case not in HARD_CASES}
+    result: dict = {
+        "case": case,
+        "seed": seed,
+        "max_scale_cm": max_scale_cm,
+        "refusal_case": case not in HARD_CASES,
+    }
     start = time.perf_counter()
     try:
         preprocess_video(hv.video, out / "dataset", config, model=model, overwrite=True)
@@ -103,7 +120,7 @@ def run_case(case: str, seed: int, work: Path, model) -> dict:
         return {**result, "seconds": seconds}
     ds = load_dataset(out / "dataset")
     start = time.perf_counter()
-    trained = train_avatar(ds, preset(options.preset), body=model)
+    trained = train_avatar(ds, bounded(preset(options.preset), max_scale_cm), body=model)
     seconds["train"] = time.perf_counter() - start
     result.update(score(trained.avatar, ds, hv, out / "sheet.jpg", seconds))
     return result
@@ -209,12 +226,7 @@ def run_budgets(args) -> None:
             restore_frames(base / "dataset", hv.video)
             ds = load_dataset(base / "dataset")
             start = time.perf_counter()
-            config = preset(JobOptions().preset, iterations=iterations)
-            if args.max_scale_cm:  # every part's Gaussians bounded (AvatarConfig.max_scale)
-                bound = (args.max_scale_cm / 100,) * 3
-                config = dataclasses.replace(
-                    config, avatar=dataclasses.replace(config.avatar, max_scale=bound)
-                )
+            config = bounded(preset(JobOptions().preset, iterations=iterations), args.max_scale_cm)
             trained = train_avatar(ds, config, body=model)
             seconds = {"train": time.perf_counter() - start}
             result = {
@@ -241,13 +253,14 @@ def run(args) -> None:
     cases = args.cases or [*HARD_CASES, *REFUSAL_CASES]
     for seed in args.seeds:
         for case in cases:
-            if case in REFUSAL_CASES and seed != args.seeds[0]:
+            if case in REFUSAL_CASES and (seed != args.seeds[0] or args.max_scale_cm):
                 continue
-            done = args.work / f"{case}_s{seed}" / "result.json"
+            done = args.work / run_name({"case": case, "seed": seed, "max_scale_cm": args.max_scale_cm})
+            done = done / "result.json"
             if not claim(done.parent) and (not args.reclaim or done.is_file()):
                 continue
             start = time.perf_counter()
-            result = run_case(case, seed, args.work, model)
+            result = run_case(case, seed, args.work, model, args.max_scale_cm)
             result["wall_s"] = time.perf_counter() - start
             result["machine"] = describe()
             done.write_text(json.dumps(result, indent=1))
@@ -303,11 +316,44 @@ def calibrate(runs: list[dict]) -> dict:
 
 
 def run_name(r: dict) -> str:
-    """The folder of a run: ``<case>_s<seed>``, ``budget<N>[_cap<cm>]_s<seed>``."""
-    if "iterations" not in r:
-        return f"{r['case']}_s{r['seed']}"
+    """The folder of a run: ``<case>[_cap<cm>]_s<seed>``, ``budget<N>[_cap<cm>]_s<seed>``."""
     cap = f"_cap{r['max_scale_cm']:g}" if r.get("max_scale_cm") else ""
+    if "iterations" not in r:
+        return f"{r['case']}{cap}_s{r['seed']}"
     return f"budget{r['iterations']}{cap}_s{r['seed']}"
+
+
+def bound_pairs(trained: list[dict]) -> list[str]:
+    """Markdown: each bounded run against the unbounded run of the same clip and seed (the clean
+    case at the preset's 600 iterations for ``--budgets 600``), per case."""
+    plain = {
+        (r["case"], r["seed"]): r for r in trained if "iterations" not in r and not r.get("max_scale_cm")
+    }
+    by_case: dict[str, list[tuple[dict, dict]]] = {}
+    for r in trained:
+        if r.get("max_scale_cm") and r.get("iterations") in (None, 600) and (r["case"], r["seed"]) in plain:
+            by_case.setdefault(r["case"], []).append((r, plain[(r["case"], r["seed"])]))
+    if not by_case:
+        return []
+    lines = [
+        "",
+        "Every Gaussian's σ bounded (`AvatarConfig.max_scale`, the jobs' `max_gaussian_std_m`) against "
+        "the same clip and seed unbounded, paired: truth LPIPS-VGG ×1000, bounded minus unbounded "
+        "(mean ± std over the seeds; one seed: its value), and the largest σ of each.",
+        "",
+        "| case | bound (cm) | seeds | Δ truth LPIPS | Δ truth PSNR | largest σ bounded (cm) "
+        "| unbounded (cm) |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for case, pairs in by_case.items():
+        lpips = [1000 * (a["truth"]["lpips_vgg"] - b["truth"]["lpips_vgg"]) for a, b in pairs]
+        psnr = [a["truth"]["psnr"] - b["truth"]["psnr"] for a, b in pairs]
+        lines.append(
+            f"| {case} | {pairs[0][0]['max_scale_cm']:g} | {len(pairs)} | {mean_std(lpips)} | "
+            f"{mean_std(psnr, digits=2)} | {mean_std([a['max_std_m'] for a, _ in pairs], 100, 2)} | "
+            f"{mean_std([b['max_std_m'] for _, b in pairs], 100, 2)} |"
+        )
+    return lines
 
 
 def report(args) -> None:
@@ -315,7 +361,11 @@ def report(args) -> None:
     from eva_engine.synth.hard import HARD_CASES, REFUSAL_CASES
 
     rules = VerdictRules()
-    results = [json.loads(p.read_text()) for p in sorted(args.work.glob("*_s*/result.json"))]
+    found = [json.loads(p.read_text()) for p in sorted(args.work.glob("*_s*/result.json"))]
+    previous = json.loads(args.previous.read_text())["results"] if args.previous else []
+    runs = {run_name(r): r for r in previous}
+    runs.update({run_name(r): r for r in found})  # a run done again replaces the earlier one
+    results = list(runs.values())
     trained = [r for r in results if not r["refusal_case"] and r.get("refused") is None]
     for r in trained:
         r["verdict_now"], r["truth_poor"] = judged(r, rules), r["truth"]["lpips_vgg"] > TRUTH_POOR
@@ -344,13 +394,14 @@ def report(args) -> None:
         "# Hard inputs: the verdict against the truth",
         "",
         f"- date: {doc['date']}; command: `{doc['command']}`",
-        "- runs: `python bench/hard_inputs.py --seeds 0 1 2` (and `--budgets 2 20 60 200`), up to five "
+        "- runs: `python bench/hard_inputs.py --seeds 0 1 2` (and `--budgets 2 20 60 200`, "
+        "`--seeds 0 --max-scale-cm 10 --cases ...`), up to six "
         "processes of 1 thread at once on the 2 cores: the times are inflated by that sharing",
         f"- machine: {'; '.join(machines)}",
         f"- clips: `eva_engine.synth.hard`, {FRAMES} frames of {SIZE} px (6 s) per case and seed; "
         "the job path at the job defaults (`JobOptions()`: fast preset, every 10th frame held out, "
-        "at least 4), training without the jobs' 10 cm bound on Gaussian size (these runs led to it; "
-        "the σ ≤ 10 cm row measures it)",
+        "at least 4), training without the jobs' 10 cm bound on Gaussian size (these runs led to it); "
+        "the rows *σ ≤ 10 cm* with it (`--max-scale-cm 10`), on the same clips",
         f"- verdict rules: poor above LPIPS-VGG {rules.poor_lpips}, fair above {rules.fair_lpips} "
         "(held out, full image; `eva_engine.eval.quality.VerdictRules`)",
         "",
@@ -366,9 +417,15 @@ def report(args) -> None:
         "| largest σ (cm) | time (s) |",
         "|---|---:|---:|---:|---:|---|---:|---:|---:|---:|",
     ]
+    cases = [r for r in trained if "iterations" not in r]
     groups = {
-        case: [r for r in trained if r["case"] == case and "iterations" not in r] for case in HARD_CASES
+        case: [r for r in cases if r["case"] == case and not r.get("max_scale_cm")] for case in HARD_CASES
     }
+    for case in HARD_CASES:
+        for cap in sorted({r["max_scale_cm"] for r in cases if r["case"] == case and r.get("max_scale_cm")}):
+            groups[f"{case}, σ ≤ {cap:g} cm"] = [
+                r for r in cases if r["case"] == case and r.get("max_scale_cm") == cap
+            ]
     for n, cap in sorted(
         {(r["iterations"], r.get("max_scale_cm") or 0) for r in trained if "iterations" in r}
     ):
@@ -398,19 +455,7 @@ def report(args) -> None:
             f"agreement ({100 * cal['best_agreement']:.0f}%) is at {', '.join(map(str, cal['best']))}; "
             f"`VerdictRules.poor_lpips` is {rules.poor_lpips}.",
         ]
-    capped = [r for r in trained if r.get("max_scale_cm") and r.get("iterations") == 600]
-    clean = {r["seed"]: r for r in trained if r["case"] == "clean" and "iterations" not in r}
-    pairs = [(r, clean[r["seed"]]) for r in capped if r["seed"] in clean]
-    if pairs:
-        diff = [1000 * (a["truth"]["lpips_vgg"] - b["truth"]["lpips_vgg"]) for a, b in pairs]
-        lines += [
-            "",
-            f"Bounding every Gaussian's σ to {pairs[0][0]['max_scale_cm']:g} cm (`AvatarConfig.max_scale`), "
-            f"the clean case at the preset's 600 iterations, paired by seed ({len(pairs)} seeds): truth "
-            f"LPIPS-VGG ×1000 changes by {mean_std(diff)} (capped minus uncapped); the largest σ is "
-            f"{mean_std([a['max_std_m'] for a, _ in pairs], 100, 2)} cm against "
-            f"{mean_std([b['max_std_m'] for _, b in pairs], 100, 2)} cm.",
-        ]
+    lines += bound_pairs(trained)
     lines += ["", "## Refusal cases", "", "| case | outcome |", "|---|---|"]
     for case in REFUSAL_CASES:
         for r in [r for r in results if r["case"] == case]:
@@ -437,8 +482,9 @@ def main() -> None:
         "--reclaim", action="store_true", help="run claimed cases that have no result (their process died)"
     )
     ap.add_argument(
-        "--max-scale-cm", type=float, default=None, help="with --budgets: bound every Gaussian's std (cm)"
+        "--max-scale-cm", type=float, default=None, help="bound every Gaussian's std (cm), as the jobs do"
     )
+    ap.add_argument("--previous", type=Path, default=None, help="--report: an earlier report's JSON")
     ap.add_argument("--budgets", type=int, nargs="*", help="train the clean datasets for these iterations")
     args = ap.parse_args()
     if args.report:
