@@ -83,6 +83,15 @@ ROWS: dict[str, Row] = {
         "thin along the surface normal (regulariser, 2 mm): the new default",
         (*OFF, "regularizers.lambda_thin=0.05", "regularizers.thin_target=0.002"),
     ),
+    "thin_face_off": Row(
+        "thin along the normal except on the face's Gaussians (issue 39)",
+        (
+            *OFF,
+            "regularizers.lambda_thin=0.05",
+            "regularizers.thin_target=0.002",
+            "regularizers.thin_part_weights=[1,1,0]",
+        ),
+    ),
     "final_prune": Row(
         "a final prune: 3-sigma extent beyond 6 cm of the template, and never-seen Gaussians",
         (*OFF, "strategy.prune_extent=0.06", "strategy.prune_never_seen=true"),

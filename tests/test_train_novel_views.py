@@ -13,6 +13,7 @@ from helpers.scenes import teacher_scene
 from test_train_strategy import N, fake_render, make_gaussians, off_screen, optimizers_after_a_step
 
 from eva_engine.avatar import Avatar, AvatarConfig
+from eva_engine.body.model import PART_NAMES
 from eva_engine.render import quat_to_rotmat
 from eva_engine.train import TrainConfig, preset, train_avatar
 from eva_engine.train.regularizers import RegularizerConfig, normal_extent, regularization, skinning_prior
@@ -89,6 +90,29 @@ def test_thin_penalises_only_the_extent_along_the_normal(anny_model):
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(g.splats["scales"].grad).all()
     assert torch.isfinite(g.splats["quats"].grad).all()
+
+
+def test_thin_part_weights_scale_each_parts_gaussians(anny_model):
+    avatar = small_avatar(anny_model, init_normal_ratio=0.2)
+    g = avatar.gaussians
+    face = torch.nonzero(g.part_ids == PART_NAMES.index("face")).squeeze(1)
+    body = torch.nonzero(g.part_ids == PART_NAMES.index("body")).squeeze(1)
+    assert len(face) and len(body)
+    with torch.no_grad():  # flat discs, then one face and one body needle along the normal
+        g.splats["scales"][:] = math.log(0.02)
+        g.splats["scales"][:, 2] = math.log(0.001)
+        g.splats["scales"][[face[0], body[0]], 2] = math.log(0.02)
+    needle = (0.02 / 0.002 - 1.0) / len(g)
+
+    def loss(weights):
+        cfg = RegularizerConfig(lambda_thin=1.0, thin_target=0.002, thin_part_weights=weights)
+        return float(regularization(avatar, cfg).detach())
+
+    assert loss((1.0, 1.0, 1.0)) == pytest.approx(2 * needle, rel=1e-3)
+    assert loss((1.0, 1.0, 0.0)) == pytest.approx(needle, rel=1e-3)  # the face needle is free
+    assert loss((0.0, 1.0, 0.25)) == pytest.approx(0.25 * needle, rel=1e-3)
+    with pytest.raises(ValueError, match="thin_part_weights"):
+        RegularizerConfig(thin_part_weights=(1.0, -1.0, 1.0))
 
 
 def test_skinning_prior_pulls_weights_back_to_the_body_models(anny_model):

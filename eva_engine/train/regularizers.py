@@ -16,6 +16,8 @@ product's training), off in the paper's methods (``train/methods.py``: none of t
   vertex, in canonical space) beyond ``thin_target``, in units of ``thin_target``, averaged. A
   Gaussian that grows along the training camera's rays (in front of a surface that faces the
   camera: along its normal) costs nothing in the training images and is a spike from the side.
+  ``thin_part_weights`` scales it per part (body, hand, face): a lid or a lip that the
+  expression moves along the normal may need the depth the term takes away.
 - ``skinning``: the squared distance between each Gaussian's skinning weights and the body
   model's at its template vertex, summed over joints and averaged (HUGS's and 3DGS-Avatar's
   prior): the weight-offset network may bend a weight, but a raised arm must not leave
@@ -50,7 +52,12 @@ class RegularizerConfig:
     lambda_small_scale: float = 0.0
     lambda_thin: float = 0.05
     thin_target: float = 0.002
+    thin_part_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
     lambda_skinning: float = 0.0
+
+    def __post_init__(self) -> None:
+        if len(self.thin_part_weights) != 3 or min(self.thin_part_weights) < 0:
+            raise ValueError("thin_part_weights must be three weights >= 0 (body, hand, face)")
 
     @property
     def active(self) -> bool:
@@ -84,8 +91,13 @@ def normal_extent(avatar: Avatar) -> Tensor:
     return ((along * g.scales()) ** 2).sum(dim=-1).clamp_min(1e-20).sqrt()
 
 
-def thin(avatar: Avatar, target: float) -> Tensor:
-    return torch.relu(normal_extent(avatar) / target - 1.0).mean()
+def thin(avatar: Avatar, target: float, part_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> Tensor:
+    """Mean over Gaussians of relu(normal extent / target - 1), each weighted by its part's weight."""
+    excess = torch.relu(normal_extent(avatar) / target - 1.0)  # [N]
+    if tuple(part_weights) != (1.0, 1.0, 1.0):
+        weights = excess.new_tensor(part_weights)[avatar.gaussians.part_ids]
+        excess = excess * weights
+    return excess.mean()
 
 
 def skinning_prior(avatar: Avatar, weights: Tensor) -> Tensor:
@@ -101,7 +113,7 @@ def regularization(avatar: Avatar, config: RegularizerConfig, posed: PosedGaussi
     g = avatar.gaussians
     total = g.means.new_zeros(())
     if config.lambda_thin > 0:
-        total = total + config.lambda_thin * thin(avatar, config.thin_target)
+        total = total + config.lambda_thin * thin(avatar, config.thin_target, config.thin_part_weights)
     if config.lambda_skinning > 0 and avatar.skinning_field is None:
         weights = (
             posed.weights if posed is not None and posed.weights is not None else avatar.skinning_weights()
