@@ -209,6 +209,36 @@ def test_compiled_binning_keeps_every_visible_pair(compiled, dtype):
         assert [p for p in kept_t if p in set(kept_c)] == kept_c
 
 
+def test_compiled_binning_orders_front_to_back_with_ties_by_index(compiled):
+    """float32 depths take a radix sort: its order must be the stable argsort's, ties (equal
+    depths) by index, and a depth the radix cannot order (zero, negative, NaN) falls back to the
+    comparison sort."""
+    gen = torch.Generator().manual_seed(3)
+    n = 3000
+    means2d = torch.rand(n, 2, generator=gen) * torch.tensor([32.0, 24.0])
+    conics = torch.tensor([0.05, 0.0, 0.05]).repeat(n, 1)
+    opacities = torch.full((n,), 0.9)
+    radii = torch.full((n, 2), 12, dtype=torch.int32)
+    radii[::7] = 0  # culled ones are left out
+    depths = torch.randint(1, 40, (n,), generator=gen).float() * 0.25  # many equal depths
+    for case in ("positive", "zero", "negative", "nan"):
+        d = depths.clone()
+        if case != "positive":
+            d[5] = {"zero": 0.0, "negative": -1.0, "nan": float("nan")}[case]
+        bins = bin_gaussians(means2d, radii, d, 32, 24, 8, conics, opacities, kernel="cpp")
+        visible = torch.nonzero((radii > 0).all(dim=1)).squeeze(1)
+        if case == "nan":  # NaN orders as the comparison sort leaves it; every pair is still there
+            assert set(bins.gauss_ids.tolist()) <= set(visible.tolist())
+            continue
+        order = visible[torch.sort(d[visible], stable=True).indices]  # ties: by index
+        rank = torch.empty(n, dtype=torch.long)
+        rank[order] = torch.arange(len(order))
+        for t in range(bins.num_tiles):
+            s, c = int(bins.tile_start[t]), int(bins.tile_count[t])
+            ids = bins.gauss_ids[s : s + c]
+            assert torch.equal(rank[ids], torch.sort(rank[ids]).values), (case, t)
+
+
 # ----------------------------------------------------------------------------- choosing a kernel
 
 

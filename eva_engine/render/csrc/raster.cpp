@@ -525,6 +525,17 @@ struct BinGeometry {
   int64_t ts, tiles_x, tiles_y, width, height;
 };
 
+// The number of candidate tiles of each of Gaussians ids[0..V), to count[v].
+template <typename scalar_t>
+void candidate_counts(const scalar_t* mp, const scalar_t* cp, const scalar_t* op, const int32_t* r,
+                      const int64_t* ids, int64_t V, const BinGeometry& geo, int64_t* count) {
+#pragma omp parallel for schedule(static) num_threads(num_threads())
+  for (int64_t v = 0; v < V; ++v) {
+    const Box box = candidate_box(mp, cp, op, r, ids[v], geo.ts, geo.tiles_x, geo.tiles_y);
+    count[v] = (box.x1 - box.x0) * (box.y1 - box.y0);
+  }
+}
+
 // The exact test over the candidate tiles of Gaussians ids[0..V): the tiles Gaussian v reaches
 // go to pair_tile[offs[v]...], and their number to kept[v].
 template <typename scalar_t>
@@ -559,6 +570,51 @@ std::vector<int64_t> depth_order(const int32_t* radii, const scalar_t* depths, i
   return order;
 }
 
+// float32: the same order by a stable LSD radix sort on the depths' bits (4 passes of 8 bits),
+// a fifth of the comparison sort's time on ~40k Gaussians. A positive finite float's bits sort
+// as its value; any other visible depth (none reach here from the projection, which culls
+// before the near plane) takes the comparison sort.
+template <>
+std::vector<int64_t> depth_order<float>(const int32_t* radii, const float* depths, int64_t N) {
+  std::vector<int64_t> order;
+  std::vector<uint32_t> keys;
+  order.reserve(N);
+  keys.reserve(N);
+  for (int64_t g = 0; g < N; ++g) {
+    if (!(radii[2 * g] > 0 && radii[2 * g + 1] > 0)) continue;
+    const float d = depths[g];
+    if (!(d > 0.0f) || !std::isfinite(d)) {
+      order.clear();
+      for (int64_t h = 0; h < N; ++h)
+        if (radii[2 * h] > 0 && radii[2 * h + 1] > 0) order.push_back(h);
+      std::sort(order.begin(), order.end(), [&](int64_t a, int64_t b) {
+        return depths[a] < depths[b] || (depths[a] == depths[b] && a < b);
+      });
+      return order;
+    }
+    uint32_t bits;
+    std::memcpy(&bits, &d, sizeof bits);
+    order.push_back(g);
+    keys.push_back(bits);
+  }
+  const size_t V = order.size();
+  std::vector<int64_t> order_tmp(V);
+  std::vector<uint32_t> keys_tmp(V);
+  for (int shift = 0; shift < 32; shift += 8) {
+    size_t count[257] = {0};
+    for (size_t i = 0; i < V; ++i) ++count[((keys[i] >> shift) & 0xFF) + 1];
+    for (int b = 0; b < 256; ++b) count[b + 1] += count[b];
+    for (size_t i = 0; i < V; ++i) {
+      const size_t pos = count[(keys[i] >> shift) & 0xFF]++;
+      order_tmp[pos] = order[i];
+      keys_tmp[pos] = keys[i];
+    }
+    order.swap(order_tmp);
+    keys.swap(keys_tmp);
+  }
+  return order;
+}
+
 // Returns gauss_ids [M], tile_ids [M] (sorted by tile, front to back within a tile),
 // tile_start [T], tile_count [T] for the visible Gaussians (radii [N, 2] int32 > 0).
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles(
@@ -587,11 +643,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles(
     // Each Gaussian gets room for all its candidate tiles; one pass keeps those it reaches.
     offs.assign(V + 1, 0);
     kept.assign(V, 0);
-    for (int64_t v = 0; v < V; ++v) {
-      const Box box = candidate_box(m.data_ptr<scalar_t>(), cn.data_ptr<scalar_t>(), o.data_ptr<scalar_t>(), r,
-                                    ids[v], ts, tiles_x, tiles_y);
-      offs[v + 1] = offs[v] + (box.x1 - box.x0) * (box.y1 - box.y0);
-    }
+    candidate_counts<scalar_t>(m.data_ptr<scalar_t>(), cn.data_ptr<scalar_t>(), o.data_ptr<scalar_t>(), r,
+                               ids.data(), V, geo, offs.data() + 1);
+    std::partial_sum(offs.begin(), offs.end(), offs.begin());
     pair_tile.resize(offs[V]);
     bin_pass<scalar_t>(m.data_ptr<scalar_t>(), cn.data_ptr<scalar_t>(), o.data_ptr<scalar_t>(), r, ids.data(), V,
                        geo, offs.data(), kept.data(), pair_tile.data());

@@ -1,0 +1,139 @@
+"""Where one render of a saved avatar spends its time (the render endpoint's work): posing
+(``Avatar.pose``), projection, tile binning, compositing (each with the compiled kernels, as the
+service runs them), the whole ``render_image`` call and the PNG encoding, at each ``--threads``.
+Medians over ``--repeats`` after a warm-up, in one process on an otherwise idle machine.
+
+    .venv/bin/python bench/render_stages.py --avatar AVATAR_DIR --name render_stages \\
+        --out bench/results/service_latency
+
+Writes ``<name>.json`` and ``<name>.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import io
+import json
+import shlex
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from machine import describe
+
+
+def median_ms(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return 1000 * statistics.median(times)
+
+
+def png(image: np.ndarray) -> bytes:
+    """PNG as the render endpoint encodes it (``service.rendering.encode_image``; bench/service.py
+    shadows the ``service`` package on this path)."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="PNG", compress_level=1)
+    return buf.getvalue()
+
+
+def measure(avatar_dir: Path, size: int, threads: int, repeats: int) -> dict:
+    from eva_engine.avatar import load_saved_avatar
+    from eva_engine.avatar.render_spec import render_image
+    from eva_engine.render import bin_gaussians, composite_image, project_gaussians
+    from eva_engine.render.view import camera_from_spec
+    from eva_engine.specs.camera import CameraSpec
+
+    torch.set_num_threads(threads)
+    avatar = load_saved_avatar(avatar_dir).avatar
+    params = avatar.body.default_params(1)
+    camera = camera_from_spec(CameraSpec(), size, size)
+    background = torch.ones(3)
+    with torch.no_grad():
+        posed = avatar.pose(params)
+        proj = project_gaussians(posed.means, posed.quats, posed.scales, camera.viewmat, camera.K, size, size)
+        opacities = posed.opacities
+        colors = torch.full((len(opacities), 3), 0.5)
+        bins = bin_gaussians(proj.means2d, proj.radii, proj.depths, size, size, 8, proj.conics, opacities)
+
+        def project():
+            project_gaussians(posed.means, posed.quats, posed.scales, camera.viewmat, camera.K, size, size)
+
+        def bin_():
+            bin_gaussians(proj.means2d, proj.radii, proj.depths, size, size, 8, proj.conics, opacities)
+
+        def composite():
+            composite_image(
+                proj.means2d, proj.conics, opacities, colors, proj.depths, bins, size, size, background
+            )
+
+        image = render_image(avatar, params, camera, (1.0, 1.0, 1.0))
+        return {
+            "size": size,
+            "threads": threads,
+            "gaussians": len(opacities),
+            "pairs": bins.num_intersections,
+            "ms": {
+                "pose": median_ms(lambda: avatar.pose(params), repeats),
+                "project": median_ms(project, repeats),
+                "bin": median_ms(bin_, repeats),
+                "composite": median_ms(composite, repeats),
+                "render_image": median_ms(
+                    lambda: render_image(avatar, params, camera, (1.0, 1.0, 1.0)), repeats
+                ),
+                "png": median_ms(lambda: png(np.asarray(image)), repeats),
+            },
+        }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--avatar", type=Path, required=True)
+    ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--repeats", type=int, default=30)
+    ap.add_argument("--note", default=None)
+    ap.add_argument("--name", default="render_stages")
+    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results")
+    args = ap.parse_args()
+    rows = [measure(args.avatar, args.size, t, args.repeats) for t in args.threads]
+    doc = {
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "command": shlex.join(["python", *sys.argv]),
+        "machine": describe(),
+        "note": args.note,
+        "rows": rows,
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1))
+    stages = list(rows[0]["ms"])
+    lines = [
+        "# One render's stages",
+        "",
+        f"- date: {doc['date']}; command: `{doc['command']}`",
+        f"- machine: {doc['machine']}",
+        *([f"- note: {args.note}"] if args.note else []),
+        f"- avatar: `{args.avatar}`, {rows[0]['gaussians']} Gaussians, rest pose, front camera, "
+        f"{args.size}² px, {rows[0]['pairs']} Gaussian-tile pairs (8 px tiles, the default); medians of "
+        f"{args.repeats} calls (ms); the stages one by one on the same posed Gaussians; render_image: "
+        "the whole render (pose, SH colours, rasterize), as the endpoint calls it",
+        "",
+        "| threads | " + " | ".join(stages) + " |",
+        "|---:|" + "---:|" * len(stages),
+        *(f"| {r['threads']} | " + " | ".join(f"{r['ms'][s]:.1f}" for s in stages) + " |" for r in rows),
+    ]
+    (args.out / f"{args.name}.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
