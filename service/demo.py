@@ -1,8 +1,8 @@
 """``eva demo``: the whole product on the embedded default, as a user would drive it.
 
 A synthetic signer video (``eva_engine.demo.signer_video``) is uploaded to a real ``eva serve``
-with a real ``eva worker`` (both started here on a free loopback port, over a private service
-folder); the job is followed to the end with its progress, then the avatar is rendered through
+with a real ``eva worker`` (``service.local_stack``: both on a free loopback port, over a
+private service folder); the job is followed to the end with its progress, then the avatar is rendered through
 the API in a training frame's pose and in a new pose, framed as that frame's camera framed the
 signer (``{"camera": {"frame": i}}``), from the front and turned 35 degrees. The PNG shows:
 input frame | avatar in that frame's pose | new pose | new pose from 35 degrees. With
@@ -15,9 +15,6 @@ from __future__ import annotations
 
 import io
 import shutil
-import socket
-import subprocess
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from eva_engine.progress import Progress, ProgressEvent
+from service.local_stack import LocalStack, LocalStackError
 
 
 class DemoError(RuntimeError):
@@ -67,20 +65,6 @@ class PhaseClock:
         self._current = None
 
 
-def _eva_executable() -> str:
-    local = Path(sys.executable).parent / "eva"
-    found = str(local) if local.exists() else shutil.which("eva")
-    if not found:
-        raise DemoError("the `eva` command is not installed (run `make install`)")
-    return found
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def run_service_demo(
     workdir: Path,
     out_png: Path,
@@ -108,26 +92,26 @@ def run_service_demo(
     say(ProgressEvent("video"))
     video, frames = signer_video(workdir, load_body_model("anny"))
 
-    eva, port = _eva_executable(), _free_port()
-    service_dir = workdir / "service"
-    logs = [open(workdir / f"{name}.log", "w") for name in ("serve", "worker")]  # noqa: SIM115
-    commands = (
-        [eva, "serve", "--port", str(port), "--data-dir", str(service_dir), "--log-level", "warning"],
-        [eva, "worker", "--data-dir", str(service_dir)],
-    )
-    pairs = zip(commands, logs, strict=True)
-    procs = [subprocess.Popen(c, stdout=log, stderr=subprocess.STDOUT) for c, log in pairs]
     try:
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=120.0) as api:
+        stack = LocalStack(workdir / "service", logs=workdir)
+    except LocalStackError as err:
+        raise DemoError(str(err)) from err
+    with stack:
+        stack.start_server()
+        stack.start_worker()
+        with httpx.Client(base_url=stack.base_url, timeout=120.0) as api:
             say(ProgressEvent("service start"))
-            _wait_healthy(api, procs, workdir)
+            try:
+                stack.wait_healthy()
+            except LocalStackError as err:
+                raise DemoError(str(err)) from err
             with video.open("rb") as f:
                 created = api.post(
                     "/avatars", files={"video": ("signer.mp4", f, "video/mp4")}, data=options or {}
                 )
             _check(created, "upload")
             avatar_id, job_id = created.json()["avatar_id"], created.json()["job_id"]
-            follow = _follower(api, procs, workdir, say, started + timeout)
+            follow = _follower(api, stack, workdir, say, started + timeout)
             follow(job_id, "")
             info = _check(api.get(f"/avatars/{avatar_id}"), "avatar info").json()
             frame = info["num_frames"] // 2
@@ -161,16 +145,6 @@ def run_service_demo(
                 video = _check(api.get(f"/animations/{created['animation_id']}/video"), "animation").content
                 out_mp4.parent.mkdir(parents=True, exist_ok=True)
                 out_mp4.write_bytes(video)
-    finally:
-        for p in procs:
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                p.kill()
-        for log in logs:
-            log.close()
     say.stop()
     out_png.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.concatenate(panels, axis=1)).save(out_png)
@@ -185,7 +159,7 @@ def run_service_demo(
     )
 
 
-def _follower(api, procs, workdir: Path, say: Progress, deadline: float):
+def _follower(api, stack: LocalStack, workdir: Path, say: Progress, deadline: float):
     """follow(job_id, label): poll the job to its end, reporting progress; DemoError unless it
     succeeds."""
 
@@ -198,27 +172,11 @@ def _follower(api, procs, workdir: Path, say: Progress, deadline: float):
                 return
             if job["state"] in ("failed", "cancelled"):
                 raise DemoError(f"the {job['kind']} job {job['state']}: {job['error']} (logs in {workdir})")
-            if time.perf_counter() > deadline or any(p.poll() is not None for p in procs):
+            if time.perf_counter() > deadline or not stack.alive():
                 raise DemoError(f"the job did not finish (logs in {workdir})")
             time.sleep(0.5)
 
     return follow
-
-
-def _wait_healthy(api, procs, workdir: Path, timeout: float = 180.0) -> None:
-    import httpx
-
-    deadline = time.perf_counter() + timeout
-    while time.perf_counter() < deadline:
-        if any(p.poll() is not None for p in procs):
-            raise DemoError(f"the service or worker exited at start (logs in {workdir})")
-        try:
-            if api.get("/healthz").status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.3)
-    raise DemoError(f"the service did not answer within {timeout:.0f} s (logs in {workdir})")
 
 
 def _check(response, what: str):

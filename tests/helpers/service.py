@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -17,6 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service.local_stack import free_port, stop_process
+
+stop = stop_process  # the tests' name for it
 EVA = str(Path(sys.executable).parent / "eva")
 SIGNER_FRAMES = 8
 # The pipeline at its smallest: 8 frames of 256 px (the job keeps 4 out to score the avatar, 4
@@ -76,12 +78,6 @@ def no_person_video(path: Path, frames: int = 8) -> Path:
     return write_video(path, images, fps=5)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def wait_for(predicate: Callable[[], object], timeout: float, what: str, every: float = 0.2):
     """Poll ``predicate`` until it returns something truthy; fail the test after ``timeout`` s."""
     deadline = time.monotonic() + timeout
@@ -105,17 +101,6 @@ def start_worker(data_dir: Path, log: Path, queue_url: str | None = None, stale_
     if queue_url:
         args += ["--queue-url", queue_url]
     return start_process(args, log)
-
-
-def stop(proc: subprocess.Popen, sig: int = signal.SIGTERM, timeout: float = 20.0) -> None:
-    """Stop a process we started (by its pid only)."""
-    if proc.poll() is None:
-        proc.send_signal(sig)
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 def finish_real_and_nobody(client, workers, logs: list[Path], real_job: str, nobody_job: str):
