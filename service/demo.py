@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from eva_engine.progress import Progress, ProgressEvent
+from service.client import ApiError, EvaClient, JobFailed
 from service.local_stack import LocalStack, LocalStackError
 
 
@@ -78,11 +79,10 @@ def run_service_demo(
     ``fit_scale`` also applies to the driving video). Everything but the PNG and the mp4 goes
     under ``workdir`` (replaced on every run); the server and worker are stopped whatever
     happens."""
-    import httpx
     from PIL import Image
 
     from eva_engine.body import load_body_model
-    from eva_engine.demo import DEMO_POSE, signer_video
+    from eva_engine.demo import signer_video
 
     started = time.perf_counter()
     workdir = Path(workdir)
@@ -93,93 +93,79 @@ def run_service_demo(
     video, frames = signer_video(workdir, load_body_model("anny"))
 
     try:
-        stack = LocalStack(workdir / "service", logs=workdir)
-    except LocalStackError as err:
-        raise DemoError(str(err)) from err
-    with stack:
-        stack.start_server()
-        stack.start_worker()
-        with httpx.Client(base_url=stack.base_url, timeout=120.0) as api:
+        with LocalStack(workdir / "service", logs=workdir) as stack:
+            stack.start_server()
+            stack.start_worker()
             say(ProgressEvent("service start"))
-            try:
-                stack.wait_healthy()
-            except LocalStackError as err:
-                raise DemoError(str(err)) from err
-            with video.open("rb") as f:
-                created = api.post(
-                    "/avatars", files={"video": ("signer.mp4", f, "video/mp4")}, data=options or {}
-                )
-            _check(created, "upload")
-            avatar_id, job_id = created.json()["avatar_id"], created.json()["job_id"]
-            follow = _follower(api, stack, workdir, say, started + timeout)
-            follow(job_id, "")
-            info = _check(api.get(f"/avatars/{avatar_id}"), "avatar info").json()
-            frame = info["num_frames"] // 2
-            h, w = info["frame_size"]
-            # The new pose is framed as the video framed the signer: that frame's camera, placed
-            # where it was relative to the body, then turned 35 degrees about the body.
-            requests = [
-                {"frame": frame},
-                {"pose": DEMO_POSE, "camera": {"frame": frame}},
-                {"pose": DEMO_POSE, "camera": {"frame": frame, "yaw": 35.0}},
-            ]
-            panels = [(frames[frame].numpy() * 255 + 0.5).astype(np.uint8)]
-            say(ProgressEvent("render"))
-            for body in requests:
-                png = _check(api.post(f"/avatars/{avatar_id}/render", json=body), "render").content
-                panels.append(np.asarray(Image.open(io.BytesIO(png)).convert("RGB").resize((w, h))))
-            if out_mp4 is not None:
-                say(ProgressEvent("driving video"))
-                driving, _ = signer_video(workdir / "driving", load_body_model("anny"), seed=1)
-                form = {"camera": "front", "side_by_side": "true"}
-                if options and options.get("fit_scale"):
-                    form["fit_scale"] = options["fit_scale"]
-                with driving.open("rb") as f:
-                    created = api.post(
-                        f"/avatars/{avatar_id}/animations",
-                        data=form,
-                        files={"video": ("someone_else.mp4", f, "video/mp4")},
+            stack.wait_healthy()
+            with EvaClient(stack.base_url) as api:
+                panels, info = _avatar_and_renders(api, stack, video, frames, options, say, started + timeout)
+                if out_mp4 is not None:
+                    say(ProgressEvent("driving video"))
+                    driving, _ = signer_video(workdir / "driving", load_body_model("anny"), seed=1)
+                    form = {"camera": "front", "side_by_side": True}
+                    if options and options.get("fit_scale"):
+                        form["fit_scale"] = options["fit_scale"]
+                    created = api.create_animation(info.avatar_id, driving, form)
+                    api.wait(
+                        created.job_id,
+                        started + timeout - time.perf_counter(),
+                        **_follow(say, stack, "animate "),
                     )
-                created = _check(created, "animation upload").json()
-                follow(created["job_id"], "animate ")
-                video = _check(api.get(f"/animations/{created['animation_id']}/video"), "animation").content
-                out_mp4.parent.mkdir(parents=True, exist_ok=True)
-                out_mp4.write_bytes(video)
+                    out_mp4.parent.mkdir(parents=True, exist_ok=True)
+                    out_mp4.write_bytes(api.animation_video(created.animation_id))
+    except (LocalStackError, ApiError, JobFailed, TimeoutError) as err:
+        raise DemoError(f"{err} (logs in {workdir})") from err
     say.stop()
     out_png.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.concatenate(panels, axis=1)).save(out_png)
     return DemoResult(
         out_png,
-        avatar_id,
+        info.avatar_id,
         time.perf_counter() - started,
-        info.get("num_gaussians"),
+        info.num_gaussians,
         workdir,
         out_mp4,
         say.phases,
     )
 
 
-def _follower(api, stack: LocalStack, workdir: Path, say: Progress, deadline: float):
-    """follow(job_id, label): poll the job to its end, reporting progress; DemoError unless it
-    succeeds."""
+def _avatar_and_renders(
+    api: EvaClient, stack: LocalStack, video: Path, frames, options, say, deadline: float
+):
+    """Upload ``video``, follow its job, render the three panels: (panels, the avatar's info)."""
+    from PIL import Image
 
-    def follow(job_id: str, label: str) -> None:
-        while True:
-            job = _check(api.get(f"/jobs/{job_id}"), "job status").json()
-            stage = label + (job["stage"] or job["state"])
-            say(ProgressEvent(stage, job["progress"], 1.0, job["message"], eta=job["eta_seconds"]))
-            if job["state"] == "succeeded":
-                return
-            if job["state"] in ("failed", "cancelled"):
-                raise DemoError(f"the {job['kind']} job {job['state']}: {job['error']} (logs in {workdir})")
-            if time.perf_counter() > deadline or not stack.alive():
-                raise DemoError(f"the job did not finish (logs in {workdir})")
-            time.sleep(0.5)
+    from eva_engine.demo import DEMO_POSE
 
-    return follow
+    created = api.create_avatar(video, options)
+    api.wait(created.job_id, deadline - time.perf_counter(), **_follow(say, stack, ""))
+    info = api.avatar(created.avatar_id)
+    frame = info.num_frames // 2
+    h, w = info.frame_size
+    # The new pose is framed as the video framed the signer: that frame's camera, placed where it
+    # was relative to the body, then turned 35 degrees about the body.
+    requests = [
+        {"frame": frame},
+        {"pose": DEMO_POSE, "camera": {"frame": frame}},
+        {"pose": DEMO_POSE, "camera": {"frame": frame, "yaw": 35.0}},
+    ]
+    panels = [(frames[frame].numpy() * 255 + 0.5).astype(np.uint8)]
+    say(ProgressEvent("render"))
+    for body in requests:
+        png = api.render(info.avatar_id, body)
+        panels.append(np.asarray(Image.open(io.BytesIO(png)).convert("RGB").resize((w, h))))
+    return panels, info
 
 
-def _check(response, what: str):
-    if response.status_code >= 400:
-        raise DemoError(f"{what} failed: HTTP {response.status_code} {response.text[:300]}")
-    return response
+def _follow(say: Progress, stack: LocalStack, label: str) -> dict:
+    """``EvaClient.wait``'s keywords: each poll reported as progress, stopped when the stack dies."""
+
+    def update(job) -> None:
+        say(
+            ProgressEvent(
+                label + (job.stage or job.state), job.progress, 1.0, job.message, eta=job.eta_seconds
+            )
+        )
+
+    return {"on_update": update, "alive": stack.alive}
