@@ -9,15 +9,66 @@ without it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
-PRESETS: dict[str, str] = {
-    "tiny": "seconds, a test",
-    "fast": "minutes",
-    "default": "the paper's",
+
+@dataclass(frozen=True)
+class Preset:
+    """A training schedule and model size (``eva_engine.train.preset`` builds its ``TrainConfig``;
+    a field left None keeps ``TrainConfig``'s default, the paper's).
+
+    summary: what it is for. iterations: optimisation steps. rate_speedup: learning rates for a
+    schedule this many times shorter than the paper's (``OptimConfig.faster``). refine: the
+    density control's first step, last step and interval. sh_degree_interval: steps between SH
+    degree raises. progress_every: steps between progress reports. pose_correction_start /
+    pose_correction_lr: the per-frame pose correction's schedule (off in every preset: its
+    ``enabled`` stays False). avatar: ``AvatarConfig`` fields.
+    """
+
+    summary: str
+    iterations: int | None = None
+    rate_speedup: float | None = None
+    refine: tuple[int, int, int] | None = None
+    sh_degree_interval: int | None = None
+    progress_every: int | None = None
+    pose_correction_start: int | None = None
+    pose_correction_lr: float | None = None
+    avatar: dict[str, int | bool] = field(default_factory=dict)
+
+
+# Every preset carries the Gaussians an expression moves by the skin's frame (closed lids cover
+# the eye: docs/alignment.md).
+PRESETS: dict[str, Preset] = {
+    "tiny": Preset(
+        "seconds, a test",
+        iterations=100,
+        rate_speedup=10.0,
+        refine=(30, 70, 20),
+        sh_degree_interval=50,
+        progress_every=5,
+        avatar={
+            "sh_degree": 1,
+            "init_max_gaussians": 1500,
+            "mlp_width": 32,
+            "pe_frequencies": 4,
+            "field_resolution": 32,
+            "expression_frames": True,
+        },
+    ),
+    "fast": Preset(
+        "minutes",
+        iterations=600,
+        rate_speedup=2000 / 600,
+        refine=(120, 300, 30),
+        sh_degree_interval=300,
+        pose_correction_start=120,
+        pose_correction_lr=4e-3,
+        avatar={"init_max_gaussians": 6000, "mlp_width": 64, "expression_frames": True},
+    ),
+    "default": Preset("the paper's", pose_correction_start=400, avatar={"expression_frames": True}),
 }
-"""Preset name -> what it is for (the schedules: ``eva_engine.train.config.preset``)."""
+"""Preset name -> its schedule and model size: the one table of them."""
 
 
 @dataclass(frozen=True)
@@ -73,7 +124,7 @@ METHODS: dict[str, Method] = {
 
 def describe_presets() -> str:
     """The presets in words, for help texts: ``tiny (seconds, a test), fast (minutes), ...``."""
-    return ", ".join(f"{name} ({what})" for name, what in PRESETS.items())
+    return ", ".join(f"{name} ({p.summary})" for name, p in PRESETS.items())
 
 
 def describe_methods() -> str:

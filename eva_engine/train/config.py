@@ -130,16 +130,10 @@ class TrainConfig:
 
 
 def preset(name: str, **overrides) -> TrainConfig:
-    """The configuration of a preset of ``eva_engine.recipes.PRESETS``; ``overrides`` replace
-    top-level ``TrainConfig`` fields.
-
-    - ``default``: the paper's schedule (2,000 iterations, densify 400..1,000 every 100), all
-      surface vertices as seeds.
-    - ``fast``: 600 iterations, densify 120..300 every 30, at most 6,000 seeds, 64-wide MLPs,
-      learning rates for the shorter schedule (``OptimConfig.faster``).
-    - ``tiny``: for tests: 100 iterations, densify 30..70 every 20, 1,500 seeds, 32-wide MLPs,
-      a 32-wide skinning field (GART's skinning), SH degree 1, learning rates x10 (colours), no
-      pose correction: seconds at ~64 px.
+    """The configuration of a preset of ``eva_engine.recipes.PRESETS`` (the table holds each
+    preset's schedule and model size: ``default`` the paper's, ``fast`` 600 iterations with
+    faster rates and smaller MLPs, ``tiny`` seconds for tests); ``overrides`` replace top-level
+    ``TrainConfig`` fields.
 
     Every preset carries the Gaussians an expression moves by the skin's frame
     (``AvatarConfig.expression_frames``: closed lids cover the eye; ``docs/alignment.md``).
@@ -151,38 +145,24 @@ def preset(name: str, **overrides) -> TrainConfig:
     """
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {list(PRESETS)}")
-    if name == "default":
-        cfg = TrainConfig(
-            avatar=AvatarConfig(expression_frames=True),
-            pose_correction=PoseCorrectionConfig(enabled=False, start_iter=400),
-        )
-    elif name == "fast":
-        cfg = TrainConfig(
-            iterations=600,
-            avatar=AvatarConfig(init_max_gaussians=6000, mlp_width=64, expression_frames=True),
-            optim=OptimConfig().faster(2000 / 600),
-            strategy=DefaultStrategy(refine_start_iter=120, refine_stop_iter=300, refine_every=30),
-            pose_correction=PoseCorrectionConfig(enabled=False, start_iter=120, lr=4e-3),
-            sh_degree_interval=300,
-        )
-    elif name == "tiny":
-        cfg = TrainConfig(
-            iterations=100,
-            avatar=AvatarConfig(
-                sh_degree=1,
-                init_max_gaussians=1500,
-                mlp_width=32,
-                pe_frequencies=4,
-                field_resolution=32,
-                expression_frames=True,
-            ),
-            optim=OptimConfig().faster(10.0),
-            strategy=DefaultStrategy(refine_start_iter=30, refine_stop_iter=70, refine_every=20),
-            sh_degree_interval=50,
-            progress_every=5,
-        )
-    else:
-        raise NotImplementedError(f"preset {name!r} is in the registry but has no configuration here")
+    p = PRESETS[name]
+    correction = {"start_iter": p.pose_correction_start, "lr": p.pose_correction_lr}
+    schedule = {"iterations": p.iterations, "sh_degree_interval": p.sh_degree_interval}
+    cfg = TrainConfig(
+        avatar=AvatarConfig(**p.avatar),
+        optim=OptimConfig().faster(p.rate_speedup) if p.rate_speedup else OptimConfig(),
+        strategy=(
+            DefaultStrategy(
+                refine_start_iter=p.refine[0], refine_stop_iter=p.refine[1], refine_every=p.refine[2]
+            )
+            if p.refine
+            else DefaultStrategy()
+        ),
+        pose_correction=PoseCorrectionConfig(
+            enabled=False, **{k: v for k, v in correction.items() if v is not None}
+        ),
+        **{k: v for k, v in {**schedule, "progress_every": p.progress_every}.items() if v is not None},
+    )
     return dataclasses.replace(cfg, **overrides) if overrides else cfg
 
 

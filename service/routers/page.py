@@ -98,7 +98,8 @@ def with_bounds(page: str) -> str:
 @router.get("/")
 def index() -> HTMLResponse:
     page = (STATIC_DIR / "index.html").read_text()
-    page = page.replace(PRESET_OPTIONS, select_options(PRESETS, JobOptions().preset))
+    presets = {name: p.summary for name, p in PRESETS.items()}
+    page = page.replace(PRESET_OPTIONS, select_options(presets, JobOptions().preset))
     page = page.replace(METHOD_OPTIONS, select_options({name: m.summary for name, m in METHODS.items()}))
     page = with_bounds(page.replace(CAMERA_OPTIONS, camera_options()))
     headers = {"Cache-Control": "no-cache"}  # a new version of the service shows its new page at once
