@@ -228,6 +228,162 @@ def with_pose_noise(
     )
 
 
+class TrainingRun:
+    """One training run's state on ``device``: the training frames and their targets, the avatar,
+    its loss, optimisers and density-control state, the pose correction, and the seeded random
+    generators. ``step(i)`` is one optimisation step (one frame), ``finalize()`` the strategy's
+    last pass, ``result(seconds)`` what the run produced. ``train_avatar`` drives it."""
+
+    def __init__(
+        self, dataset: DatasetLike, config: TrainConfig, body: BodyModel, device: torch.device
+    ) -> None:
+        self.config, self.device = config, device
+        self.train_ids = list(dataset.splits.get("train", []))
+        frames = load_training_frames(ResampledDataset(dataset, config.image_scale), self.train_ids)
+        self.frames = frames
+        self.background = dataset_background(dataset, config).to(device)
+        self.targets = torch.stack(
+            [
+                composite_target(img, m, self.background.cpu())
+                for img, m in zip(frames.images, frames.masks, strict=True)
+            ]
+        ).to(device)
+        self.masks = frames.masks.to(device)
+        self.params = frames.params.to(device)
+
+        shape = self.params.shape.mean(dim=0)
+        # Every random draw of the run comes from generators seeded here (the strategy has its
+        # own), never from torch's global state: the initial weights (the avatar's MLPs, then the
+        # loss's) and the frame order.
+        weights = torch.Generator().manual_seed(config.seed)
+        avatar = Avatar.create(body.to(device), shape, config.avatar, seed=config.seed, generator=weights)
+        self.avatar = avatar.to(device)
+        self.avatar.active_sh_degree = 0
+        self.loss_fn = AvatarLoss(config.loss, generator=weights).to(device)
+        self.optimizers = make_optimizers(self.avatar, config)
+        self.extra = make_extra_optimizers(self.avatar, config, self.loss_fn)
+        self.correction: PoseCorrection | None = None
+        self.correction_opt: torch.optim.Optimizer | None = None
+        ground_truth = getattr(dataset.meta, "params_source", None) == "ground_truth"
+        if config.pose_correction.enabled and ground_truth:
+            logger.info("pose correction off: the dataset's body parameters are ground truth")
+        elif config.pose_correction.enabled:
+            self.correction = PoseCorrection(
+                len(self.train_ids),
+                body.joint_part_ids[1:],
+                self.params.expression.shape[1],
+                config.pose_correction,
+            ).to(device)
+            self.correction_opt = torch.optim.Adam(self.correction.parameters(), lr=config.pose_correction.lr)
+        self.strategy = config.strategy
+        self.strategy.check_sanity(self.avatar.gaussians, self.optimizers)
+        self.state = self.strategy.initialize_state()
+        self.parts_before = part_counts(self.avatar.gaussians.part_ids)
+
+        self.frame_order = torch.Generator().manual_seed(config.seed)
+        # Draws of the options that perturb a step (their own generator: turning one on leaves the
+        # frame order and the initial weights as they were).
+        self.perturb = torch.Generator().manual_seed(config.seed + 1)
+        self.body_joints = (body.joint_part_ids[1:] == 0).to(device)
+        bound = config.avatar.max_scale
+        self.max_scale = torch.tensor(bound, device=device) if bound is not None else None
+        self.order: list[int] = []
+        self.timings = dict.fromkeys(STAGES, 0.0)
+        self.losses: list[float] = []
+        self.refinements: list[dict] = []
+
+    def _tick(self, stage: str, t0: float) -> float:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize()
+        t1 = time.perf_counter()
+        self.timings[stage] += t1 - t0
+        return t1
+
+    def step(self, step: int) -> float:
+        """Optimisation step ``step`` (0-based) on the next frame of the seeded order; returns its
+        loss (the image terms, without the priors). ``TrainingError`` on a non-finite loss,
+        before the parameters move."""
+        config, avatar, tick = self.config, self.avatar, self._tick
+        t = time.perf_counter()
+        if not self.order:
+            self.order = torch.randperm(len(self.train_ids), generator=self.frame_order).tolist()
+        i = self.order.pop()
+        if step > 0 and step % config.sh_degree_interval == 0:
+            avatar.active_sh_degree = min(avatar.active_sh_degree + 1, avatar.gaussians.sh_degree)
+        for g in self.optimizers["means"].param_groups:
+            g["lr"] = means_lr(config, step)
+        cam = self.frames.cameras[i]
+        t = tick("data", t)
+
+        correction = self.correction
+        correcting = correction is not None and step >= config.pose_correction.start_iter
+        frame_params = correction.apply(self.params[i], i) if correcting else self.params[i]
+        if config.pose_noise > 0:
+            frame_params = with_pose_noise(frame_params, self.body_joints, config.pose_noise, self.perturb)
+        if config.random_background:
+            bg = torch.rand(3, generator=self.perturb).to(self.device)
+            target, key = composite_target(self.frames.images[i].to(self.device), self.masks[i], bg), None
+        else:
+            bg, target, key = self.background, self.targets[i], i
+        posed = avatar.pose(frame_params)
+        t = tick("skinning", t)
+        render = avatar.rasterize_posed(posed, cam, bg)
+        t = tick("rasterize", t)
+        terms = self.loss_fn(render, target, self.masks[i], key=key, step=step)
+        total = (terms["total"] + correction.prior(i)) if correcting else terms["total"]
+        if config.regularizers.active:
+            total = total + regularization(avatar, config.regularizers, posed)
+        t = tick("losses", t)
+        loss, step_total = float(terms["total"].detach()), float(total.detach())
+        if not math.isfinite(step_total):  # non-finite whenever the loss terms are
+            # Before backward: the avatar keeps the last finite step's parameters.
+            raise TrainingError(f"the loss became {step_total} at iteration {step}; training stopped")
+        total.backward()
+        t = tick("backward", t)
+        for opt in (*self.optimizers.values(), *self.extra, *([self.correction_opt] if correcting else [])):
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        if self.max_scale is not None:
+            avatar.gaussians.clamp_scales(self.max_scale)
+        t = tick("optimizer", t)
+        stats = self.strategy.step_post_backward(avatar.gaussians, self.optimizers, self.state, step, render)
+        if stats:
+            self.refinements.append({"step": step, **stats})
+        tick("densify", t)
+        self.losses.append(loss)
+        return loss
+
+    def finalize(self) -> None:
+        """The strategy's last pass (e.g. a final prune), timed as densification."""
+        t = time.perf_counter()
+        stats = self.strategy.finalize(self.avatar.gaussians, self.optimizers, self.state)
+        if stats:
+            self.refinements.append({"step": self.config.iterations, **stats})
+            logger.info("after training: %s", stats)
+        self._tick("densify", t)
+
+    def result(self, train_seconds: float) -> TrainResult:
+        """The run's result, the avatar in eval mode."""
+        self.avatar.eval()
+        per_part = {"before": self.parts_before, "after": part_counts(self.avatar.gaussians.part_ids)}
+        correction = self.correction
+        trained = (correction.corrected(self.params) if correction is not None else self.params).to("cpu")
+        viewmats = torch.stack([c.viewmat for c in self.frames.cameras])
+        coverage = Coverage.of_frames(self.avatar.body, trained, viewmats)
+        return TrainResult(
+            self.avatar,
+            self.losses,
+            train_seconds,
+            self.timings,
+            self.refinements,
+            per_part,
+            self.train_ids,
+            trained,
+            correction.magnitudes() if correction is not None else {},
+            coverage,
+        )
+
+
 def train_avatar(
     dataset: DatasetLike,
     config: TrainConfig | None = None,
@@ -249,7 +405,6 @@ def train_avatar(
     t_setup = time.perf_counter()
     if progress:
         progress(ProgressEvent("setup", 0, config.iterations, "setting up training", elapsed=0.0))
-
     if body is None:
         from eva_engine.body import load_body_model
 
@@ -257,155 +412,35 @@ def train_avatar(
         if name is None:
             raise TrainingError("the dataset names no body model (meta.body_model)")
         body = load_body_model(name)
-    train_ids = list(dataset.splits.get("train", []))
-    frames = load_training_frames(ResampledDataset(dataset, config.image_scale), train_ids)
-    background = dataset_background(dataset, config).to(device)
-    targets = torch.stack(
-        [
-            composite_target(img, m, background.cpu())
-            for img, m in zip(frames.images, frames.masks, strict=True)
-        ]
-    ).to(device)
-    masks = frames.masks.to(device)
-    params = frames.params.to(device)
-
-    shape = params.shape.mean(dim=0)
-    # Every random draw of the run comes from generators seeded here (the strategy has its own),
-    # never from torch's global state: the initial weights (the avatar's MLPs, then the loss's)
-    # and the frame order.
-    weights = torch.Generator().manual_seed(config.seed)
-    avatar = Avatar.create(body.to(device), shape, config.avatar, seed=config.seed, generator=weights)
-    avatar = avatar.to(device)
-    avatar.active_sh_degree = 0
-    loss_fn = AvatarLoss(config.loss, generator=weights).to(device)
-    optimizers = make_optimizers(avatar, config)
-    extra = make_extra_optimizers(avatar, config, loss_fn)
-    correction, correction_opt = None, None
-    ground_truth = getattr(dataset.meta, "params_source", None) == "ground_truth"
-    if config.pose_correction.enabled and ground_truth:
-        logger.info("pose correction off: the dataset's body parameters are ground truth")
-    elif config.pose_correction.enabled:
-        correction = PoseCorrection(
-            len(train_ids), body.joint_part_ids[1:], params.expression.shape[1], config.pose_correction
-        ).to(device)
-        correction_opt = torch.optim.Adam(correction.parameters(), lr=config.pose_correction.lr)
-    strategy = config.strategy
-    strategy.check_sanity(avatar.gaussians, optimizers)
-    state = strategy.initialize_state()
-    parts_before = part_counts(avatar.gaussians.part_ids)
+    run = TrainingRun(dataset, config, body, device)
     logger.info(
         "setup %.1fs: %d frames, %d Gaussians",
         time.perf_counter() - t_setup,
-        len(train_ids),
-        len(avatar.gaussians),
+        len(run.train_ids),
+        len(run.avatar.gaussians),
     )
 
-    frame_order = torch.Generator().manual_seed(config.seed)
-    # Draws of the options that perturb a step (their own generator: turning one on leaves the
-    # frame order and the initial weights as they were).
-    perturb = torch.Generator().manual_seed(config.seed + 1)
-    body_joints = (body.joint_part_ids[1:] == 0).to(device)
-    max_scale = (
-        torch.tensor(config.avatar.max_scale, device=device) if config.avatar.max_scale is not None else None
-    )
-    order: list[int] = []
-    timings = dict.fromkeys(STAGES, 0.0)
-    losses: list[float] = []
-    refinements: list[dict] = []
     start = time.perf_counter()
     paused = 0.0  # seconds spent in ``checkpoint``
-
-    def tick(stage: str, t0: float) -> float:
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-        t1 = time.perf_counter()
-        timings[stage] += t1 - t0
-        return t1
-
     for step in range(config.iterations):
-        t = time.perf_counter()
-        if not order:
-            order = torch.randperm(len(train_ids), generator=frame_order).tolist()
-        i = order.pop()
-        if step > 0 and step % config.sh_degree_interval == 0:
-            avatar.active_sh_degree = min(avatar.active_sh_degree + 1, avatar.gaussians.sh_degree)
-        for g in optimizers["means"].param_groups:
-            g["lr"] = means_lr(config, step)
-        cam = frames.cameras[i]
-        t = tick("data", t)
-
-        correcting = correction is not None and step >= config.pose_correction.start_iter
-        frame_params = correction.apply(params[i], i) if correcting else params[i]
-        if config.pose_noise > 0:
-            frame_params = with_pose_noise(frame_params, body_joints, config.pose_noise, perturb)
-        if config.random_background:
-            bg = torch.rand(3, generator=perturb).to(device)
-            target, key = composite_target(frames.images[i].to(device), masks[i], bg), None
-        else:
-            bg, target, key = background, targets[i], i
-        posed = avatar.pose(frame_params)
-        t = tick("skinning", t)
-        render = avatar.rasterize_posed(posed, cam, bg)
-        t = tick("rasterize", t)
-        terms = loss_fn(render, target, masks[i], key=key, step=step)
-        total = (terms["total"] + correction.prior(i)) if correcting else terms["total"]
-        if config.regularizers.active:
-            total = total + regularization(avatar, config.regularizers, posed)
-        t = tick("losses", t)
-        loss, step_total = float(terms["total"].detach()), float(total.detach())
-        if not math.isfinite(step_total):  # non-finite whenever the loss terms are
-            # Before backward: the avatar keeps the last finite step's parameters.
-            raise TrainingError(f"the loss became {step_total} at iteration {step}; training stopped")
-        total.backward()
-        t = tick("backward", t)
-        for opt in (*optimizers.values(), *extra, *([correction_opt] if correcting else [])):
-            opt.step()
-            opt.zero_grad(set_to_none=True)
-        if max_scale is not None:
-            avatar.gaussians.clamp_scales(max_scale)
-        t = tick("optimizer", t)
-        stats = strategy.step_post_backward(avatar.gaussians, optimizers, state, step, render)
-        if stats:
-            refinements.append({"step": step, **stats})
-        tick("densify", t)
-
-        losses.append(loss)
+        loss = run.step(step)
         done = step + 1
         if checkpoint is not None and done in checkpoint_steps:
             t = time.perf_counter()
-            checkpoint(done, avatar, t - start - paused)
-            avatar.train()
+            checkpoint(done, run.avatar, t - start - paused)
+            run.avatar.train()
             paused += time.perf_counter() - t
         if progress and (done % config.progress_every == 0 or done == config.iterations):
             elapsed = time.perf_counter() - start - paused
             eta = elapsed / done * (config.iterations - done)
-            event = _train_event("train", done, config.iterations, loss, len(avatar.gaussians), elapsed, eta)
-            progress(event)
+            progress(
+                _train_event("train", done, config.iterations, loss, len(run.avatar.gaussians), elapsed, eta)
+            )
 
-    t = time.perf_counter()
-    stats = strategy.finalize(avatar.gaussians, optimizers, state)
-    if stats:
-        refinements.append({"step": config.iterations, **stats})
-        logger.info("after training: %s", stats)
-    tick("densify", t)
+    run.finalize()
     train_seconds = time.perf_counter() - start - paused
-    avatar.eval()
+    result = run.result(train_seconds)
     if progress:
         n = config.iterations
-        progress(_train_event("done", n, n, losses[-1], len(avatar.gaussians), train_seconds, 0.0))
-    per_part = {"before": parts_before, "after": part_counts(avatar.gaussians.part_ids)}
-    trained = (correction.corrected(params) if correction is not None else params).to("cpu")
-    viewmats = torch.stack([c.viewmat for c in frames.cameras])
-    coverage = Coverage.of_frames(avatar.body, trained, viewmats)
-    return TrainResult(
-        avatar,
-        losses,
-        train_seconds,
-        timings,
-        refinements,
-        per_part,
-        train_ids,
-        trained,
-        correction.magnitudes() if correction is not None else {},
-        coverage,
-    )
+        progress(_train_event("done", n, n, run.losses[-1], len(run.avatar.gaussians), train_seconds, 0.0))
+    return result
