@@ -25,11 +25,12 @@ import numpy as np
 import torch
 
 from eva_engine.align.camera import GUESS_FOV_Y_DEG, guess_camera
-from eva_engine.align.clip import fit_clip
+from eva_engine.align.clip import ClipFit, fit_clip
 from eva_engine.align.detect import DetectorConfig, FrameDetection, HolisticDetector
 from eva_engine.align.fit import FitConfig, FitTargets, reprojection_error
 from eva_engine.align.input_checks import InputChecks, others_found, person_height, refusal_reason
 from eva_engine.body import KEYPOINT_NAMES, BodyModel
+from eva_engine.body.params import BodyParams
 from eva_engine.progress import Progress, ProgressEvent
 
 
@@ -206,14 +207,7 @@ def preprocess_video(
     """Turn one video of one person into a dataset at ``out_dir`` (written atomically).
     ``progress`` hears stages "decode", "detect", "align", "regions" and "write"."""
     from eva_engine.body import load_body_model
-    from eva_engine.data import (
-        DatasetMeta,
-        DatasetWriter,
-        ParamNames,
-        VideoReadOptions,
-        iter_frames,
-        read_video,
-    )
+    from eva_engine.data import VideoReadOptions, read_video
 
     config = config or PreprocessConfig()
     seconds: dict[str, float] = {}
@@ -224,8 +218,49 @@ def preprocess_video(
     if progress is not None:
         progress(ProgressEvent("decode", len(clip), len(clip), f"decoded {len(clip)} frames"))
 
+    det, keep, rates = _detect_one_person(video, clip, config, progress, seconds)
+    h, w = clip.frames.shape[1:3]
+    K, viewmat = guess_camera(w, h, config.fov_y_deg)
+    body = _BodyFit(targets=det.targets(K, viewmat))
+    if config.fit:
+        model = model or load_body_model("anny")
+        body = _fit_body(model, det, body.targets, clip.timestamps[keep], config, progress, seconds)
+        body.regions = _region_masks(model, det, body, K, viewmat, (h, w), progress, seconds)
+    started = time.perf_counter()
+    root = _write_dataset(
+        video, out_dir, clip, det, keep, body, K, viewmat, rates, model, config, progress, overwrite
+    )
+    seconds["write"] = time.perf_counter() - started
+    n = len(keep)
+    return PreprocessReport(str(root), len(clip), n, len(clip) - n, rates, body.initial, body.fitted, seconds)
+
+
+@dataclass
+class _BodyFit:
+    """What fitting the body model gave (nothing but the targets when ``fit`` is off)."""
+
+    targets: FitTargets
+    params: BodyParams | None = None  # [F], the kept frames
+    fit: ClipFit | None = None
+    initial: dict[str, float] = field(
+        default_factory=lambda: dict.fromkeys(("body", "hands", "face"), math.nan)
+    )
+    fitted: dict[str, float] = field(
+        default_factory=lambda: dict.fromkeys(("body", "hands", "face"), math.nan)
+    )
+    hands: dict[str, int] = field(default_factory=lambda: {"rejected": 0, "filled": 0})
+    regions: list | None = None
+
+
+def _detect_one_person(video, clip, config: PreprocessConfig, progress, seconds: dict):
+    """Detect the person in every frame and refuse a video no avatar can come from
+    (``input_checks``): (the detections of the kept frames, their indices, the detection rates
+    over all frames)."""
+    from eva_engine.data import VideoReadOptions, iter_frames
+
     started = time.perf_counter()
     h, w = clip.frames.shape[1:3]
+    source = {"demuxer": config.demuxer, "max_side": config.max_video_side}
     detect_long = max(clip.source_size)
     if config.detect_max_size is not None:
         detect_long = min(detect_long, config.detect_max_size)
@@ -260,57 +295,66 @@ def preprocess_video(
     if reason is not None:
         raise PreprocessError(reason)
     seconds["checks"] = time.perf_counter() - started
-    rates = det.rates()
-    det = det.select(keep)
-    K, viewmat = guess_camera(w, h, config.fov_y_deg)
-    targets = det.targets(K, viewmat)
+    return det.select(keep), keep, det.rates()
 
-    params = fit = None
-    initial = fitted = {"body": math.nan, "hands": math.nan, "face": math.nan}
-    hands = {"rejected": 0, "filled": 0}
-    if config.fit:
-        started = time.perf_counter()
-        model = model or load_body_model("anny")
-        stages = len(config.fitting.stages)
-        if progress is not None:
-            progress(ProgressEvent("align", 0, stages, "fitting the body model"))
-        times = torch.as_tensor(clip.timestamps[keep], dtype=torch.float64)
-        fit = fit_clip(model, targets, times, config.fitting)
-        targets, params = fit.targets, fit.params
-        initial = reprojection_error(model, fit.initial, targets)
-        fitted = reprojection_error(model, params, targets)
-        found = det.regions_found()[:, :2] & ~fit.hands_rejected.numpy()
-        filled = (fit.hand_confidence > 0) & ~torch.from_numpy(found)
-        hands = {"rejected": int(fit.hands_rejected.sum()), "filled": int(filled.sum())}
-        seconds["align"] = time.perf_counter() - started
-        if progress is not None:
-            progress(ProgressEvent("align", stages, stages, "fitting the body model"))
 
-    regions = None
-    if params is not None:
-        from eva_engine.data.region_masks import region_masks
+def _fit_body(model, det, targets, timestamps, config: PreprocessConfig, progress, seconds: dict) -> _BodyFit:
+    """The body model fitted to the clip (``fit_clip``) and its 2D errors before and after."""
+    started = time.perf_counter()
+    stages = len(config.fitting.stages)
+    if progress is not None:
+        progress(ProgressEvent("align", 0, stages, "fitting the body model"))
+    fit = fit_clip(model, targets, torch.as_tensor(timestamps, dtype=torch.float64), config.fitting)
+    found = det.regions_found()[:, :2] & ~fit.hands_rejected.numpy()
+    filled = (fit.hand_confidence > 0) & ~torch.from_numpy(found)
+    body = _BodyFit(
+        targets=fit.targets,
+        params=fit.params,
+        fit=fit,
+        initial=reprojection_error(model, fit.initial, fit.targets),
+        fitted=reprojection_error(model, fit.params, fit.targets),
+        hands={"rejected": int(fit.hands_rejected.sum()), "filled": int(filled.sum())},
+    )
+    seconds["align"] = time.perf_counter() - started
+    if progress is not None:
+        progress(ProgressEvent("align", stages, stages, "fitting the body model"))
+    return body
 
-        started = time.perf_counter()
-        person = [det.person_mask(j, (h, w)) for j in range(len(det.masks))]
-        # Scored where the detector found the region (a rejected hand was not found).
-        present = det.regions_found()
-        present[:, :2] &= ~fit.hands_rejected.numpy()
-        regions = region_masks(model, params, K, viewmat, (h, w), person, present=present)
-        seconds["regions"] = time.perf_counter() - started
-        if progress is not None:
-            progress(ProgressEvent("regions", len(regions), len(regions), "rendering hand and face regions"))
+
+def _region_masks(model, det, body: _BodyFit, K, viewmat, size, progress, seconds: dict) -> list:
+    """Each frame's hand and face masks, scored where the detector found the region (a rejected
+    hand was not found)."""
+    from eva_engine.data.region_masks import region_masks
 
     started = time.perf_counter()
+    person = [det.person_mask(j, size) for j in range(len(det.masks))]
+    present = det.regions_found()
+    present[:, :2] &= ~body.fit.hands_rejected.numpy()
+    regions = region_masks(model, body.params, K, viewmat, size, person, present=present)
+    seconds["regions"] = time.perf_counter() - started
+    if progress is not None:
+        progress(ProgressEvent("regions", len(regions), len(regions), "rendering hand and face regions"))
+    return regions
+
+
+def _write_dataset(
+    video, out_dir, clip, det, keep, body: _BodyFit, K, viewmat, rates, model, config, progress, overwrite
+):
+    """The dataset's frames, masks, cameras, splits, parameters and keypoints: its folder."""
+    from eva_engine.data import DatasetMeta, DatasetWriter, ParamNames
+
+    h, w = clip.frames.shape[1:3]
+    fitted = body.params is not None
     fps = clip.fps / config.every if clip.fps > 0 else 25.0
     meta = DatasetMeta(
         source="video",
         fps=fps,
         image_size=(h, w),
         name=Path(video).stem,
-        body_model=model.name if params is not None else None,
+        body_model=model.name if fitted else None,
         camera_source="estimated",
     )
-    n = len(keep)
+    n, targets, fit = len(keep), body.targets, body.fit
     test = list(range(config.test_every - 1, n, config.test_every)) if config.test_every else []
     train = [i for i in range(n) if i not in set(test)]
     with DatasetWriter(out_dir, meta, overwrite=overwrite) as writer:
@@ -321,14 +365,14 @@ def preprocess_video(
                 K=K,
                 viewmat=viewmat,
                 time=float(clip.timestamps[i]),
-                regions=regions[j] if regions is not None else None,
+                regions=body.regions[j] if body.regions is not None else None,
             )
             if progress is not None:
                 progress(ProgressEvent("write", j + 1, n, f"writing frame {j + 1}/{n}"))
-        root = writer.finish(
+        return writer.finish(
             {"train": train, "test_pose": test},
-            params=params,
-            params_names=ParamNames.of(model) if params is not None else None,
+            params=body.params,
+            params_names=ParamNames.of(model) if fitted else None,
             params_source="fitted",
             keypoints=targets.keypoints,
             keypoint_names=list(KEYPOINT_NAMES),
@@ -346,12 +390,13 @@ def preprocess_video(
                 "frames": {"decoded": len(clip), "kept": n, "dropped": len(clip) - n, "every": config.every},
                 "detection_rates": rates,
                 "camera_guess": {"fov_y_deg": config.fov_y_deg},
-                "reprojection_px": {"initial": _nan_to_none(initial), "fitted": _nan_to_none(fitted)},
-                "hands": hands,
+                "reprojection_px": {
+                    "initial": _nan_to_none(body.initial),
+                    "fitted": _nan_to_none(body.fitted),
+                },
+                "hands": body.hands,
             },
         )
-    seconds["write"] = time.perf_counter() - started
-    return PreprocessReport(str(root), len(clip), n, len(clip) - n, rates, initial, fitted, seconds)
 
 
 def _nan_to_none(d: dict[str, float]) -> dict[str, float | None]:
