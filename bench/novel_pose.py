@@ -92,6 +92,15 @@ ROWS: dict[str, Row] = {
             "regularizers.thin_part_weights=[1,1,0]",
         ),
     ),
+    "thin_face_1cm": Row(
+        "thin along the normal, the face's Gaussians free up to 1 cm instead of 2 mm (issue 39)",
+        (
+            *OFF,
+            "regularizers.lambda_thin=0.05",
+            "regularizers.thin_target=0.002",
+            "regularizers.thin_part_targets=[0.002,0.002,0.01]",
+        ),
+    ),
     "final_prune": Row(
         "a final prune: 3-sigma extent beyond 6 cm of the template, and never-seen Gaussians",
         (*OFF, "strategy.prune_extent=0.06", "strategy.prune_never_seen=true"),

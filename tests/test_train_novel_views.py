@@ -114,6 +114,18 @@ def test_thin_part_weights_scale_each_parts_gaussians(anny_model):
     with pytest.raises(ValueError, match="thin_part_weights"):
         RegularizerConfig(thin_part_weights=(1.0, -1.0, 1.0))
 
+    def loss_targets(targets):
+        cfg = RegularizerConfig(lambda_thin=1.0, thin_target=0.002, thin_part_targets=targets)
+        return float(regularization(avatar, cfg).detach())
+
+    assert loss_targets((0.002, 0.002, 0.002)) == pytest.approx(2 * needle, rel=1e-3)
+    assert loss_targets((0.002, 0.002, 0.025)) == pytest.approx(needle, rel=1e-3)  # 2 cm is within 2.5
+    assert loss_targets((0.002, 0.002, 0.01)) == pytest.approx(
+        needle + (0.02 / 0.01 - 1.0) / len(g), rel=1e-3
+    )
+    with pytest.raises(ValueError, match="thin_part_targets"):
+        RegularizerConfig(thin_part_targets=(0.002, 0.0, 0.01))
+
 
 def test_skinning_prior_pulls_weights_back_to_the_body_models(anny_model):
     avatar = small_avatar(anny_model)

@@ -16,7 +16,8 @@ product's training), off in the paper's methods (``train/methods.py``: none of t
   vertex, in canonical space) beyond ``thin_target``, in units of ``thin_target``, averaged. A
   Gaussian that grows along the training camera's rays (in front of a surface that faces the
   camera: along its normal) costs nothing in the training images and is a spike from the side.
-  ``thin_part_weights`` scales it per part (body, hand, face): a lid or a lip that the
+  ``thin_part_weights`` scales it per part (body, hand, face), and ``thin_part_targets`` (metres,
+  None: ``thin_target`` everywhere) sets each part's own free extent: a lid or a lip that the
   expression moves along the normal may need the depth the term takes away.
 - ``skinning``: the squared distance between each Gaussian's skinning weights and the body
   model's at its template vertex, summed over joints and averaged (HUGS's and 3DGS-Avatar's
@@ -53,11 +54,16 @@ class RegularizerConfig:
     lambda_thin: float = 0.05
     thin_target: float = 0.002
     thin_part_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    thin_part_targets: tuple[float, float, float] | None = None
     lambda_skinning: float = 0.0
 
     def __post_init__(self) -> None:
         if len(self.thin_part_weights) != 3 or min(self.thin_part_weights) < 0:
             raise ValueError("thin_part_weights must be three weights >= 0 (body, hand, face)")
+        if self.thin_part_targets is not None and (
+            len(self.thin_part_targets) != 3 or min(self.thin_part_targets) <= 0
+        ):
+            raise ValueError("thin_part_targets must be three lengths > 0 (body, hand, face) or None")
 
     @property
     def active(self) -> bool:
@@ -91,12 +97,21 @@ def normal_extent(avatar: Avatar) -> Tensor:
     return ((along * g.scales()) ** 2).sum(dim=-1).clamp_min(1e-20).sqrt()
 
 
-def thin(avatar: Avatar, target: float, part_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> Tensor:
-    """Mean over Gaussians of relu(normal extent / target - 1), each weighted by its part's weight."""
-    excess = torch.relu(normal_extent(avatar) / target - 1.0)  # [N]
+def thin(
+    avatar: Avatar,
+    target: float,
+    part_weights: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    part_targets: tuple[float, float, float] | None = None,
+) -> Tensor:
+    """Mean over Gaussians of relu(normal extent / target - 1), each with its part's weight and
+    (``part_targets``) its part's target."""
+    extent = normal_extent(avatar)  # [N]
+    parts = avatar.gaussians.part_ids
+    if part_targets is not None:
+        target = extent.new_tensor(part_targets)[parts]  # type: ignore[assignment]
+    excess = torch.relu(extent / target - 1.0)
     if tuple(part_weights) != (1.0, 1.0, 1.0):
-        weights = excess.new_tensor(part_weights)[avatar.gaussians.part_ids]
-        excess = excess * weights
+        excess = excess * excess.new_tensor(part_weights)[parts]
     return excess.mean()
 
 
@@ -113,7 +128,9 @@ def regularization(avatar: Avatar, config: RegularizerConfig, posed: PosedGaussi
     g = avatar.gaussians
     total = g.means.new_zeros(())
     if config.lambda_thin > 0:
-        total = total + config.lambda_thin * thin(avatar, config.thin_target, config.thin_part_weights)
+        total = total + config.lambda_thin * thin(
+            avatar, config.thin_target, config.thin_part_weights, config.thin_part_targets
+        )
     if config.lambda_skinning > 0 and avatar.skinning_field is None:
         weights = (
             posed.weights if posed is not None and posed.weights is not None else avatar.skinning_weights()
