@@ -15,28 +15,17 @@ import datetime
 import json
 import os
 import platform
-import statistics
 import sys
 import time
 from pathlib import Path
 
 import torch
 from machine import cpu_name
+from timing import time_call
 
 from eva_engine.body import load_body_model
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def time_call(fn, repeats: int, warmup: int = 1) -> dict:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return {"median_ms": 1e3 * statistics.median(times), "min_ms": 1e3 * min(times), "repeats": repeats}
 
 
 def bench_model(model, batch: int, repeats: int) -> dict:

@@ -16,24 +16,17 @@ import datetime as dt
 import io
 import json
 import shlex
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 from machine import describe
+from timing import time_call
 
 
 def median_ms(fn, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return 1000 * statistics.median(times)
+    return time_call(fn, repeats)["median_ms"]
 
 
 def png(image: np.ndarray) -> bytes:
