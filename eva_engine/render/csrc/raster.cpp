@@ -558,9 +558,9 @@ void bin_pass(const scalar_t* mp, const scalar_t* cp, const scalar_t* op, const 
 }
 
 // Visible Gaussians (both radii > 0) front to back: by camera depth, ties by index (the same
-// order as a stable argsort).
+// order as a stable argsort), by a comparison sort.
 template <typename scalar_t>
-std::vector<int64_t> depth_order(const int32_t* radii, const scalar_t* depths, int64_t N) {
+std::vector<int64_t> compared_depth_order(const int32_t* radii, const scalar_t* depths, int64_t N) {
   std::vector<int64_t> order;
   order.reserve(N);
   for (int64_t g = 0; g < N; ++g)
@@ -568,6 +568,11 @@ std::vector<int64_t> depth_order(const int32_t* radii, const scalar_t* depths, i
   std::sort(order.begin(), order.end(),
             [&](int64_t a, int64_t b) { return depths[a] < depths[b] || (depths[a] == depths[b] && a < b); });
   return order;
+}
+
+template <typename scalar_t>
+std::vector<int64_t> depth_order(const int32_t* radii, const scalar_t* depths, int64_t N) {
+  return compared_depth_order(radii, depths, N);
 }
 
 // float32: the same order by a stable LSD radix sort on the depths' bits (4 passes of 8 bits),
@@ -583,15 +588,7 @@ std::vector<int64_t> depth_order<float>(const int32_t* radii, const float* depth
   for (int64_t g = 0; g < N; ++g) {
     if (!(radii[2 * g] > 0 && radii[2 * g + 1] > 0)) continue;
     const float d = depths[g];
-    if (!(d > 0.0f) || !std::isfinite(d)) {
-      order.clear();
-      for (int64_t h = 0; h < N; ++h)
-        if (radii[2 * h] > 0 && radii[2 * h + 1] > 0) order.push_back(h);
-      std::sort(order.begin(), order.end(), [&](int64_t a, int64_t b) {
-        return depths[a] < depths[b] || (depths[a] == depths[b] && a < b);
-      });
-      return order;
-    }
+    if (!(d > 0.0f) || !std::isfinite(d)) return compared_depth_order(radii, depths, N);
     uint32_t bits;
     std::memcpy(&bits, &d, sizeof bits);
     order.push_back(g);
