@@ -44,7 +44,7 @@ def form_fields(options: Mapping[str, object] | BaseModel | None) -> dict[str, s
     """Upload form fields from a dict or a form model (its set fields): JSON's spelling of
     booleans, everything else as text."""
     if isinstance(options, BaseModel):
-        options = options.model_dump(exclude_unset=True)
+        options = options.model_dump(mode="json", exclude_unset=True)
     fields = {}
     for name, value in (options or {}).items():
         fields[name] = ("true" if value else "false") if isinstance(value, bool) else str(value)
@@ -85,6 +85,12 @@ class EvaClient:
             raise ApiError(what, response.status_code, detail)
         return response
 
+    def _upload(self, what: str, url: str, video: Path, options) -> dict:
+        """POST ``video`` as the form's ``video`` file with ``options`` as its fields: the JSON answer."""
+        with Path(video).open("rb") as f:
+            files = {"video": (Path(video).name, f, "video/mp4")}
+            return self._call(what, "POST", url, files=files, data=form_fields(options)).json()
+
     # -- the service -------------------------------------------------------------------------------
     def health(self) -> Health:
         return Health.model_validate(self._call("health", "GET", "/healthz").json())
@@ -94,10 +100,7 @@ class EvaClient:
         self, video: Path, options: Mapping[str, object] | BaseModel | None = None
     ) -> AvatarCreated:
         """Upload ``video`` with the form's ``options`` (``AvatarForm``'s fields): a queued job."""
-        with Path(video).open("rb") as f:
-            files = {"video": (Path(video).name, f, "video/mp4")}
-            response = self._call("upload", "POST", "/avatars", files=files, data=form_fields(options))
-        return AvatarCreated.model_validate(response.json())
+        return AvatarCreated.model_validate(self._upload("upload", "/avatars", video, options))
 
     def avatar(self, avatar_id: str) -> AvatarInfo:
         return AvatarInfo.model_validate(self._call("avatar info", "GET", f"/avatars/{avatar_id}").json())
@@ -105,7 +108,9 @@ class EvaClient:
     def render(self, avatar_id: str, request: Mapping[str, object] | BaseModel | None = None) -> bytes:
         """The image (PNG, or JPEG with ``format``) of a ``RenderRequest``: pose, camera, size."""
         body = (
-            request.model_dump(exclude_unset=True) if isinstance(request, BaseModel) else dict(request or {})
+            request.model_dump(mode="json", exclude_unset=True)
+            if isinstance(request, BaseModel)
+            else dict(request or {})
         )
         return self._call("render", "POST", f"/avatars/{avatar_id}/render", json=body).content
 
@@ -114,11 +119,8 @@ class EvaClient:
         self, avatar_id: str, video: Path, options: Mapping[str, object] | BaseModel | None = None
     ) -> AnimationCreated:
         """The avatar performing ``video`` (``AnimationForm``'s fields in ``options``): a queued job."""
-        with Path(video).open("rb") as f:
-            files = {"video": (Path(video).name, f, "video/mp4")}
-            url = f"/avatars/{avatar_id}/animations"
-            response = self._call("animation upload", "POST", url, files=files, data=form_fields(options))
-        return AnimationCreated.model_validate(response.json())
+        url = f"/avatars/{avatar_id}/animations"
+        return AnimationCreated.model_validate(self._upload("animation upload", url, video, options))
 
     def animation(self, animation_id: str) -> AnimationInfo:
         url = f"/animations/{animation_id}"

@@ -46,11 +46,15 @@ def stop_process(proc: subprocess.Popen, sig: int = signal.SIGTERM, timeout: flo
     ``timeout`` seconds."""
     if proc.poll() is None:
         proc.send_signal(sig)
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        _wait_or_kill(proc, timeout)
+
+
+def _wait_or_kill(proc: subprocess.Popen, timeout: float) -> None:
+    try:
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 class LocalStack:
@@ -157,12 +161,13 @@ class LocalStack:
         return all(p.poll() is None for p in self.processes)
 
     def close(self, timeout: float = 20.0) -> None:
-        """Stop every process (SIGTERM: a worker finishes its running job's current step)."""
+        """Stop every process: SIGTERM to all at once (a worker stops now; its job is retried
+        by the next worker), then each is waited for, killed after ``timeout`` seconds."""
         for p in self.processes:
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)
         for p in self.processes:
-            stop_process(p, signal.SIGTERM, timeout)
+            _wait_or_kill(p, timeout)
 
     def __enter__(self) -> LocalStack:
         return self
