@@ -76,6 +76,15 @@ class PreprocessConfig:
         if not 1.0 < self.fov_y_deg < 170.0:
             raise ValueError(f"fov_y_deg must be in (1, 170), got {self.fov_y_deg}")
 
+    def read_options(self, max_frames: int | None, max_size: int | None):
+        """How to read the video (``VideoReadOptions``): this config's sampling and source limits,
+        ``max_frames`` kept frames at ``max_size`` pixels a side."""
+        from eva_engine.data import VideoReadOptions
+
+        return VideoReadOptions(
+            self.every, max_frames, max_size, demuxer=self.demuxer, max_side=self.max_video_side
+        )
+
 
 @dataclass
 class Detections:
@@ -207,13 +216,12 @@ def preprocess_video(
     """Turn one video of one person into a dataset at ``out_dir`` (written atomically).
     ``progress`` hears stages "decode", "detect", "align", "regions" and "write"."""
     from eva_engine.body import load_body_model
-    from eva_engine.data import VideoReadOptions, read_video
+    from eva_engine.data import read_video
 
     config = config or PreprocessConfig()
     seconds: dict[str, float] = {}
     started = time.perf_counter()
-    source = {"demuxer": config.demuxer, "max_side": config.max_video_side}
-    clip = read_video(video, VideoReadOptions(config.every, config.max_frames, config.max_size, **source))
+    clip = read_video(video, config.read_options(config.max_frames, config.max_size))
     seconds["decode"] = time.perf_counter() - started
     if progress is not None:
         progress(ProgressEvent("decode", len(clip), len(clip), f"decoded {len(clip)} frames"))
@@ -256,20 +264,17 @@ def _detect_one_person(video, clip, config: PreprocessConfig, progress, seconds:
     """Detect the person in every frame and refuse a video no avatar can come from
     (``input_checks``): (the detections of the kept frames, their indices, the detection rates
     over all frames)."""
-    from eva_engine.data import VideoReadOptions, iter_frames
+    from eva_engine.data import iter_frames
 
     started = time.perf_counter()
     h, w = clip.frames.shape[1:3]
-    source = {"demuxer": config.demuxer, "max_side": config.max_video_side}
     detect_long = max(clip.source_size)
     if config.detect_max_size is not None:
         detect_long = min(detect_long, config.detect_max_size)
     if detect_long == max(h, w):
         frames = iter(clip.frames)
     else:  # a second decoding pass, at the detector's size, frame for frame the same
-        frames = iter_frames(
-            video, VideoReadOptions(config.every, len(clip), config.detect_max_size, **source)
-        )
+        frames = iter_frames(video, config.read_options(len(clip), config.detect_max_size))
     det = detect_frames(frames, config.detector, progress, total=len(clip), size=(h, w))
     if len(det.found) != len(clip):
         raise PreprocessError(f"{video} decoded to {len(det.found)} frames on a second pass, not {len(clip)}")
