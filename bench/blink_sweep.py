@@ -1,0 +1,239 @@
+"""Where a blink is lost (issue 39): the lid gap along the blink action, as the fit's model sees
+it, as MediaPipe reads it on renders, and on a trained avatar.
+
+    .venv/bin/python bench/blink_sweep.py --dataset $V/dataset --avatar $V/avatar-product-s0 \
+        --name blink_sweep --out bench/results/expressions/blink
+
+Both lids' ``eyeBlinkLeft`` and ``eyeBlinkRight`` are set to each value of ``--blinks``, every
+other coefficient kept. The gap is signed: the lower lid's landmark minus the upper one's
+(159-145, 386-374), across the eye-corner line (33-263), over the corner distance; it is
+negative once the upper landmark has passed the lower one. Three sources:
+
+- ``anny``: the painted neutral Anny face rendered head-on (``align.face_mesh.render_face``):
+  MediaPipe on each render against the correspondence points the fit matches (``model``);
+- ``fitted``: with ``--dataset``, the frame the target shows most closed (or ``--frame``), its
+  fitted parameters with the blink swept: the correspondence points posed and projected;
+- ``avatar``: with ``--avatar``, MediaPipe on the avatar's render of that frame, same sweep,
+  and a sheet: target | render with the fitted blink | render at each swept value | the fitted
+  render without the Gaussians attached to vertices the blink moves (where the eye's look lives).
+
+Writes ``<name>.json``, ``<name>.md`` and, with an avatar, ``<name>.jpg``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime as dt
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from machine import describe
+
+RESULTS = Path(__file__).resolve().parent / "results" / "expressions"
+LIDS = ((159, 145), (386, 374))
+CORNERS = (33, 263)
+BLINKS = ("eyeBlinkLeft", "eyeBlinkRight")
+
+
+def signed_lid_gap(marks: torch.Tensor | np.ndarray | None) -> float:
+    """Mean signed lid gap over the corner distance of one face's [478, >=2] pixel landmarks
+    (module docstring); NaN without a face."""
+    if marks is None:
+        return float("nan")
+    xy = torch.as_tensor(np.asarray(marks), dtype=torch.float64)[:, :2]
+    axis = xy[CORNERS[1]] - xy[CORNERS[0]]
+    scale = axis.norm()
+    if scale <= 0:
+        return float("nan")
+    normal = torch.stack([-axis[1], axis[0]]) / scale  # image y points down: lower lid is +
+    if normal[1] < 0:
+        normal = -normal
+    return float(sum(((xy[b] - xy[a]) @ normal) for a, b in LIDS) / (len(LIDS) * scale))
+
+
+def with_blink(params, names: list[str], value: float):
+    e = params.expression.clone()
+    for n in BLINKS:
+        e[..., names.index(n)] = value
+    return dataclasses.replace(params, expression=e)
+
+
+def crossing(values: list[float], gaps: list[float]) -> float | None:
+    """The blink value where the gap first reaches zero (linear between samples), else None."""
+    points = list(zip(values, gaps, strict=True))
+    for (v0, g0), (v1, g1) in zip(points, points[1:], strict=False):
+        if g0 > 0 >= g1:
+            return round(v0 + (v1 - v0) * g0 / (g0 - g1), 3)
+    return None
+
+
+def anny_sweep(model, reg, ids, values: list[float]) -> dict:
+    from eva_engine.align.face_mesh import detect_face_mesh, render_face
+    from eva_engine.eval.expression_fidelity import fitted_landmarks
+
+    out = {"mediapipe": [], "model": []}
+    for v in values:
+        ex = {n: v for n in BLINKS}
+        r = render_face(model, ((0.0, 0.0),), expression=ex)[0]
+        out["mediapipe"].append(signed_lid_gap(detect_face_mesh(r["rgb"])))
+        p = model.params_from_pose({"expression": ex})
+        points = fitted_landmarks(model, p, reg, ids, r["K"][None], r["viewmat"][None])[0]
+        out["model"].append(signed_lid_gap(points))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--dataset", type=Path)
+    ap.add_argument("--avatar", type=Path)
+    ap.add_argument("--frame", type=int, help="default: the frame whose detected eyes are most closed")
+    ap.add_argument("--blinks", default="0,0.25,0.5,0.75,1")
+    ap.add_argument("--name", default="blink_sweep")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+
+    from eva_engine.align.face_mesh import detect_face_mesh, load_correspondence
+    from eva_engine.body import load_body_model
+    from eva_engine.eval.expression_fidelity import fitted_landmarks
+
+    values = [float(v) for v in args.blinks.split(",")]
+    model = load_body_model("anny")
+    corr = load_correspondence(model)
+    reg, ids = corr.regressor(model)
+    names = list(model.expression_names)
+    doc: dict = {
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "command": "python bench/blink_sweep.py " + " ".join(sys.argv[1:]),
+        "machine": describe(),
+        "blinks": values,
+        "anny": anny_sweep(model, reg, ids, values),
+    }
+    sheet = None
+    if args.dataset is not None:
+        from eva_engine.data import load_dataset
+
+        ds = load_dataset(args.dataset)
+        stored = ds.keypoint_extras.get("face_mesh")
+        if ds.params is None or stored is None:
+            raise SystemExit(f"{args.dataset} has no fitted parameters or face-mesh detections")
+        detected = [signed_lid_gap(m) if m[:468, 2].amax() > 0 else float("inf") for m in stored]
+        i = args.frame if args.frame is not None else int(np.argmin(detected))
+        p = ds.params[[i]]
+        K, view = ds.K[[i]], ds.viewmat[[i]]
+
+        def model_gap(q) -> float:
+            return signed_lid_gap(fitted_landmarks(model, q, reg, ids, K, view)[0])
+
+        doc["fitted"] = {
+            "dataset": str(args.dataset),
+            "frame": i,
+            "detected": detected[i],
+            "fitted_blinks": [round(float(p.expression[0, names.index(n)]), 3) for n in BLINKS],
+            "fitted": model_gap(p),
+            "model": [model_gap(with_blink(p, names, v)) for v in values],
+        }
+        if args.avatar is not None:
+            from eva_engine.avatar import Camera, load_saved_avatar
+
+            av = load_saved_avatar(args.avatar).avatar.eval()
+            f = ds[i]
+            h, w = f.image.shape[:2]
+            cam = Camera(f.K.float(), f.viewmat.float(), w, h)
+            bg = torch.ones(3)
+
+            def render(q) -> np.ndarray:
+                with torch.no_grad():
+                    img = av(q[0], cam, bg).image
+                return (img.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+
+            target = (f.image.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+            images = [render(p)] + [render(with_blink(p, names, v)) for v in values]
+            gaps = [signed_lid_gap(detect_face_mesh(im)) for im in images]
+            # The Gaussians whose vertex the blink moves, hidden: what is left of the eye.
+            rest = [av.body(with_blink(p, names, v)).rest[0] for v in (0.0, 1.0)]
+            moved = ((rest[1] - rest[0]).norm(dim=-1) > 1e-4)[av.gaussians.vertex_ids]
+            opacities = av.gaussians.splats["opacities"].data
+            kept = opacities.clone()
+            opacities[moved] = -30.0
+            images.append(render(p))
+            opacities.copy_(kept)
+            doc["avatar"] = {
+                "avatar": str(args.avatar),
+                "target_mediapipe": signed_lid_gap(detect_face_mesh(target)),
+                "fitted": gaps[0],
+                "mediapipe": gaps[1:],
+                "gaussians": int(moved.numel()),
+                "gaussians_moved_by_blink": int(moved.sum()),
+            }
+            xy = stored[i, :468, :2]
+            (x0, y0), (x1, y1) = xy.min(0).values.int().tolist(), xy.max(0).values.int().tolist()
+            pad = (x1 - x0) // 6
+            y0, x0 = max(0, y0 - pad), max(0, x0 - pad)
+            sheet = np.concatenate([im[y0 : y1 + pad, x0 : x1 + pad] for im in [target, *images]], axis=1)
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1) + "\n")
+    (args.out / f"{args.name}.md").write_text(markdown(doc))
+    if sheet is not None:
+        from PIL import Image
+
+        Image.fromarray(sheet).save(args.out / f"{args.name}.jpg", quality=90)
+    print(markdown(doc))
+
+
+def markdown(doc: dict) -> str:
+    def row(label: str, gaps: list[float]) -> str:
+        cells = " | ".join(f"{g:+.3f}" for g in gaps)
+        closes = crossing(doc["blinks"], gaps)
+        return f"| {label} | {cells} | {closes if closes is not None else '–'} |"
+
+    head = " | ".join(f"{v:g}" for v in doc["blinks"])
+    lines = [
+        "# Lid gap along the blink action",
+        "",
+        f"- date: {doc['date']}; command: `{doc['command']}`",
+        f"- machine: {doc['machine']}",
+        "",
+        "Signed lid gap (lower minus upper landmark, 159-145 and 386-374) over the eye-corner",
+        "distance, with both eyeBlink coefficients set to each value; negative: the upper landmark",
+        "has passed the lower one. Last column: the blink where the gap first reaches zero.",
+        "",
+        f"| source | {head} | closes at |",
+        "|---|" + "---:|" * (len(doc["blinks"]) + 1),
+        row("Anny render, MediaPipe", doc["anny"]["mediapipe"]),
+        row("Anny, correspondence points", doc["anny"]["model"]),
+    ]
+    fitted = doc.get("fitted")
+    if fitted:
+        lines.append(row(f"frame {fitted['frame']}, fitted face, correspondence points", fitted["model"]))
+    avatar = doc.get("avatar")
+    if avatar:
+        lines.append(row(f"frame {fitted['frame']}, avatar render, MediaPipe", avatar["mediapipe"]))
+    if fitted:
+        lines += [
+            "",
+            f"Frame {fitted['frame']} of `{fitted['dataset']}`: detected gap {fitted['detected']:+.3f}; "
+            f"fitted eyeBlinkLeft / Right {fitted['fitted_blinks'][0]} / {fitted['fitted_blinks'][1]}, "
+            f"whose correspondence gap is {fitted['fitted']:+.3f}.",
+        ]
+    if avatar:
+        lines += [
+            f"MediaPipe on the target frame: {avatar['target_mediapipe']:+.3f}; on the avatar's render "
+            f"with the fitted blink: {avatar['fitted']:+.3f} (`{avatar['avatar']}`).",
+            "",
+            f"The blink moves the vertices of {avatar['gaussians_moved_by_blink']} of the avatar's "
+            f"{avatar['gaussians']} Gaussians.",
+            "",
+            "Sheet: target | render, fitted blink | render at each blink value above | render, fitted "
+            "blink, without the Gaussians the blink moves.",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
