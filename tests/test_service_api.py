@@ -66,19 +66,24 @@ def test_health_and_docs(client):
 
 
 def test_the_page_offers_the_registered_presets_and_methods(client):
-    page = client.get("/").text
-    presets = re.search(r'<select id="preset".*?</select>', page, re.S).group(0)
-    methods = re.search(r'<select id="method".*?</select>', page, re.S).group(0)
-    assert re.findall(r'value="([^"]*)"', presets) == list(PRESETS)
-    assert re.findall(r'value="([^"]*)"', methods) == ["", *METHODS]  # "": the preset's own
-    assert re.findall(r'value="([^"]*)" selected', presets) == ["fast"]  # JobOptions' default
-    assert 'value="3dgs+body">3dgs+body (baseline)</option>' in methods
+    page = client.get("/")
+    assert page.status_code == 200 and "text/html" in page.headers["content-type"]
+    assert "/static/options.js" in page.text
+    res = client.get("/page/options")
+    assert res.status_code == 200
+    upload_form = res.json()["forms"]["upload-form"]["selects"]
+    assert [c["value"] for c in upload_form["preset"]["choices"]] == list(PRESETS)
+    assert upload_form["preset"]["default"] == "fast"  # JobOptions' default
+    assert [c["value"] for c in upload_form["method"]["choices"]] == list(METHODS)
+    assert {"value": "3dgs+body", "label": "3dgs+body (baseline)"} in upload_form["method"]["choices"]
+    assert "/page/options" in client.get("/openapi.json").json()["paths"]
 
 
 def test_the_page_bounds_its_fields_as_the_api_does(client):
-    """Every number field's min and max are the tightest values the API accepts (one step past
-    them it answers 422); the animation's cameras are the presets and the driving video's."""
-    page = client.get("/").text
+    """Every number field's bounds are where the API starts to refuse (an inclusive bound is
+    accepted and a hair past it is not; an exclusive one is refused and a hair inside accepted);
+    the animation's cameras are the presets and the driving video's."""
+    forms = client.get("/page/options").json()["forms"]
 
     def accepted(schema, name, value) -> bool:
         try:
@@ -87,19 +92,34 @@ def test_the_page_bounds_its_fields_as_the_api_does(client):
             return False
         return True
 
+    hair = 1e-6
     for form_id, schema in (("upload-form", AvatarForm), ("animate-form", AnimationForm)):
-        form = re.search(rf'<form id="{form_id}".*?</form>', page, re.S).group(0)
-        inputs = re.findall(r'<input [^>]*type="number"[^>]*>', form)
-        assert len(inputs) >= 3, form
-        for tag in inputs:
-            attrs = dict(re.findall(r'([\w-]+)="([^"]*)"', tag))
-            name, step = attrs["name"], float(attrs.get("step", 1))
-            low, high = float(attrs["min"]), float(attrs["max"])
-            assert accepted(schema, name, low) and not accepted(schema, name, round(low - step, 10)), tag
-            assert accepted(schema, name, high) and not accepted(schema, name, round(high + step, 10)), tag
-    cameras = re.search(r'<select id="animate-camera".*?</select>', page, re.S).group(0)
-    assert re.findall(r'value="([^"]*)"', cameras) == [*CAMERA_PRESETS, "driving"]
-    assert re.findall(r'value="([^"]*)" selected', cameras) == ["front"]  # AnimationForm's default
+        numbers = forms[form_id]["numbers"]
+        page_fields = re.findall(r'name="(\w+)" type="number"', _form_html(client, form_id))
+        assert len(page_fields) >= 3 and set(page_fields) <= set(numbers), (page_fields, numbers)
+        for name, field in numbers.items():
+            assert field["minimum"] is not None or field["exclusive_minimum"] is not None, name
+            if field["minimum"] is not None:
+                low = field["minimum"]
+                assert accepted(schema, name, low) and not accepted(schema, name, low - hair), name
+            else:
+                low, top = field["exclusive_minimum"], field["maximum"] or field["exclusive_maximum"]
+                inside = low + (1 if top is None else min(1, (top - low) / 2))
+                assert not accepted(schema, name, low) and accepted(schema, name, inside), name
+            if field["maximum"] is not None:
+                high = field["maximum"]
+                assert accepted(schema, name, high) and not accepted(schema, name, high + hair), name
+            elif field["exclusive_maximum"] is not None:
+                assert not accepted(schema, name, field["exclusive_maximum"]), name
+            if field["default"] is not None:
+                assert accepted(schema, name, field["default"]), name
+    cameras = forms["animate-form"]["selects"]["camera"]
+    assert [c["value"] for c in cameras["choices"]] == [*CAMERA_PRESETS, "driving"]
+    assert cameras["default"] == "front"  # AnimationForm's default
+
+
+def _form_html(client, form_id: str) -> str:
+    return re.search(rf'<form id="{form_id}".*?</form>', client.get("/").text, re.S).group(0)
 
 
 def test_upload_queues_a_job_that_can_be_cancelled(client, signer_video, tmp_path):

@@ -121,7 +121,13 @@ def avatar(site, signer_video):
     d.get(site.url)
     assert d.title == "EVA avatars"
     d.find_element(*_by("#video-input")).send_keys(str(signer_video))
-    Select(d.find_element(*_by("#preset"))).select_by_value("tiny")
+    # The forms' choices and bounds come from GET /page/options once the page has loaded.
+    wait_for(lambda: len(d.find_elements(*_by("#preset option"))) > 0, 30, "the form options")
+    preset = Select(d.find_element(*_by("#preset")))
+    assert preset.first_selected_option.get_attribute("value") == "fast"  # JobOptions' default
+    assert d.find_element(*_by("#image-scale")).get_attribute("max") == "1"
+    assert d.find_element(*_by("#image-scale")).get_attribute("min") == "0.06"  # gt 0.05, step 0.01
+    preset.select_by_value("tiny")
     d.find_element(*_by("#new-avatar summary")).click()
     fast = svc.FAST_OPTIONS
     for field, value in (

@@ -458,7 +458,7 @@ async function uploadVideo(event) {
   if (!file) return;
   const form = new FormData();
   form.append("video", file, file.name);
-  form.append("preset", $("preset").value);
+  if ($("preset").value) form.append("preset", $("preset").value);
   if ($("method").value) form.append("method", $("method").value);
   addNumber(form, "iterations", $("iterations"));
   addNumber(form, "image_scale", $("image-scale"));
@@ -522,7 +522,14 @@ function resetPose() {
   scheduleRender();
 }
 
+async function loadPageOptions() {
+  // Public, like the page: no key. Without it the forms still work, unbounded, on the API's defaults.
+  const res = await fetch("/page/options");
+  if (res.ok) applyPageOptions(document, await res.json());
+}
+
 function init() {
+  loadPageOptions();
   $("upload-form").addEventListener("submit", uploadVideo);
   $("animate-form").addEventListener("submit", animateAvatar);
   $("reset-pose").addEventListener("click", resetPose);
