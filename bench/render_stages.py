@@ -30,7 +30,7 @@ def median_ms(fn, repeats: int) -> float:
 
 
 def png(image: np.ndarray) -> bytes:
-    """PNG as the render endpoint encodes it (``service.rendering.encode_image``; bench/service.py
+    """PNG as the render endpoint encodes it (``service.rendering.encode_image``; bench/serving.py
     shadows the ``service`` package on this path)."""
     from PIL import Image
 

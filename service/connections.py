@@ -11,7 +11,7 @@ socket, which is why an attacker without a key can hold hundreds of them; the re
   that client first): idle sockets can never lock out a client that sends its request at once.
   A keep-alive connection between two requests is left to uvicorn's keep-alive timeout: closing
   it would race its client's next request. The caps are loose (128 from one address): behind a
-  reverse proxy every client has its address, and the 50 clients of ``bench/service.py load``,
+  reverse proxy every client has its address, and the 50 clients of ``bench/serving.py load``,
   from one address and starved of CPU between connecting and sending, lost requests to a cap
   of 16.
 

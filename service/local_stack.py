@@ -127,10 +127,13 @@ class LocalStack:
         self.server = self._start([*base, *args], "serve.log")
         return self.server
 
-    def start_worker(self, *args: str) -> subprocess.Popen:
-        """One more ``eva worker`` (more options in ``args``, e.g. ``--threads 1``)."""
+    def start_worker(self, *args: str, data_dir: Path | None = None) -> subprocess.Popen:
+        """One more ``eva worker`` (more options in ``args``, e.g. ``--threads 1``); ``data_dir``:
+        its own folder instead of the stack's (a worker on another host, sharing only the queue,
+        records and storage that ``env`` names)."""
         name = "worker.log" if not self.workers else f"worker-{len(self.workers) + 1}.log"
-        worker = self._start(["worker", "--data-dir", str(self.data_dir), *args], name)
+        folder = self.data_dir if data_dir is None else Path(data_dir)
+        worker = self._start(["worker", "--data-dir", str(folder), *args], name)
         self.workers.append(worker)
         return worker
 

@@ -5,6 +5,7 @@ process behind."""
 from __future__ import annotations
 
 import socket
+import time
 
 import pytest
 
@@ -29,8 +30,13 @@ def test_closing_the_stack_stops_its_server_and_workers(tmp_path):
     stack = LocalStack(tmp_path / "service", logs=tmp_path / "logs", port=free_port())
     stack.start_server()
     stack.start_worker("--threads", "1")
-    stack.start_worker("--threads", "1")
+    # A worker of another host: a data dir of its own (bench/serving.py soak --hosts).
+    stack.start_worker("--threads", "1", data_dir=tmp_path / "host-b")
     stack.wait_healthy(timeout=120)
+    deadline = time.monotonic() + 120
+    while not (tmp_path / "host-b" / "jobs").is_dir() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert (tmp_path / "host-b" / "jobs").is_dir()
     assert stack.alive() and len(stack.processes) == 3
     assert sorted(p.name for p in (tmp_path / "logs").iterdir()) == [
         "serve.log",

@@ -75,5 +75,5 @@ def prefer_passive_openmp() -> None:
     """Idle OpenMP threads sleep instead of spinning (``OMP_WAIT_POLICY=PASSIVE``) unless the
     environment says otherwise. Between renders the server encodes images and answers requests
     on the same cores; spinning render threads slowed 16 clients to ~0.9x one client's throughput
-    (``bench/service.py latency``). Read once, when torch loads: so before anything imports it."""
+    (``bench/serving.py latency``). Read once, when torch loads: so before anything imports it."""
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

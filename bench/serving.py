@@ -1,8 +1,8 @@
 """The service under load and under crashes, against real ``eva serve`` / ``eva worker`` processes.
 
-    .venv/bin/python bench/service.py latency --service-dir out/demo/service  # 1 and 16 clients
-    .venv/bin/python bench/service.py load --service-dir out/demo/service     # 50 clients + uploads
-    .venv/bin/python bench/service.py soak                                    # workers SIGKILLed
+    .venv/bin/python bench/serving.py latency --service-dir out/demo/service  # 1 and 16 clients
+    .venv/bin/python bench/serving.py load --service-dir out/demo/service     # 50 clients + uploads
+    .venv/bin/python bench/serving.py soak                                    # workers SIGKILLed
 
 ``--service-dir``: a service data folder holding a finished avatar (``load`` and ``latency`` copy
 it to a temporary folder first; without it, ``eva demo --preset tiny`` makes one).
@@ -22,6 +22,9 @@ it to a temporary folder first; without it, ``eva demo --preset tiny`` makes one
   no disk: the queue and the job records in a redis-server, avatars and uploads in an S3 bucket
   (moto's server, a dev dependency), the API and every worker (each replacement too) with a data
   dir of its own. bench/results/service_soak_hosts.{json,md}.
+
+Every process is started by ``service.local_stack.LocalStack``, as the demo and the tests start
+them. (This file was ``bench/service.py``, a name that hid the ``service`` package from it.)
 """
 
 from __future__ import annotations
@@ -49,10 +52,10 @@ from machine import describe
 
 from jobs.options import MIN_FRAMES
 from jobs.runner import JobProcess, job_processes
+from service.local_stack import LocalStack, LocalStackError, eva_executable, free_port, stop_process
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
-EVA = str(Path(sys.executable).parent / "eva")
 VERDICT = "every job succeeded or failed with a reason, none stuck, none ran twice at once, no orphan files"
 CLIP_FRAMES = MIN_FRAMES  # the shortest clip a job takes: half of it is held out to score the avatar
 TINY = {
@@ -65,14 +68,6 @@ TINY = {
 
 
 # -- shared ---------------------------------------------------------------------------------------
-def free_port() -> int:
-    import socket
-
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 def quantile(values: list[float], q: float) -> float:
     if not values:
         return float("nan")
@@ -91,7 +86,7 @@ def ensure_service_dir(service_dir: Path | None, work: Path) -> Path:
     if service_dir is None:
         subprocess.run(
             [
-                EVA,
+                eva_executable(),
                 "demo",
                 "--out",
                 str(work / "demo.png"),
@@ -108,38 +103,16 @@ def ensure_service_dir(service_dir: Path | None, work: Path) -> Path:
     return copy
 
 
-def start_server(
-    data: Path, port: int, log: Path, key: str | None = None, env_extra: dict | None = None
-) -> subprocess.Popen:
-    import httpx
-
-    args = [EVA, "serve", "--port", str(port), "--data-dir", str(data), "--log-level", "warning"]
-    env = {**os.environ, "EVA_API_KEY": key or ""}
-    env.pop("EVA_QUEUE_URL", None)
-    env.update(env_extra or {})
-    server = subprocess.Popen(args, stdout=log.open("ab"), stderr=subprocess.STDOUT, env=env)
-    deadline = time.time() + 180
-    while time.time() < deadline:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2).status_code == 200:
-                return server
-        except httpx.TransportError:
-            pass
-        if server.poll() is not None:
-            break
-        time.sleep(0.3)
-    server.kill()
-    raise SystemExit(f"eva serve did not start (log: {log})")
-
-
-def stop(proc: subprocess.Popen, sig: int = signal.SIGTERM) -> None:
-    if proc.poll() is None:
-        proc.send_signal(sig)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+def serve_only(data: Path, logs: Path, key: str | None = None, env: dict | None = None) -> LocalStack:
+    """``eva serve`` alone (no worker) on a free port, answering ``/healthz``; logs in ``logs``."""
+    stack = LocalStack(data, logs, api_key=key, env=env)
+    stack.start_server()
+    try:
+        stack.wait_healthy()
+    except LocalStackError as err:
+        stack.close()
+        raise SystemExit(str(err)) from err
+    return stack
 
 
 def ready_avatar(base: str, headers: dict) -> dict:
@@ -189,7 +162,7 @@ def header(title: str, report: dict, note: str | None) -> list[str]:
 def base_report(args) -> dict:
     return {
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": "python bench/service.py " + " ".join(sys.argv[1:]),
+        "command": "python bench/serving.py " + " ".join(sys.argv[1:]),
         "machine": describe(),
         "note": args.note,
     }
@@ -241,9 +214,8 @@ def measure_latency(base: str, avatar_id: str, size: int, clients: int, requests
 def run_latency(args) -> None:
     work = Path(tempfile.mkdtemp(prefix="eva-bench-latency-"))
     data = ensure_service_dir(args.service_dir, work)
-    port = free_port()
-    base = f"http://127.0.0.1:{port}"
-    server = start_server(data, port, work / "serve.log")
+    stack = serve_only(data, work / "logs")
+    base = stack.base_url
     try:
         avatar = ready_avatar(base, {})
         measure_latency(base, avatar["avatar_id"], 64, 1, 2)  # load the avatar and warm up
@@ -255,7 +227,7 @@ def run_latency(args) -> None:
             for clients in (1, 16)
         ]
     finally:
-        stop(server)
+        stack.close()
         shutil.rmtree(work, ignore_errors=True)
     report = {
         **base_report(args),
@@ -376,64 +348,87 @@ def summarise(entries: list[tuple[int | None, float]], ok: int) -> dict:
     }
 
 
-def run_load(args) -> None:
+@dataclasses.dataclass
+class LoadRun:
+    """What one load run measured (``drive_load``): the clients' log and errors, ``/healthz``
+    samples [(t, seconds or None)], the server's RSS in MB over time [(t, MB)], at the start, end
+    and its own peak."""
+
+    avatar: dict
+    result: dict
+    wall_s: float
+    health: list
+    memory: list
+    rss_start: float
+    rss_end: float
+    rss_peak: float
+    alive: bool
+    log_tail: str
+
+
+def drive_load(args) -> LoadRun:
+    """Serve a copy of the avatar folder with a key, load the avatar, then run the render and
+    upload clients for ``args.seconds`` while another process polls ``/healthz``."""
+    import httpx
+
     work = Path(tempfile.mkdtemp(prefix="eva-bench-load-"))
     data = ensure_service_dir(args.service_dir, work)
     video = (args.video or _signer_video(work)).read_bytes()
-    port, key = free_port(), secrets.token_hex(16)
-    base = f"http://127.0.0.1:{port}"
-    server = start_server(data, port, work / "serve.log", key=key)
+    key = secrets.token_hex(16)
+    stack = serve_only(data, work / "logs", key=key)
+    base, pid = stack.base_url, stack.server.pid
     memory: list[tuple[float, float]] = []
     sampling = threading.Event()
 
     def sample_memory() -> None:
         while not sampling.wait(0.5):
-            memory.append((time.monotonic(), rss_mb(server.pid)))
+            memory.append((time.monotonic(), rss_mb(pid)))
 
     try:
-        import httpx
-
-        avatar = ready_avatar(base, {"X-API-Key": key})
+        avatar = ready_avatar(base, stack.headers)
         httpx.post(
             f"{base}/avatars/{avatar['avatar_id']}/render",
             json=pose_body(0, args.size),
-            headers={"X-API-Key": key},
+            headers=stack.headers,
             timeout=120,
         ).raise_for_status()  # load it: not in the numbers
-        rss_start = rss_mb(server.pid)
-        sampler = threading.Thread(target=sample_memory, daemon=True)
-        sampler.start()
+        rss_start = rss_mb(pid)
+        threading.Thread(target=sample_memory, daemon=True).start()
         receive, send = multiprocessing.Pipe(duplex=False)
         poller = multiprocessing.get_context("spawn").Process(
             target=poll_healthz, args=(base, args.seconds, 0.1, send), daemon=True
         )
         poller.start()
         started = time.monotonic()
-        result = asyncio.run(
-            load_clients(
-                base, key, avatar["avatar_id"], video, args.seconds, args.clients, args.uploads, args.size
-            )
+        clients = load_clients(
+            base, key, avatar["avatar_id"], video, args.seconds, args.clients, args.uploads, args.size
         )
+        result = asyncio.run(clients)
         wall = time.monotonic() - started
         health = receive.recv()
         poller.join(30)
         sampling.set()
-        rss_end, rss_peak = rss_mb(server.pid), rss_mb(server.pid, "VmHWM")
-        alive = server.poll() is None
+        rss_end, rss_peak = rss_mb(pid), rss_mb(pid, "VmHWM")
+        alive = stack.alive()
     finally:
-        stop(server)
-        log_tail = (work / "serve.log").read_text(errors="replace")[-2000:]
+        stack.close()
+        log_tail = (stack.logs / "serve.log").read_text(errors="replace")[-2000:]
         shutil.rmtree(work, ignore_errors=True)
-    answered = [t for _, t in health if t is not None]
-    report = {
+    return LoadRun(avatar, result, wall, health, memory, rss_start, rss_end, rss_peak, alive, log_tail)
+
+
+def load_report(args, run: LoadRun) -> dict:
+    answered = [t for _, t in run.health if t is not None]
+    result = run.result
+    return {
         **base_report(args),
-        "avatar": {"num_gaussians": avatar.get("num_gaussians"), "preset": avatar.get("preset")},
+        "avatar": {"num_gaussians": run.avatar.get("num_gaussians"), "preset": run.avatar.get("preset")},
         "clients": {
             "render": args.clients,
             "upload": args.uploads,
             "size": args.size,
             "seconds": args.seconds,
-            "wall_s": wall,
+            "wall_s": run.wall_s,
         },
         "render": summarise(result["log"]["render"], 200),
         "upload": summarise(result["log"]["upload"], 202),
@@ -441,32 +436,36 @@ def run_load(args) -> None:
         "errors": result["errors"][:20],
         "error_count": len(result["errors"]),
         "healthz": {
-            "samples": len(health),
-            "failed": len(health) - len(answered),
+            "samples": len(run.health),
+            "failed": len(run.health) - len(answered),
             "p50_ms": 1e3 * quantile(answered, 0.5),
             "p99_ms": 1e3 * quantile(answered, 0.99),
             "max_ms": 1e3 * max(answered, default=float("nan")),
             "over_50ms": sum(t > 0.05 for t in answered),
         },
         "server_memory_mb": {
-            "start": rss_start,
-            "peak_during": max((m for _, m in memory), default=rss_start),
-            "end": rss_end,
-            "process_peak": rss_peak,
-            "every_5s": [round(m) for _, m in memory[::10]],
+            "start": run.rss_start,
+            "peak_during": max((m for _, m in run.memory), default=run.rss_start),
+            "end": run.rss_end,
+            "process_peak": run.rss_peak,
+            "every_5s": [round(m) for _, m in run.memory[::10]],
         },
-        "server_alive_at_end": alive,
-        "server_log_tail": log_tail if result["errors"] else "",
+        "server_alive_at_end": run.alive,
+        "server_log_tail": run.log_tail if result["errors"] else "",
     }
+
+
+def load_markdown(report: dict) -> list[str]:
     r, u, h, m = report["render"], report["upload"], report["healthz"], report["server_memory_mb"]
+    c, avatar, wall = report["clients"], report["avatar"], report["clients"]["wall_s"]
     met = h["failed"] == 0 and h["max_ms"] < 50
-    lines = header("Service under load", report, args.note) + [
-        f"- load: {args.clients} render clients ({args.size}², a new pose each time) and "
-        f"{args.uploads} upload clients (a {CLIP_FRAMES}-frame signer video, then cancel the queued job) for "
-        f"{args.seconds:.0f} s against `eva serve` with an API key and its default limits (2 renders "
+    lines = header("Service under load", report, report["note"]) + [
+        f"- load: {c['render']} render clients ({c['size']}², a new pose each time) and "
+        f"{c['upload']} upload clients (a {CLIP_FRAMES}-frame signer video, then cancel the queued job) for "
+        f"{c['seconds']:.0f} s against `eva serve` with an API key and its default limits (2 renders "
         "at once, 8 waiting at most 10 s, 2 uploads at once); "
         "clients wait out 503s as `Retry-After` says; `/healthz` polled every 100 ms from another process",
-        f"- avatar: {avatar.get('num_gaussians')} Gaussians ({avatar.get('preset')} preset)",
+        f"- avatar: {avatar['num_gaussians']} Gaussians ({avatar['preset']} preset)",
         "",
         "| requests | count | answered 200/202 | 503 + Retry-After | p50 ms (ok) | p95 ms (ok) "
         "| p50 ms (all) "
@@ -479,7 +478,7 @@ def run_load(args) -> None:
             f"| {name} | {s['requests']} | {s['ok']} | {s['statuses'].get('503', 0)} | {s['p50_ms']:.0f} "
             f"| {s['p95_ms']:.0f} | {s['p50_all_ms']:.0f} | {s['p95_all_ms']:.0f} |"
         )
-    lines += [
+    return lines + [
         "",
         f"- renders: {r['ok'] / wall:.1f} per second served; statuses {r['statuses']}; "
         f"uploads {u['statuses']}",
@@ -492,9 +491,14 @@ def run_load(args) -> None:
         f"- server memory (RSS): {m['start']:.0f} MB after loading the avatar, at most "
         f"{m['peak_during']:.0f} MB "
         f"during the load (sampled every 0.5 s), {m['end']:.0f} MB at the end; the process's own peak "
-        f"{m['process_peak']:.0f} MB; server alive at the end: {alive}; every 5 s: {m['every_5s']}",
+        f"{m['process_peak']:.0f} MB; server alive at the end: {report['server_alive_at_end']}; "
+        f"every 5 s: {m['every_5s']}",
     ]
-    write_report("service_load", report, lines, args.out)
+
+
+def run_load(args) -> None:
+    report = load_report(args, drive_load(args))
+    write_report("service_load", report, load_markdown(report), args.out)
 
 
 def _signer_video(work: Path) -> Path:
@@ -594,71 +598,100 @@ class SharedBackends:
 
     def close(self) -> None:
         subprocess.run(["redis-cli", "-p", str(self.redis_port), "shutdown", "nosave"], capture_output=True)
-        stop(self.s3)
+        stop_process(self.s3)
 
 
-def run_soak(args) -> None:
-    import httpx
+class JobProcessMonitor:
+    """Scans /proc every 100 ms from a thread (``jobs.runner.job_processes``): two live processes
+    running one job at any moment is a violation. ``seen``: job id -> every pid that ran it;
+    ``helpers``: pids a job's own process forked (e.g. ``ldconfig``), which are not second runs."""
+
+    def __init__(self, t_start: float) -> None:
+        self.t_start = t_start
+        self.violations: list[dict] = []
+        self.seen: dict[str, set[int]] = {}
+        self.helpers: set[int] = set()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._scan, daemon=True)
+
+    def _scan(self) -> None:
+        while not self._stop.wait(0.1):
+            processes = job_processes()
+            runs, helpers = runs_by_job(processes)
+            self.helpers.update(helpers)
+            for job_id, pids in runs.items():
+                self.seen.setdefault(job_id, set()).update(pids)
+                if len(pids) > 1:
+                    details = {pid: (processes[pid].parent, processes[pid].command) for pid in pids}
+                    self.violations.append(
+                        {"t": time.monotonic() - self.t_start, "job": job_id, "pids": details}
+                    )
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+
+
+def nobody_video(work: Path) -> Path:
+    """A clip without a person (a grey ramp): its job must fail with a reason."""
     import numpy as np
 
     from eva_engine.data import write_video
+
+    path = work / "nobody.mp4"
+    gradient = np.zeros((CLIP_FRAMES, 128, 128, 3), np.uint8)
+    gradient[:] = np.linspace(0, 255, 128, dtype=np.uint8)[None, None, :, None]
+    write_video(path, gradient, fps=5)
+    return path
+
+
+@dataclasses.dataclass
+class SoakRun:
+    """What one soak left (``drive_soak``): the job ids and their final records, the kills and
+    worker starts (``events``), the monitor, and the folders to inspect (``work``: every host's
+    data dir, ``stack.logs``: the processes' logs)."""
+
+    work: Path
+    data: Path
+    stack: LocalStack
+    shared: SharedBackends | None
+    jobs: list[str]
+    finals: dict[str, dict]
+    events: list[dict]
+    monitor: JobProcessMonitor
+    wall_s: float
+
+
+def drive_soak(args) -> SoakRun:
+    """Queue ``args.jobs`` jobs, start the workers, and SIGKILL a random worker (replaced) or a
+    job's own process every few seconds until ``args.kills`` kills; then wait for every job."""
+    import httpx
 
     rng = random.Random(args.seed)
     work = Path(tempfile.mkdtemp(prefix="eva-bench-soak-"))
     data = work / "service"
     shared = SharedBackends(work) if args.hosts else None
-    env_extra = shared.env if shared else {}
-    signer = args.video or _signer_video(work)
-    nobody = work / "nobody.mp4"
-    gradient = np.zeros((CLIP_FRAMES, 128, 128, 3), np.uint8)
-    gradient[:] = np.linspace(0, 255, 128, dtype=np.uint8)[None, None, :, None]
-    write_video(nobody, gradient, fps=5)
-    port = free_port()
-    base = f"http://127.0.0.1:{port}"
-    server = start_server(data, port, work / "serve.log", env_extra=env_extra)
-    logs = work / "logs"
-    logs.mkdir()
-    workers: list[subprocess.Popen] = []
+    signer, nobody = args.video or _signer_video(work), nobody_video(work)
+    stack = serve_only(data, work / "logs", env=shared.env if shared else None)
     events: list[dict] = []
     t_start = time.monotonic()
 
+    def event(name: str, pid: int, **extra) -> None:
+        events.append({"t": time.monotonic() - t_start, "event": name, "pid": pid, **extra})
+
     def start_worker() -> subprocess.Popen:
-        number = len(list(logs.iterdir()))
-        log = logs / f"worker-{number:02d}.log"
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        env.pop("EVA_QUEUE_URL", None)
-        env.update(env_extra)
-        host_data = work / f"host-{number:02d}" if shared else data  # each worker a new host
-        proc = subprocess.Popen(
-            [EVA, "worker", "--data-dir", str(host_data), "--threads", "1"],
-            env=env,
-            stdout=log.open("ab"),
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
-        events.append({"t": time.monotonic() - t_start, "event": "start worker", "pid": proc.pid})
+        # With --hosts each worker, a replacement too, is a new host: a data dir of its own.
+        host = work / f"host-{len(stack.workers):02d}" if shared else None
+        proc = stack.start_worker("--threads", "1", data_dir=host)
+        event("start worker", proc.pid)
         return proc
 
-    # The monitor: two live processes for one job at any moment is a violation.
-    violations: list[dict] = []
-    seen: dict[str, set[int]] = {}
-    helpers_seen: set[int] = set()
-    monitoring = threading.Event()
-
-    def monitor() -> None:
-        while not monitoring.wait(0.1):
-            processes = job_processes()
-            runs, helpers = runs_by_job(processes)
-            helpers_seen.update(helpers)
-            for job_id, pids in runs.items():
-                seen.setdefault(job_id, set()).update(pids)
-                if len(pids) > 1:
-                    details = {pid: (processes[pid].parent, processes[pid].command) for pid in pids}
-                    violations.append({"t": time.monotonic() - t_start, "job": job_id, "pids": details})
-
-    watcher = threading.Thread(target=monitor, daemon=True)
-    watcher.start()
-    api = httpx.Client(base_url=base, timeout=120)
+    monitor = JobProcessMonitor(t_start)
+    monitor.start()
+    api = httpx.Client(base_url=stack.base_url, timeout=120)
     jobs: list[str] = []
     try:
         for i in range(args.jobs):
@@ -668,7 +701,8 @@ def run_soak(args) -> None:
                 r = api.post("/avatars", files={"video": (video.name, f, "video/mp4")}, data=options)
             r.raise_for_status()
             jobs.append(r.json()["job_id"])
-        workers = [start_worker() for _ in range(args.workers)]
+        for _ in range(args.workers):
+            start_worker()
 
         def unfinished() -> list[dict]:
             states = [api.get(f"/jobs/{j}").json() for j in jobs]
@@ -676,42 +710,39 @@ def run_soak(args) -> None:
 
         kills, deadline = 0, time.monotonic() + args.deadline
         while unfinished() and time.monotonic() < deadline:
-            if kills < args.kills:
-                time.sleep(rng.uniform(args.kill_min, args.kill_max))
-                live = [w for w in workers if w.poll() is None]
-                procs = {pids[0]: job for job, pids in runs_by_job(job_processes())[0].items()}
-                if procs and rng.random() < 0.25:
-                    pid = rng.choice(sorted(procs))
-                    os.kill(pid, signal.SIGKILL)
-                    events.append(
-                        {
-                            "t": time.monotonic() - t_start,
-                            "event": "SIGKILL job process",
-                            "pid": pid,
-                            "job": procs[pid],
-                        }
-                    )
-                elif live:
-                    victim = rng.choice(live)
-                    victim.kill()
-                    victim.wait()
-                    events.append(
-                        {"t": time.monotonic() - t_start, "event": "SIGKILL worker", "pid": victim.pid}
-                    )
-                    time.sleep(rng.uniform(0.0, 3.0))
-                    workers.append(start_worker())
-                kills += 1
-            else:
+            if kills >= args.kills:
                 time.sleep(2.0)
+                continue
+            time.sleep(rng.uniform(args.kill_min, args.kill_max))
+            live = [w for w in stack.workers if w.poll() is None]
+            procs = {pids[0]: job for job, pids in runs_by_job(job_processes())[0].items()}
+            if procs and rng.random() < 0.25:
+                pid = rng.choice(sorted(procs))
+                os.kill(pid, signal.SIGKILL)
+                event("SIGKILL job process", pid, job=procs[pid])
+            elif live:
+                victim = rng.choice(live)
+                victim.kill()
+                victim.wait()
+                event("SIGKILL worker", victim.pid)
+                time.sleep(rng.uniform(0.0, 3.0))
+                start_worker()
+            kills += 1
         finals = {j: api.get(f"/jobs/{j}").json() for j in jobs}
     finally:
-        for w in workers:
-            stop(w, signal.SIGINT)
+        for w in stack.workers:
+            stop_process(w, signal.SIGINT)
         time.sleep(1.0)
-        monitoring.set()
-        watcher.join(5)
+        monitor.stop()
         api.close()
-        stop(server)
+        stack.close()
+    return SoakRun(work, data, stack, shared, jobs, finals, events, monitor, time.monotonic() - t_start)
+
+
+def soak_leftovers(run: SoakRun) -> tuple[dict, list[str]]:
+    """What the soak left behind that it should not have, and (``--hosts``) what each killed
+    host's sweep removes when it comes back."""
+    work, shared, finals = run.work, run.shared, run.finals
     hosts = sorted(p for p in work.iterdir() if p.is_dir() and (p / "jobs").is_dir())  # data dirs
     # A killed host keeps the work folder of the job it was running, on its own disk, until it
     # comes back: its worker sweeps at start. Do that for every host (as if 2 min later).
@@ -729,26 +760,28 @@ def run_soak(args) -> None:
         "job_processes_alive": {pid: dataclasses.asdict(p) for pid, p in job_processes().items()},
     }
     succeeded = {j for j, s in finals.items() if s["state"] == "succeeded"}
-    report_extra = {"swept_when_hosts_return": swept} if shared else {}
     if shared:
         leftovers["uploads_in_the_bucket"] = shared.keys("work")
         avatars = sorted({k.split("/")[2] for k in shared.keys("avatars") if k.endswith("/.published")})
         shared.close()
     else:
-        avatars = sorted(p.name for p in (data / "avatars").iterdir())
+        avatars = sorted(p.name for p in (run.data / "avatars").iterdir())
     leftovers["avatar_folders_without_a_succeeded_job"] = sorted(
         set(avatars) - {finals[j]["avatar_id"] for j in succeeded}
     )
     leftovers["succeeded_jobs_without_avatar"] = sorted(
         j for j in succeeded if finals[j]["avatar_id"] not in avatars
     )
-    stuck = [j for j, s in finals.items() if s["state"] in ("queued", "running")]
-    no_reason = [j for j, s in finals.items() if s["state"] == "failed" and not s["error"]]
-    orphans = sum(len(v) for v in leftovers.values())
-    attempts_logged = {}
-    for log in logs.iterdir():
+    return leftovers, swept
+
+
+def soak_report(args, run: SoakRun) -> dict:
+    leftovers, swept = soak_leftovers(run)
+    finals = run.finals
+    attempts_logged: dict[str, int] = {}
+    for log in run.stack.logs.glob("worker*.log"):
         for line in log.read_text(errors="replace").splitlines():
-            for j in jobs:
+            for j in run.jobs:
                 if f"job {j}: attempt" in line:
                     attempts_logged[j] = attempts_logged.get(j, 0) + 1
     report = {
@@ -761,67 +794,82 @@ def run_soak(args) -> None:
             "kill_every_s": [args.kill_min, args.kill_max],
             "hosts": bool(args.hosts),
         },
-        "wall_s": time.monotonic() - t_start,
+        "wall_s": run.wall_s,
         "jobs": [
             {
                 "job_id": j,
                 "state": s["state"],
                 "attempts": s["attempts"],
                 "error": s["error"],
-                "processes_seen": len(seen.get(j, ())),
+                "processes_seen": len(run.monitor.seen.get(j, ())),
                 "attempts_logged": attempts_logged.get(j, 0),
             }
             for j, s in finals.items()
         ],
-        "events": events,
-        "violations_two_processes_one_job": violations,
-        "helper_processes_seen": len(helpers_seen),
-        "stuck": stuck,
-        "failed_without_reason": no_reason,
+        "events": run.events,
+        "violations_two_processes_one_job": run.monitor.violations,
+        "helper_processes_seen": len(run.monitor.helpers),
+        "stuck": [j for j, s in finals.items() if s["state"] in ("queued", "running")],
+        "failed_without_reason": [j for j, s in finals.items() if s["state"] == "failed" and not s["error"]],
         "leftovers": leftovers,
-        **report_extra,
     }
+    if run.shared:
+        report["swept_when_hosts_return"] = swept
+    return report
+
+
+def soak_passed(report: dict) -> bool:
+    orphans = sum(len(v) for v in report["leftovers"].values())
+    problems = (report["violations_two_processes_one_job"], report["stuck"], report["failed_without_reason"])
+    return not any(problems) and orphans == 0
+
+
+def soak_markdown(report: dict) -> list[str]:
+    setup, hosts = report["setup"], report["setup"]["hosts"]
     counts: dict[str, int] = {}
-    for s in finals.values():
-        counts[s["state"]] = counts.get(s["state"], 0) + 1
-    ok = not violations and not stuck and not no_reason and orphans == 0
-    kills_done = [e for e in events if e["event"].startswith("SIGKILL")]
+    for row in report["jobs"]:
+        counts[row["state"]] = counts.get(row["state"], 0) + 1
+    kills_done = [e for e in report["events"] if e["event"].startswith("SIGKILL")]
+    orphans = sum(len(v) for v in report["leftovers"].values())
     backends = (
         "Redis queue and job records, an S3 bucket (moto's server) for avatars and uploads, the API and "
         "each worker, replacements too, with a data dir of its own"
-        if shared
+        if hosts
         else "SQLite queue and records, one data dir"
     )
     title = (
         "Service soak on several hosts: jobs under worker kills"
-        if shared
+        if hosts
         else "Service soak: jobs under worker kills"
     )
-    lines = header(title, report, args.note) + [
-        f"- setup: {args.jobs} jobs ({args.jobs - 2} of a signer video of {CLIP_FRAMES} frames, tiny preset, "
-        f"6 or 40 iterations; 2 of a video without a person), {args.workers} `eva worker` processes "
-        f"({backends}; default limits: 2 crashes of a job's own process, 5 workers lost under a job, "
-        "8 GB per job process); "
+    kill_min, kill_max = setup["kill_every_s"]
+    lines = header(title, report, report["note"]) + [
+        f"- setup: {setup['jobs']} jobs ({setup['jobs'] - 2} of a signer video of {CLIP_FRAMES} frames, "
+        f"tiny preset, 6 or 40 iterations; 2 of a video without a person), {setup['workers']} `eva worker` "
+        f"processes ({backends}; default limits: 2 crashes of a job's own process, 5 workers lost under a "
+        "job, 8 GB per job process); "
         f"{len(kills_done)} SIGKILLs every "
-        f"{args.kill_min:.0f}-{args.kill_max:.0f} s, each of a random worker (replaced 0-3 s later) or, "
+        f"{kill_min:.0f}-{kill_max:.0f} s, each of a random worker (replaced 0-3 s later) or, "
         "one time in four, of a random job's own process",
         f"- wall time {report['wall_s'] / 60:.1f} min; job states: {counts}",
         f"- two processes running one job at once (scanned every 100 ms; a process forked by a job's own "
-        f"process, e.g. `ldconfig` for `find_library`, is not a second run: {len(helpers_seen)} seen): "
-        f"{len(violations)}",
-        f"- stuck (queued or running at the end): {len(stuck)}; failed without a reason: {len(no_reason)}",
+        "process, e.g. `ldconfig` for `find_library`, is not a second run: "
+        f"{report['helper_processes_seen']} seen): {len(report['violations_two_processes_one_job'])}",
+        f"- stuck (queued or running at the end): {len(report['stuck'])}; failed without a reason: "
+        f"{len(report['failed_without_reason'])}",
         "- orphan files (work folders, partial or deleted folders, avatars without a succeeded job, "
         "succeeded "
         f"jobs without an avatar, job processes alive): {orphans}",
         *(
             [
                 f"- work folders that killed hosts kept on their own disks, removed by each host's sweep "
-                f"when it starts again (run here for every host, as 2 min later): {len(swept)}"
+                f"when it starts again (run here for every host, as 2 min later): "
+                f"{len(report['swept_when_hosts_return'])}"
             ]
-            if shared
+            if hosts
             else []
         ),
-        f"- result: {VERDICT if ok else 'FAILED (see the JSON)'}",
+        f"- result: {VERDICT if soak_passed(report) else 'FAILED (see the JSON)'}",
         "",
         "| job | state | attempts | job processes seen | error |",
         "|---|---|---:|---:|---|",
@@ -831,15 +879,26 @@ def run_soak(args) -> None:
             f"| {row['job_id'][:8]} | {row['state']} | {row['attempts']} | {row['processes_seen']} "
             f"| {(row['error'] or '').replace('|', '/')[:150]} |"
         )
-    lines += ["", "Kills:", ""] + [
-        f"- {e['t']:.0f} s: {e['event']} {e['pid']}" + (f" (job {e['job'][:8]})" if "job" in e else "")
-        for e in kills_done
-    ]
-    write_report("service_soak_hosts" if shared else "service_soak", report, lines, args.out)
-    if ok:
-        shutil.rmtree(work, ignore_errors=True)
+    return (
+        lines
+        + ["", "Kills:", ""]
+        + [
+            f"- {e['t']:.0f} s: {e['event']} {e['pid']}" + (f" (job {e['job'][:8]})" if "job" in e else "")
+            for e in kills_done
+        ]
+    )
+
+
+def run_soak(args) -> None:
+    run = drive_soak(args)
+    report = soak_report(args, run)
+    write_report(
+        "service_soak_hosts" if run.shared else "service_soak", report, soak_markdown(report), args.out
+    )
+    if soak_passed(report):
+        shutil.rmtree(run.work, ignore_errors=True)
     else:
-        print(f"kept the soak's folder and logs: {work}")
+        print(f"kept the soak's folder and logs: {run.work}")
 
 
 def main() -> None:
