@@ -49,7 +49,10 @@ from eva_engine.align.evaluate import (
     head_rotation_error,
     targets_from_params,
 )
-from eva_engine.align.fit import POSE_BODY, FitConfig, fit_sequence, reprojection_distances
+from eva_engine.align.fit import fit_sequence
+from eva_engine.align.reprojection import reprojection_distances
+from eva_engine.align.stages import FitConfig
+from eva_engine.align.targets import POSE_BODY
 from eva_engine.body import BodyParams, load_body_model
 from eva_engine.data import load_dataset
 from eva_engine.geometry import project_points, to_camera

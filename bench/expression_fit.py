@@ -5,7 +5,7 @@ fit recovers from MediaPipe's face mesh, and whether the true expression is the 
 
 The painted Anny face is rendered head-on (``align.face_mesh.render_face``) neutral and with
 ``--truth`` (default: both eyes 80% closed, the jaw half open); MediaPipe's face mesh runs on both
-renders. The product's stages that move the expression (``align.fit.default_stages``: "face",
+renders. The product's stages that move the expression (``align.stages.default_stages``: "face",
 free coefficients, then "refine", which keeps them in their range) then fit it with nothing but
 the detected face mesh as targets: from the neutral face, from the true expression, without the
 opening term (``FitStage.w_openings``), and the face stage alone (its coefficients clamped to
@@ -50,7 +50,8 @@ def main() -> None:
 
     from eva_engine.align.evaluate import expression_error_by_group, targets_from_params
     from eva_engine.align.face_mesh import NUM_LANDMARKS, detect_face_mesh, load_correspondence, render_face
-    from eva_engine.align.fit import FitConfig, default_stages, fit_sequence
+    from eva_engine.align.fit import fit_sequence
+    from eva_engine.align.stages import FitConfig, default_stages
     from eva_engine.body import load_body_model
     from eva_engine.eval.expression_fidelity import fitted_landmarks, openings, surface_gaps
 

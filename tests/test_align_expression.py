@@ -57,7 +57,8 @@ def test_fit_follows_a_rendered_blink_and_jaw_opening(anny_model, correspondence
     (``bench/results/expressions/one_face.md``): 104% of the lip gap's true change and 92% of
     the lids'; without the opening term 95% and 41%."""
     from eva_engine.align.evaluate import targets_from_params
-    from eva_engine.align.fit import FitConfig, default_stages, fit_sequence
+    from eva_engine.align.fit import fit_sequence
+    from eva_engine.align.stages import FitConfig, default_stages
 
     truth = _params(anny_model, TRUTH)
     r = render_face(anny_model, ((0.0, 0.0),), expression=TRUTH)[0]

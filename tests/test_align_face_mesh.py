@@ -96,7 +96,8 @@ def test_face_depths_turn_a_head_back(anny_model, correspondence):
     """The face mesh's relative depths alone (no 2D term) turn a head that starts 17 degrees off
     in pitch and yaw back (roll about the optical axis changes no depth); they do not move the
     expression, which is the 2D terms' to fit."""
-    from eva_engine.align.fit import FitConfig, FitStage, fit_sequence
+    from eva_engine.align.fit import fit_sequence
+    from eva_engine.align.stages import FitConfig, FitStage
     from eva_engine.render import intrinsics, orbit_camera
 
     K, view = intrinsics(512, 512, 30.0), orbit_camera(0.0, 0.0, 1.0, target=(0.0, 0.6, 0.0))
@@ -120,7 +121,8 @@ def test_face_depths_turn_a_head_back(anny_model, correspondence):
 
 def test_face_depth_term_is_finite_on_degenerate_targets(anny_model, correspondence):
     """Huge, zero and missing depths, and a face almost at the camera: finite loss and gradients."""
-    from eva_engine.align.fit import FitConfig, FitStage, _Problem
+    from eva_engine.align.objective import FitProblem
+    from eva_engine.align.stages import FitConfig, FitStage
     from eva_engine.render import intrinsics, orbit_camera
 
     K, view = intrinsics(512, 512, 30.0), orbit_camera(0.0, 0.0, 1.0, target=(0.0, 0.6, 0.0))
@@ -131,7 +133,7 @@ def test_face_depth_term_is_finite_on_degenerate_targets(anny_model, corresponde
     targets.face_depth[1] = 0.0
     targets.face_mesh[2, :, 2] = 0.0  # no face found
     stage = FitStage("depth", 1, ("root", "transl", "face"), w_pose=0.0, face_z=10.0)
-    problem = _Problem(anny_model, targets, FitConfig(stages=(stage,)), params)
+    problem = FitProblem(anny_model, targets, FitConfig(stages=(stage,)), params)
     for g in ("root", "transl", "face"):
         problem.values[g].requires_grad_(True)
     loss = problem.loss(stage)
@@ -146,7 +148,8 @@ def test_opening_term_sees_the_gap_not_an_offset(anny_model, correspondence):
     nothing, one upper lid lowered costs, a frame without a face costs nothing, and a huge
     shift keeps the loss and its gradient finite."""
     from eva_engine.align.face_mesh import OPENING_PAIRS
-    from eva_engine.align.fit import FitConfig, FitStage, _Problem
+    from eva_engine.align.objective import FitProblem
+    from eva_engine.align.stages import FitConfig, FitStage
     from eva_engine.render import intrinsics, orbit_camera
 
     K, view = intrinsics(512, 512, 30.0), orbit_camera(0.0, 0.0, 1.0, target=(0.0, 0.6, 0.0))
@@ -156,7 +159,7 @@ def test_opening_term_sees_the_gap_not_an_offset(anny_model, correspondence):
     def loss_of(change) -> tuple[float, bool]:
         targets = _face_targets(anny_model, correspondence, params, K, view, 1.0)
         change(targets.face_mesh[0])
-        problem = _Problem(anny_model, targets, FitConfig(stages=(stage,)), params)
+        problem = FitProblem(anny_model, targets, FitConfig(stages=(stage,)), params)
         for g in ("face", "expression"):
             problem.values[g].requires_grad_(True)
         loss = problem.loss(stage)

@@ -8,15 +8,11 @@ import pytest
 import torch
 
 from eva_engine.align.evaluate import expression_error, mpjpe, targets_from_params
-from eva_engine.align.fit import (
-    FitConfig,
-    FitTargets,
-    default_stages,
-    fit_sequence,
-    initial_estimate,
-    reprojection_error,
-    solve_translation,
-)
+from eva_engine.align.fit import fit_sequence
+from eva_engine.align.initial import initial_estimate, solve_translation
+from eva_engine.align.reprojection import reprojection_error
+from eva_engine.align.stages import FitConfig, default_stages
+from eva_engine.align.targets import FitTargets
 from eva_engine.body import KEYPOINT_GROUPS, PART_NAMES
 from eva_engine.geometry import project_points, to_camera
 from eva_engine.render import intrinsics, orbit_camera
@@ -275,7 +271,7 @@ def test_a_frame_without_a_face_turns_its_head_to_the_pose_face_points(anny_mode
     """Where the face mesh found no face (a head turned away), the pose model's nose, eyes and
     ears still turn the head, also in stages that give the face group its own weight."""
     from eva_engine.align.evaluate import head_rotation_error
-    from eva_engine.align.fit import POSE_FACE
+    from eva_engine.align.targets import POSE_FACE
 
     targets = targets_from_params(anny_model, clip, K, VIEW)
     targets.keypoints[2, KEYPOINT_GROUPS["face"], 2] = 0.0
@@ -291,7 +287,8 @@ def test_a_frame_without_a_face_turns_its_head_to_the_pose_face_points(anny_mode
 def test_the_body_stages_ignore_the_face_points_of_a_frame_without_a_face(anny_model, clip):
     """Where no face was found the pose model's face points turn the head, in stages that move
     it; in the body stages (head not free) they would bend the body toward guessed points."""
-    from eva_engine.align.fit import POSE_FACE, _Problem
+    from eva_engine.align.objective import FitProblem
+    from eva_engine.align.targets import POSE_FACE
 
     targets = targets_from_params(anny_model, clip, K, VIEW)
     targets.keypoints[2, KEYPOINT_GROUPS["face"], 2] = 0.0
@@ -299,6 +296,6 @@ def test_the_body_stages_ignore_the_face_points_of_a_frame_without_a_face(anny_m
     moved.keypoints[2, list(POSE_FACE), :2] += 40.0  # guessed points far off
     stages = {s.name: s for s in default_stages()}
     for name, counts in (("body", False), ("refine", True)):
-        problems = [_Problem(anny_model, t, FitConfig(), clip) for t in (targets, moved)]
+        problems = [FitProblem(anny_model, t, FitConfig(), clip) for t in (targets, moved)]
         losses = [float(p.loss(stages[name])) for p in problems]
         assert (losses[0] != losses[1]) == counts, (name, losses)

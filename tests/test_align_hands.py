@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from eva_engine.align import FitConfig, targets_from_params
-from eva_engine.align.fit import initial_estimate
 from eva_engine.align.hands import (
     HandTrackConfig,
     articulation_prior,
@@ -19,6 +18,7 @@ from eva_engine.align.hands import (
     hand_joint_sides,
     reject_wrong_hands,
 )
+from eva_engine.align.initial import initial_estimate
 from eva_engine.body import KEYPOINT_GROUPS
 from eva_engine.render import intrinsics, look_at
 

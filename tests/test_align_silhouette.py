@@ -10,8 +10,9 @@ import numpy as np
 import torch
 
 from eva_engine.align.evaluate import targets_from_params
-from eva_engine.align.fit import FitConfig, FitStage, fit_sequence
+from eva_engine.align.fit import fit_sequence
 from eva_engine.align.silhouette import SilhouetteTargets, silhouette_loss, silhouette_vertices
+from eva_engine.align.stages import FitConfig, FitStage
 from eva_engine.geometry import project_points, to_camera
 from eva_engine.render import intrinsics, orbit_camera
 

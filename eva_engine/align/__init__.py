@@ -10,16 +10,8 @@ L-BFGS on the robust objective), ``evaluate`` (MPJPE and exact targets for known
 
 from eva_engine.align.detect import DetectorConfig, DetectorError, FrameDetection, HolisticDetector
 from eva_engine.align.evaluate import mpjpe, targets_from_params
-from eva_engine.align.fit import (
-    FitConfig,
-    FitResult,
-    FitStage,
-    FitTargets,
-    default_stages,
-    fit_sequence,
-    initial_estimate,
-    reprojection_error,
-)
+from eva_engine.align.fit import FitResult, fit_sequence
+from eva_engine.align.initial import initial_estimate
 from eva_engine.align.input_checks import InputChecks
 from eva_engine.align.preprocess import (
     Detections,
@@ -29,7 +21,10 @@ from eva_engine.align.preprocess import (
     detect_frames,
     preprocess_video,
 )
+from eva_engine.align.reprojection import reprojection_error
 from eva_engine.align.scaling import scaled_fit_config
+from eva_engine.align.stages import FitConfig, FitStage, default_stages
+from eva_engine.align.targets import FitTargets
 
 __all__ = [
     "Detections",

@@ -4,7 +4,7 @@ time axis (``fit.fit_sequence`` sees frames, not time).
     result = fit_clip(model, targets, times, FitConfig())
 
 1. Hand detections on the wrong side are dropped (``hands.reject_wrong_hands``).
-2. The initial estimate (``fit.initial_estimate``), then the staged fit (``fit.fit_sequence``).
+2. The initial estimate (``initial.initial_estimate``), then the staged fit (``fit.fit_sequence``).
 3. Frames where a hand was not found get that hand's pose interpolated from the neighbouring
    detections (``hands.fill_hand_gaps``), with a per-frame confidence.
 4. The expression is smoothed over time (a Gaussian of ``FitConfig.expression_sigma`` seconds):
@@ -20,8 +20,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from eva_engine.align.fit import FitConfig, FitTargets, fit_sequence, initial_estimate
+from eva_engine.align.fit import fit_sequence
 from eva_engine.align.hands import fill_hand_gaps, hand_found, reject_wrong_hands
+from eva_engine.align.initial import initial_estimate
+from eva_engine.align.stages import FitConfig
+from eva_engine.align.targets import FitTargets
 from eva_engine.body import BodyModel, BodyParams
 
 

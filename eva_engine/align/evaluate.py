@@ -11,7 +11,7 @@ import roma
 import torch
 from torch import Tensor
 
-from eva_engine.align.fit import LEFT_HIP, POSE_BODY, RIGHT_HIP, FitTargets
+from eva_engine.align.targets import LEFT_HIP, POSE_BODY, RIGHT_HIP, FitTargets
 from eva_engine.body import KEYPOINT_GROUPS, BodyModel, BodyParams
 from eva_engine.geometry import project_points, to_camera
 

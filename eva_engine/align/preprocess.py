@@ -27,8 +27,10 @@ import torch
 from eva_engine.align.camera import GUESS_FOV_Y_DEG, guess_camera
 from eva_engine.align.clip import ClipFit, fit_clip
 from eva_engine.align.detect import DetectorConfig, FrameDetection, HolisticDetector
-from eva_engine.align.fit import FitConfig, FitTargets, reprojection_error
 from eva_engine.align.input_checks import InputChecks, others_found, person_height, refusal_reason
+from eva_engine.align.reprojection import reprojection_error
+from eva_engine.align.stages import FitConfig
+from eva_engine.align.targets import FitTargets
 from eva_engine.body import KEYPOINT_NAMES, BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.progress import Progress, ProgressEvent

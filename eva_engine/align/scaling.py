@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from eva_engine.align.fit import FitConfig
+from eva_engine.align.stages import FitConfig
 
 
 def scaled_fit_config(scale: float, base: FitConfig | None = None) -> FitConfig:
