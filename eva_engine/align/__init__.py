@@ -4,8 +4,9 @@
     report = preprocess_video("clip.mp4", "data/datasets/clip")   # decode, detect, fit, write
 
 Pieces: ``detect`` (MediaPipe Holistic -> the body models' keypoint layout), ``fit`` (staged
-L-BFGS on the robust objective), ``evaluate`` (MPJPE and exact targets for known clips),
-``input_checks`` (the videos refused), ``preprocess`` (video -> dataset).
+L-BFGS on the robust objective: ``targets``, ``stages``, ``objective``, ``initial``), ``clip``
+(the fit over a clip's time axis), ``reprojection`` and ``evaluate`` (MPJPE and exact targets for
+known clips), ``input_checks`` (the videos refused), ``preprocess`` (video -> dataset).
 """
 
 from eva_engine.align.detect import DetectorConfig, DetectorError, FrameDetection, HolisticDetector
