@@ -39,6 +39,9 @@ class AvatarConfig:
     expression_frames: an expression also turns and scales each Gaussian with the skin around
         its vertex (a closing lid stretches and faces the camera; ``avatar/surface_frames.py``);
         off: the vertex's offset only, as avatars saved before it have.
+    weight_mlp_bf16: while training, the weight-offset MLP multiplies in bfloat16 (its output,
+        softmax and parameter gradients stay float32; ``networks.relu_mlp``). Rendering a trained
+        avatar is float32 either way. Worth it where the CPU has native bfloat16 (AVX512-BF16).
     """
 
     sh_degree: int = 3
@@ -58,6 +61,7 @@ class AvatarConfig:
     max_scale: tuple[float, float, float] | None = None
     init_normal_ratio: float = 1.0
     expression_frames: bool = False
+    weight_mlp_bf16: bool = False
 
     def __post_init__(self) -> None:
         if not 0 <= self.sh_degree <= 3:

@@ -220,7 +220,9 @@ class Avatar(nn.Module):
         else:
             if self.weight_offsets is not None:
                 means = g.means.detach() if self.config.detach_weight_inputs else g.means
-                weights = self.weight_offsets.skinning_weights(means, self.log_body_weights, g.vertex_ids)
+                weights = self.weight_offsets.skinning_weights(
+                    means, self.log_body_weights, g.vertex_ids, bf16=self.config.weight_mlp_bf16
+                )
             else:
                 weights = blend_log_skinning_weights(self.log_body_weights[g.vertex_ids], None)
         self._weights_cache = (inputs, versions, weights) if not torch.is_grad_enabled() else None

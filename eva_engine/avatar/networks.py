@@ -54,13 +54,22 @@ def make_mlp(
 
 
 def relu_mlp(
-    x: Tensor, mlp: nn.Sequential, chunk: int = 4096, log_prior: tuple[Tensor, Tensor] | None = None
+    x: Tensor,
+    mlp: nn.Sequential,
+    chunk: int = 4096,
+    log_prior: tuple[Tensor, Tensor] | None = None,
+    bf16: bool = False,
 ) -> Tensor:
     """``mlp(x)`` for a ``make_mlp`` network, or with ``log_prior = (table [V, D_out], rows [N])``
     the softmax ``softmax(mlp(x) + table[rows])``: the same values and gradients (parameters and
     ``x``) as autograd through the layers, to rounding, computed ``chunk`` rows at a time so that
     each chunk's activations stay in cache (at ~30k Gaussians, passes over [N, width] tensors cost
-    as much as the matrix products on CPU). x: [N, D_in] -> [N, D_out]."""
+    as much as the matrix products on CPU). x: [N, D_in] -> [N, D_out].
+
+    ``bf16``: with autograd, the layers' products in bfloat16 (inputs, weights, activations and
+    the gradients flowing back); the output, the softmax and the parameters' gradients stay
+    float32. Where the CPU multiplies bfloat16 natively (AVX512-BF16, AMX) that is ~1.5x faster
+    (``bench/mlp_precision.py``); elsewhere it is emulated, and slower."""
     linears = [m for m in mlp if isinstance(m, nn.Linear)]
     if len(linears) * 2 - 1 != len(mlp):
         raise ValueError("relu_mlp takes make_mlp's Linear, (ReLU, Linear)* networks")
@@ -69,41 +78,47 @@ def relu_mlp(
         return out if log_prior is None else torch.softmax(out + log_prior[0][log_prior[1]], dim=-1)
     params = [t for layer in linears for t in (layer.weight, layer.bias)]
     table, rows = log_prior if log_prior is not None else (None, None)
-    return _ChunkedReluMLP.apply(x, chunk, table, rows, *params)
+    dtype = torch.bfloat16 if bf16 else x.dtype
+    return _ChunkedReluMLP.apply(x, chunk, table, rows, dtype, *params)
 
 
 class _ChunkedReluMLP(torch.autograd.Function):
     """Linear, (ReLU, Linear)* [+ log prior, softmax], ``chunk`` rows at a time; each chunk's
-    layer inputs (and softmax output) are kept for the backward, which walks the chunk back."""
+    layer inputs (and softmax output) are kept for the backward, which walks the chunk back. The
+    products run in ``dtype`` (the parameters' own, or bfloat16: ``relu_mlp``)."""
 
     @staticmethod
-    def forward(ctx, x, chunk, table, rows, *params):
+    def forward(ctx, x, chunk, table, rows, dtype, *params):
         n_layers = len(params) // 2
+        cast = [p.to(dtype) for p in params]  # the parameters themselves when dtype is theirs
         kept, outs = [], []  # kept: per chunk, the input of every layer
         for s in range(0, x.shape[0], chunk):
-            h = x[s : s + chunk]
+            h = x[s : s + chunk].to(dtype)
             for i in range(n_layers):
                 kept.append(h)
-                h = torch.addmm(params[2 * i + 1], h, params[2 * i].t())
+                h = torch.addmm(cast[2 * i + 1], h, cast[2 * i].t())
                 if i < n_layers - 1:
                     h.relu_()
+            h = h.to(x.dtype)
             if table is not None:
                 h = torch.softmax(h.add_(table.index_select(0, rows[s : s + chunk])), dim=-1)
             outs.append(h)
         out = torch.cat(outs) if len(outs) != 1 else outs[0]
-        ctx.save_for_backward(*kept, *params, *([out] if table is not None else []))
+        ctx.save_for_backward(*kept, *cast, *([out] if table is not None else []))
         ctx.layers, ctx.chunk, ctx.softmax = n_layers, chunk, table is not None
+        ctx.dtypes = (x.dtype, params[0].dtype)
         return out
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad):
         n_layers, chunk = ctx.layers, ctx.chunk
+        x_dtype, param_dtype = ctx.dtypes
         saved = ctx.saved_tensors
         if ctx.softmax:
             *saved, out = saved
         kept, params = saved[: -2 * n_layers], saved[-2 * n_layers :]
-        grads = [torch.zeros_like(p) for p in params]
+        grads = [torch.zeros_like(p, dtype=param_dtype) for p in params]
         need_x = ctx.needs_input_grad[0]
         grad_x = []
         grad = grad.contiguous()
@@ -112,16 +127,21 @@ class _ChunkedReluMLP(torch.autograd.Function):
             if ctx.softmax:  # d softmax: w (g - <w, g>)
                 w = out[s : s + chunk]
                 g = torch._softmax_backward_data(g, w, -1, w.dtype)
+            g = g.to(params[0].dtype)
             for i in reversed(range(n_layers)):
                 a = kept[c * n_layers + i]  # layer i's input: for i > 0 a ReLU's output
-                grads[2 * i].addmm_(g.t(), a)
-                grads[2 * i + 1] += g.sum(dim=0)
+                if g.dtype == param_dtype:
+                    grads[2 * i].addmm_(g.t(), a)
+                    grads[2 * i + 1] += g.sum(dim=0)
+                else:  # the products in g's precision, their sum in the parameters'
+                    grads[2 * i] += (g.t() @ a).to(param_dtype)
+                    grads[2 * i + 1] += g.sum(dim=0, dtype=param_dtype)
                 if i > 0:
                     g = torch.ops.aten.threshold_backward(g @ params[2 * i], a, 0.0)
                 elif need_x:
-                    grad_x.append(g @ params[0])
+                    grad_x.append((g @ params[0]).to(x_dtype))
         gx = (torch.cat(grad_x) if len(grad_x) != 1 else grad_x[0]) if need_x else None
-        return gx, None, None, None, *grads
+        return gx, None, None, None, None, *grads
 
 
 class LBSWeightOffsets(nn.Module):
@@ -145,10 +165,12 @@ class LBSWeightOffsets(nn.Module):
     def forward(self, means: Tensor) -> Tensor:
         return relu_mlp(positional_encoding(means, self.frequencies), self.mlp)
 
-    def skinning_weights(self, means: Tensor, log_base: Tensor, rows: Tensor) -> Tensor:
+    def skinning_weights(self, means: Tensor, log_base: Tensor, rows: Tensor, bf16: bool = False) -> Tensor:
         """``blend_log_skinning_weights(log_base[rows], self(means))`` [N, J] in one chunked pass
-        (log_base: [V, J] log(w_body + eps) per body vertex; rows: [N] each Gaussian's vertex)."""
-        return relu_mlp(positional_encoding(means, self.frequencies), self.mlp, log_prior=(log_base, rows))
+        (log_base: [V, J] log(w_body + eps) per body vertex; rows: [N] each Gaussian's vertex;
+        ``bf16``: the products in bfloat16 while training, ``relu_mlp``)."""
+        x = positional_encoding(means, self.frequencies)
+        return relu_mlp(x, self.mlp, log_prior=(log_base, rows), bf16=bf16)
 
 
 def blend_skinning_weights(base: Tensor, offsets: Tensor | None, eps: float = 1e-8) -> Tensor:
