@@ -126,9 +126,10 @@ def ready_avatar(base: str, headers: dict) -> dict:
     return avatars[-1]
 
 
-def pose_body(k: int, size: int) -> dict:
+def pose_body(k: int, size: int, fmt: str = "png") -> dict:
     angle = 0.05 * (k % 30)  # radians; jawOpen stays within Anny's [0, 1]
     return {
+        "format": fmt,
         "pose": {
             "joints": {"upperarm01.L": [0.0, 0.0, -0.6 - angle]},
             "expression": {"jawOpen": angle / 1.5},
@@ -169,7 +170,9 @@ def base_report(args) -> dict:
 
 
 # -- latency --------------------------------------------------------------------------------------
-def measure_latency(base: str, avatar_id: str, size: int, clients: int, requests_per_client: int) -> dict:
+def measure_latency(
+    base: str, avatar_id: str, size: int, clients: int, requests_per_client: int, fmt: str = "png"
+) -> dict:
     import httpx
 
     latencies: list[float] = []
@@ -181,9 +184,8 @@ def measure_latency(base: str, avatar_id: str, size: int, clients: int, requests
             for i in range(requests_per_client):
                 while True:
                     t0 = time.perf_counter()
-                    r = api.post(
-                        f"/avatars/{avatar_id}/render", json=pose_body(k * requests_per_client + i, size)
-                    )
+                    body = pose_body(k * requests_per_client + i, size, fmt)
+                    r = api.post(f"/avatars/{avatar_id}/render", json=body)
                     if r.status_code != 503:
                         break
                     time.sleep(float(r.headers.get("retry-after", "1")))
@@ -202,6 +204,7 @@ def measure_latency(base: str, avatar_id: str, size: int, clients: int, requests
     wall = time.perf_counter() - started
     return {
         "size": size,
+        "format": fmt,
         "clients": clients,
         "requests": len(latencies),
         "errors": errors[:5],
@@ -221,8 +224,9 @@ def run_latency(args) -> None:
         measure_latency(base, avatar["avatar_id"], 64, 1, 2)  # load the avatar and warm up
         rows = [
             measure_latency(
-                base, avatar["avatar_id"], size, clients, max(2, args.requests // max(1, clients // 4))
+                base, avatar["avatar_id"], size, clients, max(2, args.requests // max(1, clients // 4)), fmt
             )
+            for fmt in args.format
             for size in (256, 512)
             for clients in (1, 16)
         ]
@@ -236,19 +240,19 @@ def run_latency(args) -> None:
     }
     lines = header("Service render latency", report, args.note) + [
         f"- avatar: {avatar.get('num_gaussians')} Gaussians ({avatar.get('preset')} preset); round trip over "
-        "loopback HTTP incl. pose JSON validation, skinning, rasterization and PNG encoding; 16 "
+        "loopback HTTP incl. pose JSON validation, skinning, rasterization and the image's encoding; 16 "
         "clients share "
         "the render gate (2 renders at once by default; clients wait out 503s as Retry-After says)",
         "",
-        "| image | clients | requests | p50 ms | p95 ms | requests/s |",
-        "|---|---:|---:|---:|---:|---:|",
+        "| image | format | clients | requests | p50 ms | p95 ms | requests/s |",
+        "|---|---|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['size']}² | {r['clients']} | {r['requests']} | {r['p50_ms']:.0f} | {r['p95_ms']:.0f} "
-            f"| {r['throughput_rps']:.1f} |"
+            f"| {r['size']}² | {r['format']} | {r['clients']} | {r['requests']} | {r['p50_ms']:.0f} "
+            f"| {r['p95_ms']:.0f} | {r['throughput_rps']:.1f} |"
         )
-    write_report("service", report, lines, args.out)
+    write_report(args.name, report, lines, args.out)
 
 
 # -- load -----------------------------------------------------------------------------------------
@@ -909,6 +913,8 @@ def main() -> None:
     latency = sub.add_parser("latency", help="render p50/p95 at 1 and 16 clients")
     latency.add_argument("--service-dir", type=Path)
     latency.add_argument("--requests", type=int, default=20, help="requests per client")
+    latency.add_argument("--format", nargs="+", default=["png"], choices=["png", "jpeg"], help="formats")
+    latency.add_argument("--name", default="service", help="result file stem")
     load = sub.add_parser("load", help="50 render clients + uploads; errors, memory, /healthz")
     load.add_argument("--service-dir", type=Path)
     load.add_argument(
