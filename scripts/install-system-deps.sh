@@ -2,11 +2,12 @@
 # Debian packages the project needs at run time: Mesa's software EGL/GL for the ground-truth mesh
 # renderer (moderngl), redis-server for the
 # queue's Redis mode tests, Chromium with its WebDriver for the web page's browser test (a
-# browser downloaded at test time does not work offline), and g++ with ninja, which build the
+# browser downloaded at test time does not work offline), Node.js for the page scripts' quick
+# tests (tests/test_page_scripts.py), and g++ with ninja, which build the
 # C++ kernels of the rasterizer and the skinning (eva_engine/native.py; without them the slower torch kernels
 # run). Installs only what is missing.
 set -euo pipefail
-pkgs=(libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri redis-server chromium chromium-driver g++ ninja-build)
+pkgs=(libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri redis-server chromium chromium-driver nodejs g++ ninja-build)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -12,7 +12,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 NODE = shutil.which("node")
-needs_node = pytest.mark.skipif(NODE is None, reason="Node.js is not installed (Debian: apt install nodejs)")
+needs_node = pytest.mark.skipif(
+    NODE is None, reason="Node.js is not installed (scripts/install-system-deps.sh installs it)"
+)
 
 
 @needs_node
