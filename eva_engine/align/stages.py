@@ -95,20 +95,18 @@ def default_stages() -> tuple[FitStage, ...]:
         body_3d=1.0,
         init_pull=0.05,
     )
+    # The face's terms, one set for every stage that moves the expression (face, refine, outline).
+    face_terms = dict(w_face=2.0, w_face_mesh=2.0, w_openings=30.0, face_z=10.0, expression_reg=1e-3)
     refine = FitStage(
         "refine",
         120,
         PARAM_GROUPS,
         w_hand=2.0,
-        w_face=2.0,
-        w_face_mesh=2.0,
-        w_openings=30.0,
-        face_z=10.0,
         body_3d=0.3,
         hand_z=0.5,
         hand_prior=1.0,
         init_pull=0.01,
-        expression_reg=1e-3,
+        **face_terms,
     )
     return (
         dataclasses.replace(body, name="body_coarse", iterations=60, sigma_scale=8.0),
@@ -129,19 +127,7 @@ def default_stages() -> tuple[FitStage, ...]:
         # the face points' and L-BFGS stalls at the bound (expression error 5.21 mm against the
         # neutral face's 5.26, bench/results/align_before.md). The refine stage's penalty and
         # the final clamp bring the coefficients back into range.
-        FitStage(
-            "face",
-            40,
-            ("face", "expression"),
-            w_pose=0.0,
-            w_face=2.0,
-            w_face_mesh=2.0,
-            w_openings=30.0,
-            face_z=10.0,
-            smooth=0.05,
-            expression_reg=1e-3,
-            range_weight=0.0,
-        ),
+        FitStage("face", 40, ("face", "expression"), w_pose=0.0, smooth=0.05, range_weight=0.0, **face_terms),
         refine,
         # The outline last and short: its body points cost more per step than all the rest.
         dataclasses.replace(refine, name="outline", iterations=30, w_silhouette=3.0),
