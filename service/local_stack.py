@@ -49,6 +49,18 @@ def stop_process(proc: subprocess.Popen, sig: int = signal.SIGTERM, timeout: flo
         _wait_or_kill(proc, timeout)
 
 
+def launch(args: list[str], log: Path, env: dict[str, str] | None = None) -> subprocess.Popen:
+    """Start ``args`` in a session of its own, appending its output to ``log``, with this
+    process's environment unbuffered and without ``EVA_QUEUE_URL`` (a child names its queue), then
+    ``env`` over it."""
+    full = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    full.pop("EVA_QUEUE_URL", None)
+    with open(log, "ab") as out:
+        return subprocess.Popen(
+            args, stdout=out, stderr=subprocess.STDOUT, env={**full, **(env or {})}, start_new_session=True
+        )
+
+
 def _wait_or_kill(proc: subprocess.Popen, timeout: float) -> None:
     try:
         proc.wait(timeout)
@@ -90,28 +102,12 @@ class LocalStack:
     def headers(self) -> dict[str, str]:
         return {"X-API-Key": self.api_key} if self.api_key else {}
 
-    def _env(self) -> dict[str, str]:
-        env = {
-            **os.environ,
-            "PYTHONUNBUFFERED": "1",
-            "EVA_API_KEY": self.api_key or "",
-            "EVA_HOST": "127.0.0.1",
-        }
-        env.pop("EVA_QUEUE_URL", None)
-        return {**env, **self.extra_env}
-
     def _start(self, args: list[str], log_name: str) -> subprocess.Popen:
         self.logs.mkdir(parents=True, exist_ok=True)
         if self.queue_url:
             args = [*args, "--queue-url", self.queue_url]
-        with open(self.logs / log_name, "ab") as log:
-            return subprocess.Popen(
-                [self._eva, *args],
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                env=self._env(),
-                start_new_session=True,
-            )
+        env = {"EVA_API_KEY": self.api_key or "", "EVA_HOST": "127.0.0.1", **self.extra_env}
+        return launch([self._eva, *args], self.logs / log_name, env)
 
     def start_server(self, *args: str) -> subprocess.Popen:
         """``eva serve`` on ``port`` (more options in ``args``)."""

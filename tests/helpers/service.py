@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.local_stack import free_port, stop_process
+from service.local_stack import eva_executable, free_port, launch, stop_process
 
 stop = stop_process  # the tests' name for it
-EVA = str(Path(sys.executable).parent / "eva")
+EVA = eva_executable()
 SIGNER_FRAMES = 8
 # The pipeline at its smallest: 8 frames of 256 px (the job keeps 4 out to score the avatar, 4
 # train), a few tiny-preset iterations at 1/4 scale.
@@ -90,10 +90,7 @@ def wait_for(predicate: Callable[[], object], timeout: float, what: str, every: 
 
 
 def start_process(args: list[str], log: Path, **env_extra: str) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", **env_extra}
-    env.pop("EVA_QUEUE_URL", None)
-    with open(log, "ab") as out:
-        return subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    return launch(args, log, env_extra)
 
 
 def start_worker(data_dir: Path, log: Path, queue_url: str | None = None, stale_after: float = 60.0):
