@@ -52,7 +52,7 @@ from machine import describe
 
 from jobs.options import MIN_FRAMES
 from jobs.runner import JobProcess, job_processes
-from service.local_stack import LocalStack, LocalStackError, eva_executable, free_port, stop_process
+from service.local_stack import LocalStack, LocalStackError, eva_executable, free_port, launch, stop_process
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -546,11 +546,8 @@ class SharedBackends:
             + ["--appendonly", "no", "--dir", str(work), "--daemonize", "yes"],
             check=True,
         )
-        self.s3 = subprocess.Popen(
-            [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(self.s3_port)],
-            stdout=(work / "s3.log").open("ab"),
-            stderr=subprocess.STDOUT,
-        )
+        moto = [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(self.s3_port)]
+        self.s3 = launch(moto, work / "s3.log")
         self.env = {
             "EVA_QUEUE_URL": f"redis://127.0.0.1:{self.redis_port}/0",
             "EVA_RECORDS_URL": f"redis://127.0.0.1:{self.redis_port}/0",
