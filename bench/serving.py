@@ -636,19 +636,6 @@ class JobProcessMonitor:
         self._thread.join(5)
 
 
-def nobody_video(work: Path) -> Path:
-    """A clip without a person (a grey ramp): its job must fail with a reason."""
-    import numpy as np
-
-    from eva_engine.data import write_video
-
-    path = work / "nobody.mp4"
-    gradient = np.zeros((CLIP_FRAMES, 128, 128, 3), np.uint8)
-    gradient[:] = np.linspace(0, 255, 128, dtype=np.uint8)[None, None, :, None]
-    write_video(path, gradient, fps=5)
-    return path
-
-
 @dataclasses.dataclass
 class SoakRun:
     """What one soak left (``drive_soak``): the job ids and their final records, the kills and
@@ -671,11 +658,14 @@ def drive_soak(args) -> SoakRun:
     job's own process every few seconds until ``args.kills`` kills; then wait for every job."""
     import httpx
 
+    from eva_engine.synth.hard import nobody_video
+
     rng = random.Random(args.seed)
     work = Path(tempfile.mkdtemp(prefix="eva-bench-soak-"))
     data = work / "service"
     shared = SharedBackends(work) if args.hosts else None
-    signer, nobody = args.video or _signer_video(work), nobody_video(work)
+    signer = args.video or _signer_video(work)
+    nobody = nobody_video(work / "nobody.mp4", frames=CLIP_FRAMES)
     stack = serve_only(data, work / "logs", env=shared.env if shared else None)
     events: list[dict] = []
     t_start = time.monotonic()

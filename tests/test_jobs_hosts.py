@@ -10,8 +10,9 @@ import boto3
 import pytest
 from fastapi.testclient import TestClient
 from helpers import service as svc
-from helpers.service import FAST_OPTIONS, finish_real_and_nobody, no_person_video, start_worker, stop
+from helpers.service import FAST_OPTIONS, finish_real_and_nobody, start_worker, stop
 
+from eva_engine.synth.hard import nobody_video
 from jobs import JobsConfig
 from service.app import create_app
 from service.settings import ServiceSettings
@@ -64,8 +65,8 @@ def test_jobs_cross_hosts_that_share_only_redis_and_a_bucket(
             assert res.status_code == 202, res.text
             real = res.json()
             assert files_under(hosts["api1"] / "jobs" / "work") == set()  # the upload is in the bucket
-            nobody_video = no_person_video(tmp_path / "nobody.mp4")
-            with open(nobody_video, "rb") as f:
+            nobody = nobody_video(tmp_path / "nobody.mp4")
+            with open(nobody, "rb") as f:
                 res = two.post(
                     "/avatars", files={"video": ("nobody.mp4", f, "video/mp4")}, data={"preset": "tiny"}
                 )

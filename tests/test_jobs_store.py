@@ -10,8 +10,9 @@ import subprocess
 import time
 
 import pytest
-from helpers.service import no_person_video, run_job_here
+from helpers.service import run_job_here
 
+from eva_engine.synth.hard import nobody_video
 from jobs import InvalidIdError, JobOptions, JobQueue, JobsConfig, SqliteJobStore, Storage
 
 HOST = socket.gethostname()
@@ -102,7 +103,7 @@ def test_a_jobs_own_crashes_count_against_max_attempts_not_its_workers_deaths(tm
 
 
 def test_a_video_without_a_person_fails_cleanly(queue, tmp_path):
-    job_id = submit(queue, no_person_video(tmp_path / "nobody.mp4"), preset="tiny")
+    job_id = submit(queue, nobody_video(tmp_path / "nobody.mp4"), preset="tiny")
     assert queue.run_pending() >= 1
     job = queue.store.get(job_id)
     assert job.state == "failed" and "no person" in job.error and "stage preprocess" in job.error
@@ -124,7 +125,7 @@ def test_the_job_decodes_the_upload_as_the_probe_approved_it(queue, tmp_path, mo
         return real(video, out, config, **kwargs)
 
     monkeypatch.setattr(align, "preprocess_video", spy)
-    job_id = submit(queue, no_person_video(tmp_path / "nobody.mp4"), preset="tiny")
+    job_id = submit(queue, nobody_video(tmp_path / "nobody.mp4"), preset="tiny")
     work = queue.storage.work_dir(job_id)
     (work / "input.mp4").rename(work / "input.video")
     assert run_job_here(queue, job_id, anny_model) == "failed"  # no person: decoded all the same
@@ -147,7 +148,7 @@ def test_a_job_on_a_full_disk_goes_back_with_its_upload(queue, tmp_path, monkeyp
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(align, "preprocess_video", no_space)
-    job_id = submit(queue, no_person_video(tmp_path / "v.mp4"), preset="tiny")
+    job_id = submit(queue, nobody_video(tmp_path / "v.mp4"), preset="tiny")
     with pytest.raises(DiskFull):
         run_job_here(queue, job_id, anny_model)
     job = queue.store.get(job_id)
@@ -157,7 +158,7 @@ def test_a_job_on_a_full_disk_goes_back_with_its_upload(queue, tmp_path, monkeyp
 
 
 def test_cancel_a_running_job(queue, tmp_path, monkeypatch):
-    video = no_person_video(tmp_path / "long.mp4", frames=60)
+    video = nobody_video(tmp_path / "long.mp4", frames=60)
     job_id = submit(queue, video, preset="tiny")
     claim, asked = queue.store.claim, []
 

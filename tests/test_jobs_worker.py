@@ -18,13 +18,13 @@ from helpers.service import (
     finish_real_and_nobody,
     freeze_in_stage,
     log_tail,
-    no_person_video,
     start_process,
     start_worker,
     stop,
     wait_for,
 )
 
+from eva_engine.synth.hard import nobody_video
 from jobs import JobsConfig
 from service.app import create_app
 from service.settings import ServiceSettings
@@ -143,7 +143,7 @@ def test_redis_mode_with_two_workers(tmp_path, signer_video, redis_url):
         workers = [start_worker(data, log, queue_url=redis_url) for log in logs]
         try:
             real = upload(client, signer_video, **FAST_OPTIONS)
-            nobody = upload(client, no_person_video(tmp_path / "nobody.mp4"), preset="tiny")
+            nobody = upload(client, nobody_video(tmp_path / "nobody.mp4"), preset="tiny")
         except BaseException:
             for w in workers:
                 stop(w)

@@ -18,10 +18,11 @@ import pytest
 from fastapi.testclient import TestClient
 from helpers import service as svc
 from helpers.scenes import teacher_avatar
-from helpers.service import no_person_video, run_job_here
+from helpers.service import run_job_here
 
 from eva_engine.avatar import TrainingRecord, save_avatar
 from eva_engine.data import read_video
+from eva_engine.synth.hard import nobody_video
 from jobs import JobQueue, JobRun, JobsConfig
 from jobs.animation import ANIMATION, AnimationOptions
 from service.app import create_app
@@ -152,7 +153,7 @@ def test_no_driving_upload_is_422(service):
 
 def test_a_video_without_a_person_fails_its_job_with_the_reason(service, tmp_path):
     client, queue, avatar_id = service
-    video = no_person_video(tmp_path / "nobody.mp4")
+    video = nobody_video(tmp_path / "nobody.mp4")
     res = client.post(
         f"/avatars/{avatar_id}/animations", files={"video": ("nobody.mp4", video.read_bytes(), "video/mp4")}
     )

@@ -9,11 +9,12 @@ import time
 import pytest
 from fastapi.testclient import TestClient
 from helpers import service as svc
-from helpers.service import FAST_OPTIONS, no_person_video
+from helpers.service import FAST_OPTIONS
 from pydantic import ValidationError
 
 from eva_engine.recipes import METHODS, PRESETS
 from eva_engine.specs.camera import CAMERA_PRESETS
+from eva_engine.synth.hard import nobody_video
 from jobs import JobsConfig
 from jobs.options import MAX_FRAMES, JobOptions
 from service.animation_schemas import AnimationForm
@@ -286,7 +287,7 @@ def test_job_records_survive_a_restart_of_the_api(tmp_path, signer_video):
 
 
 def test_render_body_is_validated_before_the_avatar_is_loaded(client, tmp_path):
-    no_person_video(tmp_path / "nobody.mp4")  # valid video: accepted here, fails in the worker
+    nobody_video(tmp_path / "nobody.mp4")  # valid video: accepted here, fails in the worker
     ids = upload(client, (tmp_path / "nobody.mp4").read_bytes()).json()
     res = client.post(f"/avatars/{ids['avatar_id']}/render", json={"pose": {"joints": {"x": [0, 0]}}})
     assert res.status_code == 422, res.text  # not 409 "still queued": the body was judged first

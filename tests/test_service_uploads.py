@@ -17,6 +17,7 @@ from fastapi.testclient import TestClient
 from helpers import service as svc
 from helpers.service import FAST_OPTIONS, free_port, gradient_video
 
+from eva_engine.synth.hard import nobody_video
 from jobs import JobsConfig
 from service.app import create_app
 from service.routers import avatars as avatars_router
@@ -176,7 +177,7 @@ def test_a_clip_too_short_to_train_on_is_refused_at_upload(tmp_path):
     with the reason, before anything is queued."""
     from jobs.options import MIN_FRAMES
 
-    short = svc.no_person_video(tmp_path / "short.mp4", frames=MIN_FRAMES - 3)
+    short = nobody_video(tmp_path / "short.mp4", frames=MIN_FRAMES - 3)
     with make_client(tmp_path) as client:
         res = upload(client, short.read_bytes(), preset="tiny")
         assert res.status_code == 422, res.text

@@ -9,7 +9,8 @@ filmed well (sharp, the subject alone) with its coverage mask, so an avatar trai
 job path can be scored against what the person really looked like.
 
 The refusal cases (``REFUSAL_CASES``) are videos a job must refuse rather than train on: a hand
-alone, two people side by side throughout, a person too small to fit.
+alone, two people side by side throughout, a person too small to fit; :func:`nobody_video` is
+the simplest, a clip with no person at all.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numpy as np
 import torch
 
 from eva_engine.body.params import BodyParams
+from eva_engine.data import write_video
 from eva_engine.render.camera import intrinsics, look_at
 from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
 from eva_engine.synth.benchmark import MOTION_SECONDS, PRESETS, random_shape
@@ -98,6 +100,14 @@ REFUSAL_CASES: dict[str, HardCase] = {
         HardCase("too_small", "far away: about 60 px tall at 256 px", distance=12.0, fov_y_deg=30.0),
     )
 }
+
+
+def nobody_video(path: Path, frames: int = 8, size: int = 128, fps: float = 5.0) -> Path:
+    """A valid clip that holds nobody (a grey ramp, ``size`` px square): it decodes fine, and a job
+    on it must fail with a reason. Returns ``path``."""
+    images = np.zeros((frames, size, size, 3), np.uint8)
+    images[:] = np.linspace(0, 255, size, dtype=np.uint8)[None, None, :, None]
+    return write_video(path, images, fps=fps)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -69,15 +69,6 @@ def other_signer_video(anny_model, tmp_path_factory) -> Path:
     return video
 
 
-def no_person_video(path: Path, frames: int = 8) -> Path:
-    """A valid video of a grey gradient: decodes fine, holds nobody."""
-    from eva_engine.data import write_video
-
-    images = np.zeros((frames, 128, 128, 3), np.uint8)
-    images[:] = np.linspace(0, 255, 128, dtype=np.uint8)[None, None, :, None]
-    return write_video(path, images, fps=5)
-
-
 def wait_for(predicate: Callable[[], object], timeout: float, what: str, every: float = 0.2):
     """Poll ``predicate`` until it returns something truthy; fail the test after ``timeout`` s."""
     deadline = time.monotonic() + timeout
