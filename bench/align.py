@@ -21,16 +21,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime as dt
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from machine import describe
+from machine import run_header
 
 from eva_engine.align import (
     FitTargets,
@@ -524,9 +522,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     model = load_body_model("anny")
     report = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": "python bench/align.py " + " ".join(sys.argv[1:]),
-        "machine": describe(),
+        **run_header(),
         "synthetic": synthetic(model, args.frames, args.dataset),
     }
     print(json.dumps(report["synthetic"], indent=1), flush=True)

@@ -24,14 +24,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime as dt
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
-from machine import describe
+from machine import run_header
 
 RESULTS = Path(__file__).resolve().parent / "results" / "expressions"
 LIDS = ((159, 145), (386, 374))
@@ -107,9 +105,7 @@ def main() -> None:
     reg, ids = corr.regressor(model)
     names = list(model.expression_names)
     doc: dict = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": "python bench/blink_sweep.py " + " ".join(sys.argv[1:]),
-        "machine": describe(),
+        **run_header(),
         "blinks": values,
         "anny": anny_sweep(model, reg, ids, values),
     }

@@ -11,16 +11,14 @@ files. Writes ``bench/results/body.json`` and ``body.md``.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
 import torch
-from machine import cpu_name
+from machine import cpu_name, run_header
 from timing import time_call
 
 from eva_engine.body import load_body_model
@@ -90,8 +88,7 @@ def main() -> None:
             )
 
     record = {
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "command": " ".join([Path(sys.executable).name, *sys.argv]),
+        **run_header(),
         "machine": {
             "cpu": cpu_name(),
             "logical_cpus": os.cpu_count(),

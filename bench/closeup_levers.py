@@ -23,11 +23,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import json
-import shlex
 import shutil
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from hard_inputs import FRAMES, claim, restore_frames, score
-from machine import describe
+from machine import describe, run_header
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE = "closeup"
@@ -160,11 +157,12 @@ def report(args) -> None:
                 f"| {'-' if change is None else f'{change:+.1f}%'} | {np.mean(r['fit_iou']):.3f} "
                 f"| {r['truth']['psnr']:.2f} | {r['seconds']['train']:.0f} |"
             )
-    command = "python bench/closeup_levers.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    header = run_header()
+    command = header["command"]
     lines = [
         "# The close-up hard case: which lever moves it",
         "",
-        f"- date: {datetime.datetime.now(datetime.UTC).isoformat(timespec='seconds')}; command: `{command}`",
+        f"- date: {header['date']}; command: `{command}`; commit {header['commit']}",
         "- runs: `python bench/closeup_levers.py --seed 0` (two processes of 1 thread at once on the "
         "2 cores: the times are inflated by that sharing)",
         f"- machine: {runs[0]['machine'] if runs else describe()}",

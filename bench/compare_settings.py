@@ -16,12 +16,11 @@ gaps in LPIPS-VGG (held out), PSNR and SSIM for the full image, the hands and th
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import statistics
-import sys
 from pathlib import Path
 
+from machine import run_header
 from paper_tables import merge, paired_regions, trained_on
 from stats import compare_paired, mean_std
 
@@ -45,11 +44,11 @@ def changed(base: dict, other: dict, prefix: str = "") -> list[str]:
     return out
 
 
-def markdown(base_name: str, base: dict, settings: dict[str, dict], command: str) -> str:
+def markdown(base_name: str, base: dict, settings: dict[str, dict], header: dict) -> str:
     lines = [
         "# Training settings against the base, paired over seeds",
         "",
-        f"- date: {dt.datetime.now(dt.UTC).isoformat(timespec='seconds')}; command: `{command}`",
+        f"- date: {header['date']}; command: `{header['command']}`; commit {header['commit']}",
         f"- machine: {base['machine']}",
         *(
             f"- machine of `{name}`: {doc['machine']} (not the base's: its seconds do not compare)"
@@ -104,7 +103,7 @@ def main() -> None:
     args = ap.parse_args()
     base = load(args.results, args.base)
     settings = {name: load(args.results, name) for name in args.settings}
-    text = markdown(args.base, base, settings, "python bench/compare_settings.py " + " ".join(sys.argv[1:]))
+    text = markdown(args.base, base, settings, run_header())
     (args.results / f"{args.name}.md").write_text(text)
     print(text)
 

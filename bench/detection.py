@@ -12,14 +12,13 @@ side is at most that size (never upscaled). Writes ``bench/results/detection.{js
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import math
 import sys
 import time
 from pathlib import Path
 
-from machine import describe
+from machine import run_header
 from real_videos import DEFAULT_VIDEOS, frame_count, videos_or_skip
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -77,9 +76,7 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     doc = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": "python bench/detection.py " + " ".join(sys.argv[1:]),
-        "machine": describe(),
+        **run_header(),
         "videos": {},
     }
     for video in videos:

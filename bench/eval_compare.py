@@ -12,12 +12,10 @@ Writes ``<name>.json`` and ``<name>.md`` in ``--out``.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
-import shlex
-import sys
 from pathlib import Path
 
+from machine import run_header
 from stats import compare_paired, fmt, mean_std
 
 LOWER_IS_BETTER = {"psnr": False, "ssim": False, "lpips_vgg": True, "lpips_alex": True}
@@ -65,8 +63,7 @@ def main() -> None:
     args = ap.parse_args()
     rows = compare_runs(args.before, args.after)
     doc = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": shlex.join(["python", *sys.argv]),
+        **run_header(),
         "before": [str(p) for p in args.before],
         "after": [str(p) for p in args.after],
         "rows": rows,

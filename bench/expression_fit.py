@@ -19,13 +19,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime as dt
 import json
 import sys
 from pathlib import Path
 
 import torch
-from machine import describe
+from machine import run_header
 
 RESULTS = Path(__file__).resolve().parent / "results" / "expressions"
 
@@ -94,9 +93,7 @@ def main() -> None:
         "neutral": gaps(fitted_landmarks(model, params({}), reg, ids, K[None], view[None])),
     }
     doc = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": "python bench/expression_fit.py " + " ".join(sys.argv[1:]),
-        "machine": describe(),
+        **run_header(),
         "truth": truth_expr,
         "correspondence_gaps_mm": correspondence,
         "detected": {"truth render": gaps(mesh), "neutral render": gaps(detected(neutral_render["rgb"]))},

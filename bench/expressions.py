@@ -23,7 +23,6 @@ render, of the frames with the widest-open mouth and the most closed eyes in the
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import math
 import sys
@@ -31,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import describe
+from machine import run_header
 from stats import fmt, mean_std
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -353,9 +352,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     doc = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": "python bench/expressions.py " + " ".join(sys.argv[1:]),
-        "machine": describe(),
+        **run_header(),
         "cases": {},
     }
     args.out.mkdir(parents=True, exist_ok=True)

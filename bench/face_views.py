@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import argparse
 import math
-import shlex
 import sys
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +16,7 @@ import torch
 from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import describe  # noqa: E402
+from machine import run_header  # noqa: E402
 
 from eva_engine.avatar import load_saved_avatar, read_avatar_meta  # noqa: E402
 from eva_engine.body import load_body_model  # noqa: E402
@@ -95,15 +93,15 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.concatenate(rows, axis=0)).save(args.out, quality=90)
     yaws = ", ".join(f"{y:g}°" for y in args.yaws)
-    command = "python bench/face_views.py " + shlex.join(sys.argv[1:])
+    header = run_header()
     coverage = read_avatar_meta(args.avatar).coverage
     yaw = coverage.yaw_deg if coverage is not None else None
     yaw_range = f"{yaw.min:.1f}° to {yaw.max:.1f}°" if yaw is not None else "not recorded"
     lines = [
         "# Face close-ups from the video's camera and turned away from it",
         "",
-        f"- date: {datetime.now(UTC).isoformat(timespec='seconds')}; command: `{command}`",
-        f"- machine: {describe()}",
+        f"- date: {header['date']}; command: `{header['command']}`; commit {header['commit']}",
+        f"- machine: {header['machine']}",
         f"- avatar: `{args.avatar}`; dataset: `{args.dataset}`, split `{args.split}` (unseen frames)",
         f"- the training cameras' yaw about the body (the avatar's coverage): {yaw_range}",
         "- rows (the fitted face's extremes among them): "

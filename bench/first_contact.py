@@ -12,7 +12,6 @@ Packages come from wherever pip finds them on this machine (its index and cache)
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import os
 import platform
@@ -23,6 +22,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import machine
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -36,13 +37,6 @@ STEPS = (
     ("demo", re.compile(r"/eva demo ")),
 )
 DEMO_PHASES = re.compile(r"time per phase: (.*)$")
-
-
-def cpu_name() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.machine()
 
 
 def run_make(clone: Path, log: Path) -> tuple[list[tuple[float, str]], int]:
@@ -93,9 +87,7 @@ def main() -> None:
     parser.add_argument("--name", default="first_contact")
     args = parser.parse_args()
 
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short=12", "HEAD"], cwd=args.repo, capture_output=True, text=True, check=True
-    ).stdout.strip()
+    commit = machine.commit(args.repo)
     work = Path(tempfile.mkdtemp(prefix="eva-first-contact-"))
     clone = work / "eva"
     load_before = os.getloadavg()
@@ -110,10 +102,9 @@ def main() -> None:
     steps = step_times(lines)
     install = round(sum(v for k, v in steps.items() if k != "demo"), 1)
     doc = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": "python3 " + " ".join(["bench/first_contact.py", *sys.argv[1:]]),
-        "commit": commit,
-        "machine": f"{cpu_name()}, {os.cpu_count()} logical CPUs, Python {platform.python_version()}",
+        **machine.run_header(),
+        "commit": commit,  # the cloned repository's, which --repo may make another than this
+        "machine": f"{machine.cpu_name()}, {os.cpu_count()} logical CPUs, Python {platform.python_version()}",
         "load_average_at_start": [round(x, 2) for x in load_before],
         "exit_code": code,
         "total_seconds": round(total, 1),

@@ -26,18 +26,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import json
-import shlex
 import shutil
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from machine import describe
+from machine import describe, run_header
 
 ROOT = Path(__file__).resolve().parents[1]
 FRAMES, SIZE, REFUSAL_SIZE = 40, 512, 256
@@ -371,8 +368,7 @@ def report(args) -> None:
         r["verdict_now"], r["truth_poor"] = judged(r, rules), r["truth"]["lpips_vgg"] > TRUTH_POOR
         r["agrees"] = (r["verdict_now"] == "poor") == r["truth_poor"]
     doc = {
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "command": shlex.join(["python", *sys.argv]),
+        **run_header(),
         "frames": FRAMES,
         "size": SIZE,
         "rules": dataclasses.asdict(rules),

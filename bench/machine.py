@@ -1,12 +1,14 @@
-"""What machine a benchmark ran on: one description shared by every bench script."""
+"""What a benchmark ran on and how: one result header shared by every bench script."""
 
 from __future__ import annotations
 
+import datetime as dt
 import os
 import platform
+import shlex
+import subprocess
+import sys
 from pathlib import Path
-
-import torch
 
 
 def cpu_name() -> str:
@@ -23,8 +25,39 @@ def cpu_name() -> str:
 def describe() -> str:
     """One line: CPU, cores, torch and its threads, Python, load average (timings are noisy
     when other work shares the machine)."""
+    import torch  # here, not at the top: first_contact.py runs before torch is installed
+
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
     return (
         f"{cpu_name()}, {os.cpu_count()} logical CPUs, torch {torch.__version__} with "
         f"{torch.get_num_threads()} threads, Python {platform.python_version()}, load average {load}"
     )
+
+
+def commit(root: Path = Path(__file__).resolve().parents[1]) -> str | None:
+    """The commit of the checkout at ``root`` (``+dirty`` with uncommitted changes), None
+    outside git."""
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short=12", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, capture_output=True, text=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+dirty" if dirty else "")
+
+
+def run_header() -> dict:
+    """The head of every result file: when (UTC), the command as typed from the repository
+    (``python bench/<script>.py ...``), the commit, and the machine (``describe``)."""
+    script = Path(sys.argv[0])
+    if script.is_absolute() or script.parent.name == "bench":
+        script = Path("bench") / script.name
+    return {
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "command": shlex.join(["python", str(script), *sys.argv[1:]]),
+        "commit": commit(),
+        "machine": describe(),
+    }

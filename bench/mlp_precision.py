@@ -12,13 +12,12 @@ init, so the difference is not flattered). Writes ``bench/results/mlp_precision.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import sys
 from pathlib import Path
 
 import torch
-from machine import describe
+from machine import run_header
 from timing import time_call
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -42,9 +41,7 @@ def main() -> None:
     log_base = torch.log_softmax(torch.randn(vertices, joints, generator=gen), dim=-1)
     rows_out = [measure(net, log_base, int(n), args.repeats, gen) for n in args.sizes.split(",")]
     doc = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": "python bench/mlp_precision.py " + " ".join(sys.argv[1:]),
-        "machine": describe(),
+        **run_header(),
         "bf16_native": bool(torch.ops.mkldnn._is_mkldnn_bf16_supported()),
         "rows": rows_out,
     }

@@ -30,7 +30,6 @@ Writes ``bench/results/<name>.json``, shaped ``{"config", "methods": {row: {"see
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import os
 import statistics
@@ -41,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import describe
+from machine import run_header
 from stats import compare_paired, fmt, mean_std
 
 from eva_engine.recipes import PRESETS, describe_presets
@@ -621,9 +620,7 @@ def main() -> None:
             }
             runs.setdefault(name, []).append(entry)
             doc = {
-                "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-                "command": "python bench/novel_pose.py " + " ".join(sys.argv[1:]),
-                "machine": describe(),
+                **run_header(),
                 "load_average": [round(x, 2) for x in os.getloadavg()],
                 "total_seconds": previous + time.perf_counter() - started,
                 "config": config,

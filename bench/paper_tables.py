@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime as dt
 import json
 import os
 import statistics
@@ -42,7 +41,7 @@ import time
 from pathlib import Path
 
 import torch
-from machine import describe
+from machine import run_header
 from stats import compare_paired, fmt, mean_std
 
 from eva_engine.recipes import METHODS, PRESETS, describe_presets
@@ -478,9 +477,7 @@ def main() -> None:
             entry = {"seed": seed, **run_one(ds, cfg, metrics, label)}
             runs.setdefault(method, []).append(entry)
             doc = {
-                "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-                "command": "python bench/paper_tables.py " + " ".join(sys.argv[1:]),
-                "machine": describe(),
+                **run_header(),
                 "load_average": [round(x, 2) for x in os.getloadavg()],
                 "total_seconds": previous + time.perf_counter() - started,
                 "config": config,

@@ -10,15 +10,12 @@ summary), and the training-frame metrics the job also measures. Writes
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import shlex
-import sys
 import time
 from pathlib import Path
 
 import torch
-from machine import describe
+from machine import run_header
 
 ROOT = Path(__file__).resolve().parents[1]
 VIDEOS = ROOT.parent / "shared" / "reference" / "videos"
@@ -65,9 +62,7 @@ def main() -> None:
     seconds["training_metrics"] = time.perf_counter() - start
     total = sum(seconds.values())
     doc = {
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "command": shlex.join(["python", *sys.argv]),
-        "machine": describe(),
+        **run_header(),
         "video": args.video,
         "options": options.model_dump(),
         "frames": len(ds),

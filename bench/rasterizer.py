@@ -24,7 +24,6 @@ memory <= 0.5 GB.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import math
 import os
@@ -38,7 +37,7 @@ import time
 from pathlib import Path
 
 import torch
-from machine import cpu_name
+from machine import cpu_name, run_header
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -486,8 +485,7 @@ def main() -> None:
             per_round.append(_load())
     summary = _summary(results)
     report = dict(
-        date=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        command=" ".join([_interpreter(), "bench/rasterizer.py", *sys.argv[1:]]),
+        **run_header(),
         machine=_machine(args.threads),
         omp_wait_policy=args.omp_wait_policy,
         load_average_at_start=load_start,

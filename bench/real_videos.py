@@ -34,7 +34,6 @@ A setting against the default: ``--set FIELD=VALUE ...`` (dotted train-config fi
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import math
 import sys
@@ -44,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import describe
+from machine import run_header
 
 from eva_engine.recipes import METHODS, PRESETS
 
@@ -399,9 +398,7 @@ def main() -> None:
     metrics = ImageMetrics()
     refinement = PoseRefinement(steps=args.refine_poses) if args.refine_poses else None
     doc = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": "python bench/real_videos.py " + " ".join(sys.argv[1:]),
-        "machine": describe(),
+        **run_header(),
         "config": {
             "frames": args.frames,
             "max_size": args.max_size,

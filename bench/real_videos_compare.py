@@ -19,11 +19,10 @@ deviation, otherwise "no difference". Writes ``<name>.json`` and ``<name>.md``.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
-import sys
 from pathlib import Path
 
+from machine import run_header
 from stats import compare_paired, fmt, mean_std
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -125,8 +124,7 @@ def main() -> None:
             f"the runs' seeds differ: before {seeds_b}, after {seeds_a}; give them in the same order"
         )
     doc = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": "python bench/real_videos_compare.py " + " ".join(sys.argv[1:]),
+        **run_header(),
         "method": args.method,
         "before_method": before_method,
         "before": args.before,

@@ -22,7 +22,6 @@ videos.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import statistics
 import sys
@@ -32,7 +31,7 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
-from machine import describe
+from machine import run_header
 from real_videos import DEFAULT_VIDEOS, RESULTS, preprocess, videos_or_skip
 
 SHIFTS_PX = (1, 2, 3, 4)
@@ -177,9 +176,7 @@ def main() -> None:
     work = args.work or data_dir() / "real_videos"
     metrics = ImageMetrics()
     doc = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": "python bench/region_sensitivity.py " + " ".join(sys.argv[1:]),
-        "machine": describe(),
+        **run_header(),
         "shifts_px": list(SHIFTS_PX),
         "blurs_px": list(BLURS_PX),
         "scores": args.scores,

@@ -12,16 +12,13 @@ Writes ``<name>.json`` and ``<name>.md``.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import io
 import json
-import shlex
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
-from machine import describe
+from machine import run_header
 from timing import time_call
 
 
@@ -100,9 +97,7 @@ def main() -> None:
     args = ap.parse_args()
     rows = [measure(args.avatar, args.size, t, args.repeats) for t in args.threads]
     doc = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": shlex.join(["python", *sys.argv]),
-        "machine": describe(),
+        **run_header(),
         "note": args.note,
         "rows": rows,
     }

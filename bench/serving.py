@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import dataclasses
-import datetime as dt
 import json
 import multiprocessing
 import os
@@ -48,7 +47,7 @@ import threading
 import time
 from pathlib import Path
 
-from machine import describe
+from machine import run_header
 
 from jobs.options import MIN_FRAMES
 from jobs.runner import JobProcess, job_processes
@@ -162,9 +161,7 @@ def header(title: str, report: dict, note: str | None) -> list[str]:
 
 def base_report(args) -> dict:
     return {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": "python bench/serving.py " + " ".join(sys.argv[1:]),
-        "machine": describe(),
+        **run_header(),
         "note": args.note,
     }
 

@@ -12,16 +12,12 @@ the sheet (full frame, face, both hands for six frames) from the first ``bench``
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-import torch
-from machine import cpu_name
+from machine import run_header
 
 from eva_engine.body import load_body_model
 from eva_engine.data import load_dataset
@@ -86,10 +82,7 @@ def main() -> None:
                     sheet_done = True
 
     info = {
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "command": "python bench/synth.py " + " ".join(sys.argv[1:]),
-        "machine": f"{cpu_name()}, torch {torch.__version__} with {torch.get_num_threads()} threads, "
-        f"{platform.platform()}",
+        **run_header(),
         "model_load_s": round(load_s, 2),
         "results": rows,
     }

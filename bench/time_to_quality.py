@@ -17,13 +17,12 @@ Writes ``bench/results/<name>.json``, ``<name>.md`` and ``<name>.png``.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import sys
 from pathlib import Path
 
 import torch
-from machine import describe
+from machine import run_header
 from paper_tables import dataset_for
 from stats import fmt, mean_std
 
@@ -171,7 +170,7 @@ def main() -> None:
     path = args.out / f"{args.name}.json"
     if args.merge:
         docs = [json.loads((args.out / f"{n}.json").read_text()) for n in args.merge]
-        doc = {**docs[0], "command": "python bench/time_to_quality.py " + " ".join(sys.argv[1:])}
+        doc = {**docs[0], "command": run_header()["command"]}
         doc["runs"] = [r for d in docs for r in d["runs"]]
         doc["config"] = {**docs[0]["config"], "seeds": sorted({r["seed"] for r in doc["runs"]})}
         doc["machine"] = " / ".join(dict.fromkeys(d["machine"] for d in docs))
@@ -195,9 +194,7 @@ def main() -> None:
     if doc.get("config", config) | {"seeds": args.seeds} != config:
         raise SystemExit(f"{path} holds runs of other settings ({doc['config']}); pass another --name")
     doc.update(
-        date=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        command="python bench/time_to_quality.py " + " ".join(sys.argv[1:]),
-        machine=describe(),
+        **run_header(),
         config=config,
         note=args.note,
     )

@@ -20,14 +20,13 @@ keyed by dataset and preset) and ``bench/results/train.md``. Target (2 CPU cores
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import sys
 import time
 from pathlib import Path
 
 import torch
-from machine import describe
+from machine import commit, run_header
 
 from eva_engine.recipes import METHODS, PRESETS, describe_methods, describe_presets
 from eva_engine.synth_names import SYNTH_PRESETS, SYNTH_SIZES, describe_synth_sizes
@@ -135,10 +134,7 @@ def main() -> None:
         save_avatar(result.avatar, args.out, result.record(config, preset=args.preset), result.frames(ds))
     n = config.iterations
     entry = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": "python bench/train.py " + " ".join(sys.argv[1:]),
-        "machine": describe(),
-        "commit": commit(),
+        **run_header(),
         "label": args.label,
         "set": args.set,
         "dataset": str(path),
@@ -215,23 +211,6 @@ def profile_lines(p: dict) -> list[str]:
             for o in p["ops"]
         ),
     ]
-
-
-def commit(root: Path = Path(__file__).resolve().parents[1]) -> str | None:
-    """The commit of the checkout at ``root`` (``+dirty`` with uncommitted changes), None
-    outside git."""
-    import subprocess
-
-    try:
-        head = subprocess.run(
-            ["git", "rev-parse", "--short=12", "HEAD"], cwd=root, capture_output=True, text=True, check=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, capture_output=True, text=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    return head + ("+dirty" if dirty else "")
 
 
 def save_runs(new: dict) -> None:
