@@ -7,8 +7,8 @@ time axis (``fit.fit_sequence`` sees frames, not time).
 2. The initial estimate (``initial.initial_estimate``), then the staged fit (``fit.fit_sequence``).
 3. Frames where a hand was not found get that hand's pose interpolated from the neighbouring
    detections (``hands.fill_hand_gaps``), with a per-frame confidence.
-4. The expression is smoothed over time (a Gaussian of ``FitConfig.expression_sigma`` seconds):
-   per-frame face landmarks jitter by a pixel, faces do not.
+4. The expression may be smoothed over time (a Gaussian of ``FitConfig.expression_sigma``
+   seconds; off by default, since a blink lasts only a few frames).
 """
 
 from __future__ import annotations

@@ -145,8 +145,10 @@ class FitConfig:
     sigma_2d: float = 0.1
     sigma_3d: float = 0.1
     sigma_z: float = 0.03
-    expression_sigma: float = 0.04
-    """Seconds: the Gaussian that smooths the fitted expression over time (``clip.fit_clip``)."""
+    expression_sigma: float = 0.0
+    """Seconds: the Gaussian that smooths the fitted expression over time (``clip.fit_clip``; 0:
+    none). Off: at a video's own frame rate, 0.04 s flattened blinks and cut the rendered mouth's
+    range by a sixth (``docs/alignment.md``, "The expression's time smoothing")."""
     transl_smooth: float = 10.0
     """Weight of frame-to-frame translation (m²) against rotation (rad²) in the smoothness term:
     10 puts 1 cm of jitter on a par with ~1.8 degrees."""
