@@ -39,8 +39,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from eva_engine import paths
 from eva_engine.body.keypoints import KeypointRegressor
 from eva_engine.body.model import SIDED_PART_NAMES, BodyModel
+from eva_engine.geometry import project_points, to_camera
+from eva_engine.render import intrinsics, look_at
+from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
+from eva_engine.synth.texture import Look, apply_look
 
 logger = logging.getLogger(__name__)
 
@@ -124,7 +129,6 @@ def face_oval() -> set[int]:
 def head_camera(model: BodyModel, yaw_deg: float, pitch_deg: float, size: int) -> tuple[Tensor, Tensor]:
     """(K, viewmat) of a close-up of the rest-pose face: 0.6 m away, turned by yaw / pitch about
     the face's centre, the head filling most of the image."""
-    from eva_engine.render import intrinsics, look_at
 
     with torch.no_grad():
         kp = model.keypoints(model(model.default_params(1)))[0]
@@ -149,8 +153,6 @@ def render_face(
     """The painted face from each (yaw, pitch) view, neutral or with ``expression`` ({facial
     action: value}): dicts with rgb [H, W, 3] uint8, face_id [H, W], K, viewmat, the rendered
     vertices [V, 3] and the neutral ones, ``rest`` [V, 3] (the same without an expression)."""
-    from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
-    from eva_engine.synth.texture import Look, apply_look
 
     params = model.params_from_pose({"expression": expression or {}})
     with torch.no_grad():
@@ -246,7 +248,6 @@ def build_correspondence(
 ) -> FaceMeshCorrespondence:
     """The correspondence of ``model`` (module docstring). Needs the mesh renderer (EGL) and
     MediaPipe; takes a few seconds."""
-    from eva_engine.geometry import project_points, to_camera
 
     faces = model.faces.cpu().numpy()
     face_part = model.sided_part_ids.cpu().numpy()
@@ -321,7 +322,6 @@ def _cache_key(model: BodyModel) -> str:
 def load_correspondence(model: BodyModel, cache_dir: Path | None = None) -> FaceMeshCorrespondence | None:
     """The cached correspondence of ``model`` (built and cached on first use), or None where it
     cannot be made (a model without the painted-face renderer, i.e. not Anny; no MediaPipe)."""
-    from eva_engine import paths
 
     if model.name != "anny":
         return None

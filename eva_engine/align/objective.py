@@ -8,6 +8,7 @@ import dataclasses
 import torch
 from torch import Tensor
 
+from eva_engine.align.face_mesh import OPENING_PAIRS, load_correspondence
 from eva_engine.align.hands import articulation_prior
 from eva_engine.align.robust import weighted_gm, z_only_gm
 from eva_engine.align.silhouette import (
@@ -26,6 +27,7 @@ from eva_engine.align.targets import (
     keypoint_mask,
 )
 from eva_engine.body import KEYPOINT_GROUPS, PART_NAMES, BodyModel, BodyParams
+from eva_engine.body.keypoints import KeypointRegressor
 from eva_engine.body.kinematics import axis_angle_to_matrix
 from eva_engine.geometry import MIN_DEPTH, mean_neighbour_distance, project_points, to_camera
 from eva_engine.progress import Progress, ProgressEvent
@@ -73,8 +75,6 @@ class FitProblem:
         self.opening_pairs = None  # [2, Q] positions in those landmark indices
         dense = config.dense_face and targets.face_mesh is not None
         if dense and any(s.w_face_mesh > 0 or s.w_openings > 0 or s.face_z > 0 for s in config.stages):
-            from eva_engine.align.face_mesh import OPENING_PAIRS, load_correspondence
-
             corr = load_correspondence(model)
             if corr is not None:
                 self.face_mesh = corr.regressor(model)
@@ -256,7 +256,6 @@ class FitProblem:
 
 
 def _silhouette_problem(model: BodyModel, masks: Tensor, count: int):
-    from eva_engine.body.keypoints import KeypointRegressor
 
     vertices = silhouette_vertices(model.num_vertices, count).tolist()
     names = [f"outline_{v}" for v in vertices]

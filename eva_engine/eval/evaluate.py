@@ -49,6 +49,9 @@ from eva_engine.body import BodyParams
 from eva_engine.data.dataset import DatasetLike
 from eva_engine.data.resampled import ResampledDataset
 from eva_engine.metrics import LPIPS, crop_box, mask_bbox, psnr, ssim
+from eva_engine.train.losses import composite_target
+from eva_engine.train.pose_correction import PoseCorrectionConfig, refine_poses
+from eva_engine.train.trainer import load_training_frames
 
 REGIONS = ("full", "hand", "face")
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
@@ -251,7 +254,6 @@ def evaluate_avatar(
     """Evaluate ``avatar`` on ``dataset.splits[split]`` (see the module docstring).
     extra_regions: frame index -> {``EXTRA_REGION_OF_MASK`` name: [H, W] coverage}; every: score
     every k-th frame of the split only (its first, then every k-th)."""
-    from eva_engine.train.losses import composite_target
 
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")
@@ -339,9 +341,6 @@ def refined_params(
 ) -> BodyParams:
     """``params`` (all frames) with the rows ``indices`` refined against their images, the avatar
     frozen (``PoseRefinement``); the other rows unchanged."""
-    from eva_engine.train.losses import composite_target
-    from eva_engine.train.pose_correction import PoseCorrectionConfig, refine_poses
-    from eva_engine.train.trainer import load_training_frames
 
     device = avatar.shape.device
     frames = load_training_frames(ResampledDataset(dataset, refinement.image_scale), indices)

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from eva_engine.body import load_body_model
 from eva_engine.body.params import BodyParams
 from eva_engine.data import write_video
 from eva_engine.render.camera import intrinsics, look_at
@@ -171,8 +172,6 @@ def render_hard_video(
     ``out/hard_video.json``."""
     import cv2
 
-    from eva_engine.data import write_video
-
     if isinstance(case, str):
         case = {**HARD_CASES, **REFUSAL_CASES}.get(case)
     if case is None:
@@ -180,8 +179,6 @@ def render_hard_video(
     if frames < 1 or size < 16:
         raise ValueError(f"frames must be >= 1 and size >= 16, got {frames} and {size}")
     if model is None:
-        from eva_engine.body import load_body_model
-
         model = load_body_model("anny")
     out = Path(out)
     truth_dir = out / "truth"

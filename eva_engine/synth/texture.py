@@ -17,6 +17,10 @@ import dataclasses
 import numpy as np
 import torch
 
+from eva_engine.body.anny_backend import SEGMENT_LABELS
+from eva_engine.body.rest_axes import rest_axes
+from eva_engine.geometry import vertex_normals
+
 SKIN_TONES = ((0.86, 0.68, 0.57), (0.72, 0.52, 0.39), (0.58, 0.40, 0.28), (0.40, 0.26, 0.18))
 SHIRT_COLORS = (
     (0.05, 0.42, 0.40),
@@ -135,8 +139,6 @@ def face_segments(model) -> np.ndarray:
     """Anny segment label per face [F] (index into ``anny_backend.SEGMENT_LABELS``)."""
     from anny.face_segmentation import get_face_segmentation_mask
 
-    from eva_engine.body.anny_backend import SEGMENT_LABELS
-
     labels = np.zeros(model.faces.shape[0], np.int64)
     for i, name in enumerate(SEGMENT_LABELS):
         labels[get_face_segmentation_mask(model.anny, [name]).cpu().numpy()] = i
@@ -151,7 +153,6 @@ def _anatomy(
     face_label: np.ndarray,
     palm_dir: dict[str, np.ndarray],
 ) -> _Anatomy:
-    from eva_engine.body.anny_backend import SEGMENT_LABELS
 
     lab = {n: i for i, n in enumerate(SEGMENT_LABELS)}
     faces = model.faces.cpu().numpy()
@@ -198,7 +199,6 @@ def paint(
     with normals [N, 3], Anny segment label [N] and dominant bone index [N] (into
     ``model.joint_names``). Each region is painted on its own subset of points (the atlas has
     millions of texels)."""
-    from eva_engine.body.anny_backend import SEGMENT_LABELS
 
     lab = {n: i for i, n in enumerate(SEGMENT_LABELS)}
     names = model.joint_names
@@ -411,9 +411,6 @@ def bake_texture(
     Anny's UV atlas. ``face_label``: :func:`face_segments` if already computed. Returns uint8
     [size, size, 4]: albedo and gloss."""
     from scipy import ndimage
-
-    from eva_engine.body.rest_axes import rest_axes
-    from eva_engine.geometry import vertex_normals
 
     with torch.no_grad():
         rest_params = model.default_params(1)

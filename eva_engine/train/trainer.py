@@ -21,6 +21,7 @@ from torch import Tensor
 
 from eva_engine.avatar import Avatar, AvatarFrames, Camera, TrainingRecord
 from eva_engine.avatar.coverage import Coverage
+from eva_engine.body import load_body_model
 from eva_engine.body.model import PART_NAMES, BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.data.dataset import Dataset, DatasetLike
@@ -406,8 +407,6 @@ def train_avatar(
     if progress:
         progress(ProgressEvent("setup", 0, config.iterations, "setting up training", elapsed=0.0))
     if body is None:
-        from eva_engine.body import load_body_model
-
         name = dataset.meta.body_model
         if name is None:
             raise TrainingError("the dataset names no body model (meta.body_model)")
