@@ -10,6 +10,7 @@ import roma
 import torch
 from torch import Tensor
 
+from eva_engine.align.hands import SIDES, hand_root_joints
 from eva_engine.align.objective import FitProblem
 from eva_engine.align.stages import FitConfig, FitStage
 from eva_engine.align.targets import POSE_BODY, POSE_FACE, FitTargets, keypoint_mask
@@ -85,7 +86,6 @@ def orient_hands(model: BodyModel, params: BodyParams, targets: FitTargets, dept
     """``params`` with each detected hand's wrist joint turned so that the model's palm points
     (wrist, knuckles; camera frame, relative to the wrist) best align in rotation with the
     detected palm lifted to 3D by MediaPipe's relative depths (Kabsch). Other frames unchanged."""
-    from eva_engine.align.hands import SIDES, hand_root_joints
 
     out = params.map(lambda t: t.detach().clone())
     with torch.no_grad():

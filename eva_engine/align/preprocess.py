@@ -31,8 +31,10 @@ from eva_engine.align.input_checks import InputChecks, others_found, person_heig
 from eva_engine.align.reprojection import reprojection_error
 from eva_engine.align.stages import FitConfig
 from eva_engine.align.targets import FitTargets
-from eva_engine.body import KEYPOINT_NAMES, BodyModel
+from eva_engine.body import KEYPOINT_NAMES, BodyModel, load_body_model
 from eva_engine.body.params import BodyParams
+from eva_engine.data import DatasetMeta, DatasetWriter, ParamNames, VideoReadOptions, iter_frames, read_video
+from eva_engine.data.region_masks import region_masks
 from eva_engine.progress import Progress, ProgressEvent
 
 
@@ -81,7 +83,6 @@ class PreprocessConfig:
     def read_options(self, max_frames: int | None, max_size: int | None):
         """How to read the video (``VideoReadOptions``): this config's sampling and source limits,
         ``max_frames`` kept frames at ``max_size`` pixels a side."""
-        from eva_engine.data import VideoReadOptions
 
         return VideoReadOptions(
             self.every, max_frames, max_size, demuxer=self.demuxer, max_side=self.max_video_side
@@ -217,8 +218,6 @@ def preprocess_video(
 ) -> PreprocessReport:
     """Turn one video of one person into a dataset at ``out_dir`` (written atomically).
     ``progress`` hears stages "decode", "detect", "align", "regions" and "write"."""
-    from eva_engine.body import load_body_model
-    from eva_engine.data import read_video
 
     config = config or PreprocessConfig()
     seconds: dict[str, float] = {}
@@ -266,7 +265,6 @@ def _detect_one_person(video, clip, config: PreprocessConfig, progress, seconds:
     """Detect the person in every frame and refuse a video no avatar can come from
     (``input_checks``): (the detections of the kept frames, their indices, the detection rates
     over all frames)."""
-    from eva_engine.data import iter_frames
 
     started = time.perf_counter()
     h, w = clip.frames.shape[1:3]
@@ -331,7 +329,6 @@ def _fit_body(model, det, targets, timestamps, config: PreprocessConfig, progres
 def _region_masks(model, det, body: _BodyFit, K, viewmat, size, progress, seconds: dict) -> list:
     """Each frame's hand and face masks, scored where the detector found the region (a rejected
     hand was not found)."""
-    from eva_engine.data.region_masks import region_masks
 
     started = time.perf_counter()
     person = [det.person_mask(j, size) for j in range(len(det.masks))]
@@ -348,7 +345,6 @@ def _write_dataset(
     video, out_dir, clip, det, keep, body: _BodyFit, K, viewmat, rates, model, config, progress, overwrite
 ):
     """The dataset's frames, masks, cameras, splits, parameters and keypoints: its folder."""
-    from eva_engine.data import DatasetMeta, DatasetWriter, ParamNames
 
     h, w = clip.frames.shape[1:3]
     fitted = body.params is not None

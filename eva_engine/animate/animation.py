@@ -27,6 +27,7 @@ from eva_engine.avatar.framing import framed_camera
 from eva_engine.avatar.model import Avatar
 from eva_engine.avatar.render_spec import render_image
 from eva_engine.body.params import BodyParams
+from eva_engine.data import write_video
 from eva_engine.progress import Progress, ProgressEvent
 from eva_engine.render.camera import Camera
 from eva_engine.render.view import camera_from_spec
@@ -138,7 +139,6 @@ def animate(
 
 def write_animation(path: str | Path, animation: Animation, quality: int = 18) -> Path:
     """Encode ``animation`` as H.264 (``.mp4``; PyAV, constant quality ``quality``)."""
-    from eva_engine.data import write_video
 
     path = Path(path)
     if path.suffix.lower() != ".mp4":

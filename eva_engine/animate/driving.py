@@ -21,9 +21,11 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from eva_engine.align import PreprocessConfig, PreprocessError, preprocess_video
 from eva_engine.avatar.render_spec import RenderInputError, RenderPose, check_pose_ranges
 from eva_engine.body.model import BodyModel
-from eva_engine.body.params import BodyParams
+from eva_engine.body.params import BodyParams, InvalidPoseError
+from eva_engine.data import DatasetError, VideoError, load_dataset
 from eva_engine.progress import Progress
 
 MAX_POSES = 100_000
@@ -83,7 +85,6 @@ class DrivingSequence:
 def driving_from_poses(doc: dict | list, body: BodyModel) -> DrivingSequence:
     """A JSON pose sequence (``PoseSequence`` or a bare list of poses) -> its sequence. Raises
     ``DrivingError`` naming what is wrong (schema errors, unknown joint or expression names)."""
-    from eva_engine.body.params import InvalidPoseError
 
     if isinstance(doc, list):
         doc = {"poses": doc}
@@ -112,7 +113,6 @@ def _first_errors(err: ValidationError, count: int = 3) -> str:
 def driving_from_dataset(path: str | Path, body: BodyModel, dropped: int = 0) -> DrivingSequence:
     """A dataset folder with fitted params (``eva preprocess``) -> its sequence, all frames in
     time order, with the dataset's cameras and images."""
-    from eva_engine.data import DatasetError, load_dataset
 
     try:
         ds = load_dataset(path)
@@ -157,8 +157,6 @@ def driving_from_video(
     default a temporary folder, removed after. ``progress``: as in
     ``preprocess_video``. Raises ``DrivingError`` for an unreadable video or one without a person.
     """
-    from eva_engine.align import PreprocessConfig, PreprocessError, preprocess_video
-    from eva_engine.data import VideoError
 
     config = config or PreprocessConfig()
     if not config.fit:
