@@ -129,7 +129,6 @@ def face_oval() -> set[int]:
 def head_camera(model: BodyModel, yaw_deg: float, pitch_deg: float, size: int) -> tuple[Tensor, Tensor]:
     """(K, viewmat) of a close-up of the rest-pose face: 0.6 m away, turned by yaw / pitch about
     the face's centre, the head filling most of the image."""
-
     with torch.no_grad():
         kp = model.keypoints(model(model.default_params(1)))[0]
     names = list(model.keypoint_names)
@@ -153,7 +152,6 @@ def render_face(
     """The painted face from each (yaw, pitch) view, neutral or with ``expression`` ({facial
     action: value}): dicts with rgb [H, W, 3] uint8, face_id [H, W], K, viewmat, the rendered
     vertices [V, 3] and the neutral ones, ``rest`` [V, 3] (the same without an expression)."""
-
     params = model.params_from_pose({"expression": expression or {}})
     with torch.no_grad():
         rest = model(model.default_params(1)).vertices[0]
@@ -248,7 +246,6 @@ def build_correspondence(
 ) -> FaceMeshCorrespondence:
     """The correspondence of ``model`` (module docstring). Needs the mesh renderer (EGL) and
     MediaPipe; takes a few seconds."""
-
     faces = model.faces.cpu().numpy()
     face_part = model.sided_part_ids.cpu().numpy()
     face_index = SIDED_PART_NAMES.index("face")
@@ -322,7 +319,6 @@ def _cache_key(model: BodyModel) -> str:
 def load_correspondence(model: BodyModel, cache_dir: Path | None = None) -> FaceMeshCorrespondence | None:
     """The cached correspondence of ``model`` (built and cached on first use), or None where it
     cannot be made (a model without the painted-face renderer, i.e. not Anny; no MediaPipe)."""
-
     if model.name != "anny":
         return None
     own = getattr(getattr(model, "config", None), "cache_dir", None)  # where this model's cache is

@@ -86,7 +86,6 @@ def orient_hands(model: BodyModel, params: BodyParams, targets: FitTargets, dept
     """``params`` with each detected hand's wrist joint turned so that the model's palm points
     (wrist, knuckles; camera frame, relative to the wrist) best align in rotation with the
     detected palm lifted to 3D by MediaPipe's relative depths (Kabsch). Other frames unchanged."""
-
     out = params.map(lambda t: t.detach().clone())
     with torch.no_grad():
         posed = model(out)

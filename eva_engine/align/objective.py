@@ -256,7 +256,6 @@ class FitProblem:
 
 
 def _silhouette_problem(model: BodyModel, masks: Tensor, count: int):
-
     vertices = silhouette_vertices(model.num_vertices, count).tolist()
     names = [f"outline_{v}" for v in vertices]
     terms = {n: {v: 1.0} for n, v in zip(names, vertices, strict=True)}

@@ -83,7 +83,6 @@ class PreprocessConfig:
     def read_options(self, max_frames: int | None, max_size: int | None):
         """How to read the video (``VideoReadOptions``): this config's sampling and source limits,
         ``max_frames`` kept frames at ``max_size`` pixels a side."""
-
         return VideoReadOptions(
             self.every, max_frames, max_size, demuxer=self.demuxer, max_side=self.max_video_side
         )
@@ -218,7 +217,6 @@ def preprocess_video(
 ) -> PreprocessReport:
     """Turn one video of one person into a dataset at ``out_dir`` (written atomically).
     ``progress`` hears stages "decode", "detect", "align", "regions" and "write"."""
-
     config = config or PreprocessConfig()
     seconds: dict[str, float] = {}
     started = time.perf_counter()
@@ -265,7 +263,6 @@ def _detect_one_person(video, clip, config: PreprocessConfig, progress, seconds:
     """Detect the person in every frame and refuse a video no avatar can come from
     (``input_checks``): (the detections of the kept frames, their indices, the detection rates
     over all frames)."""
-
     started = time.perf_counter()
     h, w = clip.frames.shape[1:3]
     detect_long = max(clip.source_size)
@@ -329,7 +326,6 @@ def _fit_body(model, det, targets, timestamps, config: PreprocessConfig, progres
 def _region_masks(model, det, body: _BodyFit, K, viewmat, size, progress, seconds: dict) -> list:
     """Each frame's hand and face masks, scored where the detector found the region (a rejected
     hand was not found)."""
-
     started = time.perf_counter()
     person = [det.person_mask(j, size) for j in range(len(det.masks))]
     present = det.regions_found()
@@ -345,7 +341,6 @@ def _write_dataset(
     video, out_dir, clip, det, keep, body: _BodyFit, K, viewmat, rates, model, config, progress, overwrite
 ):
     """The dataset's frames, masks, cameras, splits, parameters and keypoints: its folder."""
-
     h, w = clip.frames.shape[1:3]
     fitted = body.params is not None
     fps = clip.fps / config.every if clip.fps > 0 else 25.0

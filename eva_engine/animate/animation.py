@@ -139,7 +139,6 @@ def animate(
 
 def write_animation(path: str | Path, animation: Animation, quality: int = 18) -> Path:
     """Encode ``animation`` as H.264 (``.mp4``; PyAV, constant quality ``quality``)."""
-
     path = Path(path)
     if path.suffix.lower() != ".mp4":
         raise ValueError(f"an animation is written as .mp4, got {path.name}")

@@ -85,7 +85,6 @@ class DrivingSequence:
 def driving_from_poses(doc: dict | list, body: BodyModel) -> DrivingSequence:
     """A JSON pose sequence (``PoseSequence`` or a bare list of poses) -> its sequence. Raises
     ``DrivingError`` naming what is wrong (schema errors, unknown joint or expression names)."""
-
     if isinstance(doc, list):
         doc = {"poses": doc}
     try:
@@ -113,7 +112,6 @@ def _first_errors(err: ValidationError, count: int = 3) -> str:
 def driving_from_dataset(path: str | Path, body: BodyModel, dropped: int = 0) -> DrivingSequence:
     """A dataset folder with fitted params (``eva preprocess``) -> its sequence, all frames in
     time order, with the dataset's cameras and images."""
-
     try:
         ds = load_dataset(path)
     except DatasetError as err:
@@ -157,7 +155,6 @@ def driving_from_video(
     default a temporary folder, removed after. ``progress``: as in
     ``preprocess_video``. Raises ``DrivingError`` for an unreadable video or one without a person.
     """
-
     config = config or PreprocessConfig()
     if not config.fit:
         raise DrivingError("a driving video must be aligned with the body model (fit=True)")

@@ -254,7 +254,6 @@ def evaluate_avatar(
     """Evaluate ``avatar`` on ``dataset.splits[split]`` (see the module docstring).
     extra_regions: frame index -> {``EXTRA_REGION_OF_MASK`` name: [H, W] coverage}; every: score
     every k-th frame of the split only (its first, then every k-th)."""
-
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")
     indices = list(dataset.splits.get(split, []))[::every]
@@ -341,7 +340,6 @@ def refined_params(
 ) -> BodyParams:
     """``params`` (all frames) with the rows ``indices`` refined against their images, the avatar
     frozen (``PoseRefinement``); the other rows unchanged."""
-
     device = avatar.shape.device
     frames = load_training_frames(ResampledDataset(dataset, refinement.image_scale), indices)
     targets = torch.stack(

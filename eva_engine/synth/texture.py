@@ -199,7 +199,6 @@ def paint(
     with normals [N, 3], Anny segment label [N] and dominant bone index [N] (into
     ``model.joint_names``). Each region is painted on its own subset of points (the atlas has
     millions of texels)."""
-
     lab = {n: i for i, n in enumerate(SEGMENT_LABELS)}
     names = model.joint_names
     col = np.tile(np.asarray(look.skin), (len(p), 1))
