@@ -1,6 +1,7 @@
 """The demo scene: body model + rasterizer end to end, and the surfel helpers it is built from."""
 
 import numpy as np
+import pytest
 import torch
 
 from eva_engine.demo import PART_COLORS, render_demo, surface_gaussians
@@ -54,6 +55,7 @@ def test_render_demo_shows_the_body_with_its_parts(anny_model):
         assert ((chroma - ref).abs().amax(-1) < 0.03).any()
 
 
+@pytest.mark.slow
 def test_eva_demo_runs_the_product_end_to_end(tmp_path):
     """The README's main command, shortened: video -> eva serve + eva worker -> renders via the API."""
     from PIL import Image
