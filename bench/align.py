@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import run_header
+from machine import portable_path, run_header
 
 from eva_engine.align import (
     FitTargets,
@@ -113,7 +113,7 @@ def synthetic(model, frames: int, dataset: Path | None) -> dict:
     }
 
     out = {
-        "dataset": str(dataset),
+        "dataset": portable_path(dataset),
         "frames": len(order),
         "image_size": list(ds.image_size),
         "detection_rates": det.rates(),
@@ -247,7 +247,7 @@ def table3(model, dataset: Path, preset_name: str, iterations: int | None, image
         rows[name] = ev
         print(name, {k: (v.psnr, v.ssim, v.lpips_vgg) for k, v in ev.regions.items()}, flush=True)
     return {
-        "dataset": str(dataset),
+        "dataset": portable_path(dataset),
         "preset": preset_name,
         "iterations": config.iterations,
         "image_scale": image_scale,

@@ -49,6 +49,22 @@ def commit(root: Path = Path(__file__).resolve().parents[1]) -> str | None:
     return head + ("+dirty" if dirty else "")
 
 
+def portable_path(path: str | Path) -> str:
+    """``path`` as a result file should name it: relative to the repository when inside it, as
+    ``$EVA_DATA_DIR/...`` when inside the data dir, else unchanged (another machine has neither
+    this checkout's absolute path nor its data dir's)."""
+    from eva_engine.paths import data_dir  # torch-free, but first_contact.py runs before install
+
+    path = Path(path).resolve()
+    repo = Path(__file__).resolve().parents[1]
+    if path.is_relative_to(repo):
+        return str(path.relative_to(repo))
+    data = data_dir().resolve()
+    if path.is_relative_to(data):
+        return str(Path("$EVA_DATA_DIR") / path.relative_to(data))
+    return str(path)
+
+
 def run_header() -> dict:
     """The head of every result file: when (UTC), the command as typed from the repository
     (``python bench/<script>.py ...``), the commit, and the machine (``describe``)."""
