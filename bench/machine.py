@@ -25,12 +25,16 @@ def cpu_name() -> str:
 def describe() -> str:
     """One line: CPU, cores, torch and its threads, Python, load average (timings are noisy
     when other work shares the machine)."""
-    import torch  # here, not at the top: first_contact.py runs before torch is installed
-
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    try:
+        import torch  # here, not at the top: first_contact.py runs before torch is installed
+    except ImportError:
+        runtime = "no torch"
+    else:
+        runtime = f"torch {torch.__version__} with {torch.get_num_threads()} threads"
     return (
-        f"{cpu_name()}, {os.cpu_count()} logical CPUs, torch {torch.__version__} with "
-        f"{torch.get_num_threads()} threads, Python {platform.python_version()}, load average {load}"
+        f"{cpu_name()}, {os.cpu_count()} logical CPUs, {runtime}, Python {platform.python_version()}, "
+        f"load average {load}"
     )
 
 
