@@ -6,7 +6,8 @@
 An entry is a top-level folder, or the top-level files that share a stem (``align.json``,
 ``align.md``; a sheet ``real_videos_before_hybrik_taiji.jpg`` joins ``real_videos_before``). What
 it is: the first heading of its Markdown (a folder's ``README.md``, else its first ``.md``). Quoted
-by: the docs (``README.md``, ``docs/*.md``) that name one of its files or the folder. An entry no
+by: the docs (``README.md``, ``docs/*.md``) that name one of its files, its stem (if it has a
+``_``) or the folder, brace groups spelled out. An entry no
 doc quotes is an input of another (per-seed runs merged into a table) or superseded: git history
 keeps what is moved out.
 """
@@ -62,12 +63,31 @@ def what_it_is(paths: list[Path]) -> str:
     return heading(mds[0]) if mds else ""
 
 
+BRACES = re.compile(r"[\w./-]*\{[^{}\s`]*\}[\w./{},-]*")
+
+
+def expand_braces(text: str) -> str:
+    """``text`` with every shell-style brace group spelled out, appended: the docs name per-seed
+    files as ``real_videos_expr_seed{0,1,2}`` or ``blink_sweep_{product,eva}.md``."""
+
+    def expand(word: str) -> list[str]:
+        m = re.search(r"\{([^{}]*)\}", word)
+        if m is None:
+            return [word]
+        head, tail = word[: m.start()], word[m.end() :]
+        return [w for alt in m.group(1).split(",") for w in expand(head + alt + tail)]
+
+    words = [w for token in BRACES.findall(text) for w in expand(token)]
+    return text + "\n" + "\n".join(words)
+
+
 def quoted_by(name: str, paths: list[Path], docs: dict[str, str]) -> list[str]:
     """The docs whose text names one of ``paths`` (by file name) or the folder ``name``."""
     if name.endswith("/"):
         pattern = re.compile(rf"(?<![\w-]){re.escape(name)}")
     else:
-        names = "|".join(re.escape(p.name) for p in paths)
+        # By file name, or by the bare stem where it cannot be a word of prose (``_`` in it).
+        names = "|".join(re.escape(p.name) for p in paths) + (f"|{re.escape(name)}" if "_" in name else "")
         pattern = re.compile(rf"(?<![\w-])(?:{names})(?![\w-])")
     return [doc for doc, text in docs.items() if pattern.search(text)]
 
@@ -75,7 +95,7 @@ def quoted_by(name: str, paths: list[Path], docs: dict[str, str]) -> list[str]:
 def index_markdown(root: Path = ROOT) -> str:
     results = root / "bench" / "results"
     docs = {
-        str(p.relative_to(root)): p.read_text(errors="replace")
+        str(p.relative_to(root)): expand_braces(p.read_text(errors="replace"))
         for pattern in DOCS
         for p in sorted(root.glob(pattern))
     }
