@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import run_header
+from machine import header_line, run_header
 
 RESULTS = Path(__file__).resolve().parent / "results" / "expressions"
 LIDS = ((159, 145), (386, 374))
@@ -192,7 +192,7 @@ def markdown(doc: dict) -> str:
     lines = [
         "# Lid gap along the blink action",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- machine: {doc['machine']}",
         "",
         "Signed lid gap (lower minus upper landmark, 159-145 and 386-374) over the eye-corner",

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from hard_inputs import FRAMES, claim, restore_frames, score
-from machine import describe, run_header
+from machine import describe, header_line, run_header
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE = "closeup"
@@ -162,7 +162,7 @@ def report(args) -> None:
     lines = [
         "# The close-up hard case: which lever moves it",
         "",
-        f"- date: {header['date']}; command: `{command}`; commit {header['commit']}",
+        header_line(header),
         "- runs: `python bench/closeup_levers.py --seed 0` (two processes of 1 thread at once on the "
         "2 cores: the times are inflated by that sharing)",
         f"- machine: {runs[0]['machine'] if runs else describe()}",

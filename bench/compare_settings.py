@@ -20,7 +20,7 @@ import json
 import statistics
 from pathlib import Path
 
-from machine import run_header
+from machine import header_line, run_header
 from paper_tables import merge, paired_regions, trained_on
 from stats import compare_paired, mean_std
 
@@ -48,7 +48,7 @@ def markdown(base_name: str, base: dict, settings: dict[str, dict], header: dict
     lines = [
         "# Training settings against the base, paired over seeds",
         "",
-        f"- date: {header['date']}; command: `{header['command']}`; commit {header['commit']}",
+        header_line(header),
         f"- machine: {base['machine']}",
         *(
             f"- machine of `{name}`: {doc['machine']} (not the base's: its seconds do not compare)"

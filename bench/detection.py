@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from machine import run_header
+from machine import header_line, run_header
 from real_videos import DEFAULT_VIDEOS, frame_count, videos_or_skip
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -41,7 +41,7 @@ def markdown(doc: dict) -> str:
     lines = [
         "# Detection rates by the detector's frame size",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- machine: {doc['machine']}",
         "- MediaPipe Holistic 0.10.21 (model_complexity 1, video mode, refined face); each size gets "
         "the same frames, resized so the long side is at most that size (never upscaled). "

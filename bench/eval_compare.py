@@ -15,7 +15,7 @@ import argparse
 import json
 from pathlib import Path
 
-from machine import run_header
+from machine import header_line, run_header
 from stats import compare_paired, fmt, mean_std
 
 LOWER_IS_BETTER = {"psnr": False, "ssim": False, "lpips_vgg": True, "lpips_alex": True}
@@ -73,7 +73,7 @@ def main() -> None:
     lines = [
         f"# {args.after_label} against {args.before_label}, paired",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- {len(args.before)} runs each, paired by position (same dataset, same seed); `eva eval` on the "
         "held-out frames; LPIPS ×1000 (LPIPS-VGG is held out: no method trains on it)",
         "",

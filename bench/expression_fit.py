@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 import torch
-from machine import run_header
+from machine import header_line, run_header
 
 RESULTS = Path(__file__).resolve().parent / "results" / "expressions"
 
@@ -138,7 +138,7 @@ def main() -> None:
     lines = [
         "# One rendered face: how much of a blink and an open jaw the face stage recovers",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- machine: {doc['machine']}",
         f"- truth: {truth_expr}; the painted Anny face, head-on, 512 px",
         "",

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import run_header
+from machine import header_line, run_header
 from stats import fmt, mean_std
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -265,7 +265,7 @@ def markdown(doc: dict) -> str:
     lines = [
         "# Expression fidelity: mouth and eye opening, stage by stage",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- machine: {doc['machine']}",
         "",
         "Mouth: inner-lip gap (landmarks 13-14); eyes: mean lid gap (159-145, 386-374); both over "

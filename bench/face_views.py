@@ -16,7 +16,7 @@ import torch
 from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import run_header  # noqa: E402
+from machine import header_line, run_header  # noqa: E402
 
 from eva_engine.avatar import load_saved_avatar, read_avatar_meta  # noqa: E402
 from eva_engine.body import load_body_model  # noqa: E402
@@ -100,7 +100,7 @@ def main() -> None:
     lines = [
         "# Face close-ups from the video's camera and turned away from it",
         "",
-        f"- date: {header['date']}; command: `{header['command']}`; commit {header['commit']}",
+        header_line(header),
         f"- machine: {header['machine']}",
         f"- avatar: `{args.avatar}`; dataset: `{args.dataset}`, split `{args.split}` (unseen frames)",
         f"- the training cameras' yaw about the body (the avatar's coverage): {yaw_range}",

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import describe, run_header
+from machine import describe, header_line, run_header
 
 ROOT = Path(__file__).resolve().parents[1]
 FRAMES, SIZE, REFUSAL_SIZE = 40, 512, 256
@@ -389,7 +389,7 @@ def report(args) -> None:
     lines = [
         "# Hard inputs: the verdict against the truth",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         "- runs: `python bench/hard_inputs.py --seeds 0 1 2` (and `--budgets 2 20 60 200`, "
         "`--seeds 0 --max-scale-cm 10 --cases ...`), up to six "
         "processes of 1 thread at once on the 2 cores: the times are inflated by that sharing",

@@ -81,3 +81,9 @@ def run_header() -> dict:
         "commit": commit(),
         "machine": describe(),
     }
+
+
+def header_line(doc: dict) -> str:
+    """The Markdown line a result file opens with, from a ``run_header`` (or an older result's
+    date and command, whose commit was not recorded)."""
+    return f"- date: {doc['date']}; command: `{doc['command']}`; commit {doc.get('commit') or 'not recorded'}"

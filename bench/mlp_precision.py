@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 import torch
-from machine import run_header
+from machine import header_line, run_header
 from timing import time_call
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -77,7 +77,7 @@ def markdown(doc: dict) -> str:
     lines = [
         "# The weight-offset MLP: float32 against bfloat16 products",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- machine: {doc['machine']}; native bfloat16 (oneDNN): {doc['bf16_native']}",
         "",
         "One training step of `LBSWeightOffsets.skinning_weights` (forward and backward, median of the "

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import run_header
+from machine import header_line, run_header
 from stats import compare_paired, fmt, mean_std
 
 from eva_engine.recipes import PRESETS, describe_presets
@@ -372,7 +372,7 @@ def markdown(doc: dict) -> str:
     lines = [
         "# Novel poses and novel views",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- machine: {doc['machine']}",
         f"- data: `eva synth --preset novel --size {cfg['size']} --seed s` for s in {cfg['seeds']} "
         f"({cfg['image_size'][1]}x{cfg['image_size'][0]} px; train on {cfg['train_frames']} frames of one "

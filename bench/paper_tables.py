@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 
 import torch
-from machine import run_header
+from machine import header_line, run_header
 from stats import compare_paired, fmt, mean_std
 
 from eva_engine.recipes import METHODS, PRESETS, describe_presets
@@ -288,7 +288,7 @@ def markdown(doc: dict) -> str:
     lines = [
         title,
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- machine: {doc['machine']}; load average at the last run {doc.get('load_average')} "
         "(other jobs shared the 2 cores: Train (s) compares methods only roughly)",
         data,

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 import torch
-from machine import run_header
+from machine import header_line, run_header
 
 ROOT = Path(__file__).resolve().parents[1]
 VIDEOS = ROOT.parent / "shared" / "reference" / "videos"
@@ -78,7 +78,7 @@ def main() -> None:
     lines = [
         "# What the quality report costs a job",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- machine: {doc['machine']}",
         f"- video: {args.video}, the job defaults ({options.preset} preset, {options.max_frames} frames at "
         f"most, {options.max_size} px): {doc['frames']} frames, {doc['held_out']} held out",

@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import run_header
+from machine import header_line, run_header
 
 from eva_engine.recipes import METHODS, PRESETS
 
@@ -259,7 +259,7 @@ def markdown(doc: dict) -> str:
     lines = [
         "# The real-video table (UPB protocol)",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- machine: {doc['machine']}",
         f"- protocol: each video sampled to about {cfg['frames']} frames (every k-th), long side "
         f"{cfg['max_size']} px (the detector's frames: up to {detect} px), "

@@ -22,7 +22,7 @@ import argparse
 import json
 from pathlib import Path
 
-from machine import run_header
+from machine import header_line, run_header
 from stats import compare_paired, fmt, mean_std
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -78,7 +78,7 @@ def markdown(doc: dict) -> str:
     lines = [
         f"# Real-video runs over seeds: {title(doc)}",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- before: {', '.join(doc['before'])} (seeds {doc['seeds']})",
         f"- after: {', '.join(doc['after'])} (seeds {doc['seeds']})",
         "- protocol, machine and load of each run: in its own result file",

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
-from machine import run_header
+from machine import header_line, run_header
 from real_videos import DEFAULT_VIDEOS, RESULTS, preprocess, videos_or_skip
 
 SHIFTS_PX = (1, 2, 3, 4)
@@ -121,7 +121,7 @@ def markdown(doc: dict) -> str:
     lines = [
         "# How much of a region score is placement",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- machine: {doc['machine']}",
         "",
         "Each test frame's target (the person composited on white) scored against itself shifted by"

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import run_header
+from machine import header_line, run_header
 from timing import time_call
 
 
@@ -107,7 +107,7 @@ def main() -> None:
     lines = [
         "# One render's stages",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- machine: {doc['machine']}",
         *([f"- note: {args.note}"] if args.note else []),
         f"- avatar: `{args.avatar}`, {rows[0]['gaussians']} Gaussians, rest pose, front camera, "

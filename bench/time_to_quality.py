@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 import torch
-from machine import run_header
+from machine import header_line, run_header
 from paper_tables import dataset_for
 from stats import fmt, mean_std
 
@@ -96,7 +96,7 @@ def markdown(doc: dict) -> str:
     lines = [
         "# Time to quality",
         "",
-        f"- date: {doc['date']}; command: `{doc['command']}`",
+        header_line(doc),
         f"- machine: {doc['machine']}",
         f"- synthetic `controlled` benchmark ({cfg['size']}), preset `{cfg['preset']}`, seeds "
         f"{', '.join(map(str, cfg['seeds']))}, {cfg['threads']} threads; LPIPS-VGG ×1000 on every "

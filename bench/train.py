@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 import torch
-from machine import commit, run_header
+from machine import commit, header_line, run_header
 
 from eva_engine.recipes import METHODS, PRESETS, describe_methods, describe_presets
 from eva_engine.synth_names import SYNTH_PRESETS, SYNTH_SIZES, describe_synth_sizes
@@ -279,7 +279,7 @@ def markdown(runs: dict) -> str:
         lines += [
             f"## {key}",
             "",
-            f"- date: {e['date']}; command: `{e['command']}`; commit {e.get('commit') or 'not recorded'}",
+            header_line(e),
             f"- machine: {e['machine']}",
             f"- data: {e['dataset']} ({e['image_size'][1]}x{e['image_size'][0]}, "
             f"{e['train_frames']} training frames)",
