@@ -169,6 +169,7 @@ def _driving(run: JobRun, work: Path, dataset_dir: Path, body, options: Animatio
         fitting=scaled_fit_config(options.fit_scale),
         demuxer=info.container,  # decoded as what the probe approved
         max_video_side=run.config.max_video_side,
+        face_crops=None,  # a driving video gives motion, not appearance
     )
     partial = dataset_dir.with_name(f"{dataset_dir.name}.partial-{run.attempt}")
     result = preprocess_video(upload, partial, config, model=body, progress=progress, overwrite=True)

@@ -44,6 +44,11 @@ class JobOptions(BaseModel):
         description=f"Training method: {describe_methods()}; none: the preset's own (3DGS density "
         "control with the full objective).",
     )
+    face_closeups: bool = Field(
+        False,
+        description="Also train on close-ups of the face at the video's own resolution (a video "
+        "larger than max_size): a sharper face, about 40% more training time.",
+    )
 
     def fit_config(self):
         """The alignment's ``FitConfig`` with ``fit_scale`` applied."""
@@ -57,6 +62,7 @@ class JobOptions(BaseModel):
         kept out of training (``eval.held_out_every``) for the avatar's quality report, and the
         input checks with ``MIN_FRAMES``."""
         from eva_engine.align import InputChecks, PreprocessConfig
+        from eva_engine.data.face_crops import FaceCropConfig
         from eva_engine.eval import held_out_every
 
         frames = min(video_frames or self.max_frames, self.max_frames)
@@ -66,6 +72,7 @@ class JobOptions(BaseModel):
             fitting=self.fit_config(),
             test_every=held_out_every(frames),
             checks=InputChecks(min_frames=MIN_FRAMES),
+            face_crops=FaceCropConfig() if self.face_closeups else None,
         )
 
     def train_config(self, max_gaussians: int, max_std_m: float | None = None):
@@ -76,6 +83,7 @@ class JobOptions(BaseModel):
         import dataclasses
 
         from eva_engine.train import preset, with_method
+        from eva_engine.train.face_views import FaceViewConfig
 
         overrides: dict = {}
         if self.iterations is not None:
@@ -85,6 +93,8 @@ class JobOptions(BaseModel):
         config = preset(self.preset, **overrides)
         if self.method is not None:
             config = with_method(config, self.method)
+        if self.face_closeups:
+            config = dataclasses.replace(config, face_view=FaceViewConfig(weight=1.0))
         cap = min(config.strategy.max_gaussians or max_gaussians, max_gaussians)
         config = dataclasses.replace(config, strategy=dataclasses.replace(config.strategy, max_gaussians=cap))
         if max_std_m is not None:

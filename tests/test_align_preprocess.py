@@ -78,6 +78,38 @@ def test_detections_made_on_larger_frames_land_on_the_dataset_frames(signer, ann
         assert err.median() < 4.0, (name, err)
 
 
+def test_face_close_ups_come_from_the_larger_video(signer, preprocessed, tmp_path):
+    """The dataset frames are the 256 px video itself: a close-up would add nothing, so none was
+    stored. From the same frames twice as large, each frame with a face gets one, cut around
+    the stored face landmarks from the larger frames."""
+    import shutil
+
+    import cv2
+
+    from eva_engine.align.preprocess import add_face_crops
+    from eva_engine.data.face_crops import FaceCropConfig, cut_crop
+
+    _, _, frames, _ = signer
+    report, ds = preprocessed
+    assert ds.face_crops is None
+    large = np.stack([cv2.resize(f, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC) for f in frames])
+    video = write_video(tmp_path / "large.mp4", large, fps=10)
+    root = shutil.copytree(report.dataset, tmp_path / "ds")
+    crops = add_face_crops(root, video, PreprocessConfig(face_crops=FaceCropConfig(size=128, min_side=4.0)))
+    assert crops is not None and crops.frames == list(range(len(frames)))
+    # At the larger video's own pixels across the face: no enlarging.
+    assert crops.size <= 2 * float(crops.boxes[:, 2].median()) < crops.size + 16
+    assert load_dataset(root).face_crops is not None
+    marks = ds.keypoint_extras["face_mesh"]
+    for i in (0, 6):
+        centre = crops.boxes[i, :2] + crops.boxes[i, 2] / 2
+        seen = marks[i, :, :2][marks[i, :, 2] > 0]
+        assert torch.allclose(centre, (seen.amin(0) + seen.amax(0)) / 2, atol=1e-3)
+        cut = cut_crop(large[i], crops.boxes[i].double().numpy(), crops.size, 2.0).astype(np.float32) / 255
+        # The video's compression is the only difference.
+        assert float(np.abs(crops.image(i).numpy() - cut).mean()) < 0.03
+
+
 def test_a_detection_resized_keeps_the_view():
     from eva_engine.align.detect import NUM_KEYPOINTS, FrameDetection
 

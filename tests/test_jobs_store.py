@@ -211,3 +211,13 @@ def test_a_job_keeps_frames_out_for_its_quality_report():
     assert options.preprocess_config(None).test_every == 10  # unknown length: max_frames
     assert options.preprocess_config(20).test_every == 5  # 4 held out
     assert options.preprocess_config(1).test_every == 0  # nothing to spare
+
+
+def test_face_closeups_are_one_job_option():
+    """Off by default: no close-ups cut, none trained on. On: both."""
+    off = JobOptions(preset="tiny")
+    assert off.preprocess_config(60).face_crops is None
+    assert off.train_config(5000).face_view.weight == 0
+    on = JobOptions(preset="tiny", face_closeups=True)
+    assert on.preprocess_config(60).face_crops is not None
+    assert on.train_config(5000).face_view.weight == 1.0

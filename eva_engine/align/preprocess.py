@@ -33,7 +33,17 @@ from eva_engine.align.stages import FitConfig
 from eva_engine.align.targets import FitTargets
 from eva_engine.body import KEYPOINT_NAMES, BodyModel, load_body_model
 from eva_engine.body.params import BodyParams
-from eva_engine.data import DatasetMeta, DatasetWriter, ParamNames, VideoReadOptions, iter_frames, read_video
+from eva_engine.data import (
+    DatasetMeta,
+    DatasetWriter,
+    ParamNames,
+    VideoReadOptions,
+    iter_frames,
+    iter_timed_frames,
+    load_dataset,
+    read_video,
+)
+from eva_engine.data.face_crops import FaceCropConfig, FaceCrops, write_face_crops
 from eva_engine.data.region_masks import region_masks
 from eva_engine.progress import Progress, ProgressEvent
 
@@ -55,8 +65,9 @@ class PreprocessConfig:
     this many pixels a side (``VideoReadOptions``: what an upload's check approved; None: FFmpeg
     guesses, no limit). fov_y_deg: the guessed camera's vertical field of view; test_every: every
     k-th kept frame goes to the ``test_pose`` split (0 = all frames train); fit: align the body
-    model (else the dataset carries only detections); checks: when the video is refused
-    (``InputChecks``).
+    model (else the dataset carries only detections); face_crops: the face close-ups at the
+    video's resolution stored with the dataset (``data.face_crops``; None: none); checks: when
+    the video is refused (``InputChecks``).
     """
 
     every: int = 1
@@ -68,6 +79,7 @@ class PreprocessConfig:
     fov_y_deg: float = GUESS_FOV_Y_DEG
     test_every: int = 0
     fit: bool = True
+    face_crops: FaceCropConfig | None = field(default_factory=FaceCropConfig)
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     fitting: FitConfig = field(default_factory=FitConfig)
     checks: InputChecks = field(default_factory=InputChecks)
@@ -238,6 +250,10 @@ def preprocess_video(
         video, out_dir, clip, det, keep, body, K, viewmat, rates, model, config, progress, overwrite
     )
     seconds["write"] = time.perf_counter() - started
+    if config.face_crops is not None and det.face_mesh is not None:
+        started = time.perf_counter()
+        add_face_crops(root, video, config, progress)
+        seconds["face_crops"] = time.perf_counter() - started
     n = len(keep)
     return PreprocessReport(str(root), len(clip), n, len(clip) - n, rates, body.initial, body.fitted, seconds)
 
@@ -395,6 +411,29 @@ def _write_dataset(
                 "hands": body.hands,
             },
         )
+
+
+def add_face_crops(
+    dataset_root: str | Path, video: str | Path, config: PreprocessConfig, progress: Progress | None = None
+) -> FaceCrops | None:
+    """Cut the face close-ups of the dataset at ``dataset_root``, made from ``video`` with
+    ``config``'s sampling, from a decoding pass at the video's own size (``data.face_crops``;
+    None when the video is too small for them to add anything). Also for a dataset written
+    before close-ups existed."""
+    ds = load_dataset(dataset_root)
+    face_mesh = ds.keypoint_extras.get("face_mesh")
+    if face_mesh is None:
+        return None
+    if progress is not None:
+        progress(ProgressEvent("face_crops", 0, len(ds), "cutting face close-ups"))
+    frames = iter_timed_frames(video, config.read_options(config.max_frames, None))
+    crops = write_face_crops(
+        dataset_root, frames, ds.timestamps, face_mesh, ds.masks(), config.face_crops or FaceCropConfig()
+    )
+    if progress is not None:
+        n = len(crops.frames) if crops is not None else 0
+        progress(ProgressEvent("face_crops", len(ds), len(ds), f"{n} face close-ups"))
+    return crops
 
 
 def _nan_to_none(d: dict[str, float]) -> dict[str, float | None]:

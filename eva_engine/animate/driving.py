@@ -155,7 +155,7 @@ def driving_from_video(
     default a temporary folder, removed after. ``progress``: as in
     ``preprocess_video``. Raises ``DrivingError`` for an unreadable video or one without a person.
     """
-    config = config or PreprocessConfig()
+    config = config or PreprocessConfig(face_crops=None)  # motion only: no face close-ups
     if not config.fit:
         raise DrivingError("a driving video must be aligned with the body model (fit=True)")
     tmp = None if workdir is not None else Path(tempfile.mkdtemp(prefix="eva-driving-"))

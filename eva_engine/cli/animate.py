@@ -84,7 +84,8 @@ def animate(
         console.print(f"[red]error:[/] {err}")
         raise typer.Exit(2) from err
     fitting = scaled_fit_config(fit_scale)
-    preprocess = PreprocessConfig(max_frames=max_frames, max_size=max_size, fitting=fitting)
+    # A driving video gives motion, not appearance: no face close-ups.
+    preprocess = PreprocessConfig(max_frames=max_frames, max_size=max_size, fitting=fitting, face_crops=None)
     started = time.perf_counter()
     with stage_bars(console) as report:
         try:

@@ -25,12 +25,18 @@ def preprocess(
     fov: float = typer.Option(55.0, min=5.0, max=150.0, help="Guessed vertical field of view (degrees)."),
     test_every: int = typer.Option(0, min=0, help="Every k-th frame goes to the test split (0: none)."),
     fit: bool = typer.Option(True, "--fit/--no-fit", help="Align the body model to the detections."),
+    face_crops: bool = typer.Option(
+        True,
+        "--face-crops/--no-face-crops",
+        help="Store face close-ups at the video's resolution (when it is larger than --max-size).",
+    ),
     overwrite: bool = typer.Option(False, help="Replace an existing dataset at --out."),
 ) -> None:
     """Decode, detect body/hands/face (MediaPipe), fit the body model (EVA §3.2), write a dataset."""
 
     from eva_engine.align import PreprocessConfig, PreprocessError, preprocess_video
     from eva_engine.data import VideoError
+    from eva_engine.data.face_crops import FaceCropConfig
 
     console = Console(stderr=True)
     if test_every == 1:
@@ -46,6 +52,7 @@ def preprocess(
         fov_y_deg=fov,
         test_every=test_every,
         fit=fit,
+        face_crops=FaceCropConfig() if face_crops else None,
     )
     with stage_bars(console) as report:
         try:

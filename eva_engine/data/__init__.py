@@ -22,6 +22,7 @@ from eva_engine.data.video import (
     VideoError,
     VideoReadOptions,
     iter_frames,
+    iter_timed_frames,
     read_video,
     write_video,
 )
@@ -43,6 +44,7 @@ __all__ = [
     "load_dataset",
     "perturb",
     "iter_frames",
+    "iter_timed_frames",
     "read_video",
     "resample_frame",
     "write_video",

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from eva_engine.body.params import BodyParams
+from eva_engine.data.face_crops import FaceCrops, load_face_crops
 
 FORMAT = "eva-dataset"
 VERSION = 2
@@ -518,6 +519,8 @@ class Dataset:
                 p, names = _load_params(self.root / rel, n)
                 setattr(self, attr, p)
                 self.param_names = names
+        self.face_crops: FaceCrops | None = load_face_crops(self.root, n)
+        """The face close-ups at the video's resolution (``data.face_crops``), if it has them."""
         self.keypoints: torch.Tensor | None = None
         self.gt_keypoints: torch.Tensor | None = None
         self.keypoint_names: list[str] | None = None

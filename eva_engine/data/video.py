@@ -105,6 +105,13 @@ def iter_frames(path: str | Path, options: VideoReadOptions | None = None) -> It
         yield rgb
 
 
+def iter_timed_frames(
+    path: str | Path, options: VideoReadOptions | None = None
+) -> Iterator[tuple[np.ndarray, float]]:
+    """(frame, seconds) pairs as ``read_video(path, options)`` has them, one at a time."""
+    yield from _decode(path, options or VideoReadOptions(), _DecodedStream())
+
+
 def _decode(
     path: str | Path, opts: VideoReadOptions, stream_info: _DecodedStream
 ) -> Iterator[tuple[np.ndarray, float]]:

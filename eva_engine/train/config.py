@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 from eva_engine.avatar.config import AvatarConfig
 from eva_engine.recipes import PRESETS
+from eva_engine.train.face_views import FaceViewConfig
 from eva_engine.train.losses import LossConfig
 from eva_engine.train.pose_correction import PoseCorrectionConfig
 from eva_engine.train.regularizers import RegularizerConfig
@@ -92,6 +93,7 @@ class TrainConfig:
         (not the fingers' or the face's) of a step's frame, drawn anew each step: the avatar
         learns its shape near each pose, not only at it.
     image_scale: resample frames (and intrinsics) by this factor before training.
+    face_view: the dataset's face close-ups as a second view of their frames (``train/face_views.py``).
     seed: the initial weights, the seed vertices and the frame order (the density-control strategy
     has its own ``seed``). Runs on one CPU thread are bit-identical given it; with more threads,
     oneDNN's convolution backward may sum in another order and the last bits differ.
@@ -111,6 +113,7 @@ class TrainConfig:
     random_background: bool = False
     pose_noise: float = 0.0
     image_scale: float = 1.0
+    face_view: FaceViewConfig = field(default_factory=FaceViewConfig)
     seed: int = 0
     device: str = "cpu"
     progress_every: int = 10

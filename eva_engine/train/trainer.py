@@ -28,13 +28,14 @@ from eva_engine.data.dataset import Dataset, DatasetLike
 from eva_engine.data.resampled import ResampledDataset
 from eva_engine.progress import Progress, ProgressEvent
 from eva_engine.train.config import TrainConfig
+from eva_engine.train.face_views import FaceViews
 from eva_engine.train.losses import AvatarLoss, composite_target
 from eva_engine.train.pose_correction import PoseCorrection
 from eva_engine.train.regularizers import regularization
 
 logger = logging.getLogger(__name__)
 
-STAGES = ("data", "skinning", "rasterize", "losses", "backward", "optimizer", "densify")
+STAGES = ("data", "skinning", "rasterize", "losses", "face_view", "backward", "optimizer", "densify")
 
 
 class TrainingError(RuntimeError):
@@ -251,6 +252,9 @@ class TrainingRun:
         ).to(device)
         self.masks = frames.masks.to(device)
         self.params = frames.params.to(device)
+        self.face_views = (
+            FaceViews.load(dataset, self.train_ids, device) if config.face_view.weight > 0 else None
+        )
 
         shape = self.params.shape.mean(dim=0)
         # Every random draw of the run comes from generators seeded here (the strategy has its
@@ -335,6 +339,15 @@ class TrainingRun:
         if config.regularizers.active:
             total = total + regularization(avatar, config.regularizers, posed)
         t = tick("losses", t)
+        face = config.face_view
+        view = self.face_views.view(i, bg) if self.face_views is not None and step % face.every == 0 else None
+        if view is not None:
+            face_cam, face_target, face_mask = view
+            face_render = avatar.rasterize_posed(posed, face_cam, bg)
+            face_key = ("face", key) if key is not None else None
+            face_terms = self.loss_fn(face_render, face_target, face_mask, key=face_key, step=step)
+            total = total + face.every * face.weight * face_terms["total"]
+            t = tick("face_view", t)
         loss, step_total = float(terms["total"].detach()), float(total.detach())
         if not math.isfinite(step_total):  # non-finite whenever the loss terms are
             # Before backward: the avatar keeps the last finite step's parameters.
