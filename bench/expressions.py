@@ -15,6 +15,11 @@ fitted expression's error in mm per action group against the truth and against a
 (``align.evaluate.expression_error_by_group``). ``--avatar -``: no render stage. ``--blur S``:
 also the stage ``blurred``, the target itself under a Gaussian blur of S px through the same
 detector: a control for how much of the render's loss a blurrier image alone would cost.
+``--closeup``: the targets are the dataset's face close-ups at the video's resolution
+(``eva_engine.data.face_crops``) and the renders the avatar's through their cameras, on the test
+frames that have one; the measures are ratios, so the stored landmarks' stages stay comparable.
+It also scores the close-ups as images (PSNR and LPIPS-VGG against the target over the trained
+background, where the person mask puts it).
 
 Writes ``bench/results/<name>.{json,md}`` and ``<name>_<case>.jpg``: face close-ups, target |
 render, of the frames with the widest-open mouth and the most closed eyes in the target.
@@ -82,6 +87,7 @@ def run_case(
     every: int,
     refitting: bool = False,
     blur: float = 0.0,
+    closeup: bool = False,
 ) -> tuple[dict, dict]:
     """(result entry, images for the sheet) of one case; ``refitting``: also the stage
     ``refitted`` (:func:`refit`); ``blur`` > 0: also the stage ``blurred`` (the module docstring)."""
@@ -94,13 +100,18 @@ def run_case(
 
     ds = load_dataset(dataset)
     indices = list(ds.splits[split])[::every]
+    crops = ds.face_crops
+    if closeup:
+        if crops is None:
+            raise SystemExit(f"{dataset} has no face close-ups (eva_engine.data.face_crops)")
+        indices = [i for i in indices if crops.has(i)]
     if not indices:
         raise SystemExit(f"{dataset} has no frames in split {split!r}")
     if ds.params is None:
         raise SystemExit(f"{dataset} has no fitted parameters")
     print(f"{label}: {len(indices)} frames ...", file=sys.stderr, flush=True)
     frames = [ds[i] for i in indices]
-    targets = [to_uint8(f.image) for f in frames]
+    targets = [to_uint8(crops.image(i) if closeup else f.image) for i, f in zip(indices, frames, strict=True)]
     target_marks, target_found = detect_faces(targets)
     marks: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
     stored = ds.keypoint_extras.get("face_mesh")
@@ -129,7 +140,7 @@ def run_case(
 
         marks["blurred"] = detect_faces([cv2.GaussianBlur(t, (0, 0), blur) for t in targets])
 
-    renders = []
+    renders, composited = [], []
     if saved is not None:
         cfg_bg = (saved.meta.train_config or {}).get("background")
         bg = ds.meta.background if cfg_bg is None else cfg_bg
@@ -139,6 +150,10 @@ def run_case(
             for i, f in zip(indices, frames, strict=True):
                 h, w = f.image.shape[:2]
                 cam = Camera(f.K.float(), f.viewmat.float(), w, h)
+                if closeup:
+                    cam = Camera(crops.intrinsics(i, f.K), f.viewmat.float(), crops.size, crops.size)
+                    m = crops.mask(i)[..., None]
+                    composited.append(crops.image(i) * m + background * (1 - m))
                 renders.append(to_uint8(saved.avatar(ds.params[i], cam, background).image))
         marks["render"] = detect_faces(renders)
 
@@ -163,10 +178,28 @@ def run_case(
         "target": {m: target[m].tolist() for m in MEASURES},
         **{stage: {m: measured[m].tolist() for m in MEASURES} for stage, measured in got.items()},
     }
+    if composited:
+        entry["closeup_images"] = closeup_scores(renders, composited)
     if ds.gt_params is not None:
         entry["expression_mm"] = expression_error_by_group(model, ds.params[indices], ds.gt_params[indices])
     images = {"targets": targets, "renders": renders, "target_marks": target_marks, "target": target}
     return entry, images
+
+
+def closeup_scores(renders: list[np.ndarray], targets: list[torch.Tensor]) -> dict:
+    """Mean PSNR and LPIPS-VGG of the close-up renders (uint8 [S, S, 3]) against their targets
+    ([S, S, 3] in [0, 1], over the background)."""
+    from eva_engine.metrics import LPIPS, psnr
+
+    lpips = LPIPS("vgg")
+    p, lp = [], []
+    with torch.no_grad():
+        for ren, tgt in zip(renders, targets, strict=True):
+            r = torch.from_numpy(ren).float().div(255.0).permute(2, 0, 1)[None]
+            t = tgt.float().clamp(0, 1).permute(2, 0, 1)[None]
+            p.append(float(psnr(r, t)))
+            lp.append(float(lpips(r, t).mean()))
+    return {"frames": len(renders), "psnr": float(np.mean(p)), "lpips_vgg": float(np.mean(lp))}
 
 
 def face_box(marks: torch.Tensor, shape: tuple[int, int], pad: float = 0.35) -> tuple[int, int, int]:
@@ -313,6 +346,25 @@ def markdown(doc: dict) -> str:
                 for g in ("jaw", "lips", "lids", "brows")
             ]
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    scored = {label: e["closeup_images"] for label, e in doc["cases"].items() if "closeup_images" in e}
+    if scored:
+        lines += [
+            "",
+            "## The close-ups as images",
+            "",
+            "Render against target over the trained background (the person mask), whole close-up; "
+            "LPIPS-VGG ×1000 (no method trains on it).",
+            "",
+            "| case | frames | PSNR | LPIPS-VGG ×1000 |",
+            "|---|---:|---:|---:|",
+        ]
+        for label, c in scored.items():
+            lines.append(f"| {label} | {c['frames']} | {c['psnr']:.2f} | {1000 * c['lpips_vgg']:.1f} |")
+        for group, labels in seed_groups(scored).items():
+            got = [scored[label] for label in labels]
+            p = fmt(mean_std([c["psnr"] for c in got]))
+            lp = fmt(mean_std([1000 * c["lpips_vgg"] for c in got]))
+            lines.append(f"| {group} (mean ± std, {len(got)} seeds) | {got[0]['frames']} | {p} | {lp} |")
     lines += seed_summary(doc)
     for label, e in doc["cases"].items():
         if e.get("contact_sheet"):
@@ -346,6 +398,9 @@ def main() -> None:
         help="also fit each clip again from its stored detections (stage refitted)",
     )
     ap.add_argument("--blur", type=float, default=0.0, help="px: also the blurred-target control stage")
+    ap.add_argument(
+        "--closeup", action="store_true", help="the face close-ups at the video's resolution as targets"
+    )
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--name", default="expressions")
     ap.add_argument("--out", type=Path, default=RESULTS)
@@ -365,6 +420,7 @@ def main() -> None:
             args.every,
             args.refit,
             args.blur,
+            args.closeup,
         )
         sheet = contact_sheet(images, picks_of(images["target"]))
         if sheet is not None:
