@@ -17,7 +17,7 @@ import json
 import time
 from pathlib import Path
 
-from machine import header_line, run_header
+from machine import header_line, run_header, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -79,10 +79,7 @@ def main() -> None:
                 f"| `{a['avatar']}` | {a['face_view_weight']:g} | {a['train_seconds']:.1f} | "
                 f"{t.get('face_view', 0.0):.1f} | {t.get('backward', float('nan')):.1f} |"
             )
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1))
-    (args.out / f"{args.name}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_result(args.out, args.name, doc, lines)
 
 
 if __name__ == "__main__":

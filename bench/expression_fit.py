@@ -19,12 +19,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 from pathlib import Path
 
 import torch
-from machine import header_line, run_header
+from machine import header_line, run_header, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results" / "expressions"
 
@@ -169,10 +168,7 @@ def main() -> None:
             f"| {label} | {f['gaps']['mouth']:.3f} | {f['gaps']['eyes']:.3f} | {share['mouth']} "
             f"| {share['eyes']} | {err} | {top} |"
         )
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1))
-    (args.out / f"{args.name}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_result(args.out, args.name, doc, lines)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ import json
 import math
 from pathlib import Path
 
-from machine import header_line, run_header
+from machine import header_line, run_header, write_result
 from stats import compare_paired, fmt, mean_std
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -129,10 +129,7 @@ def main() -> None:
             f"| {r['label']} | {r['seeds']} | {fmt(r['before'])} | {fmt(r['after'])} | "
             f"{fmt(r['gap'])}{unit} | {r['verdict']} |"
         )
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1))
-    (args.out / f"{args.name}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_result(args.out, args.name, doc, lines)
 
 
 if __name__ == "__main__":

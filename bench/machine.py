@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import json
 import os
 import platform
 import shlex
@@ -87,3 +88,11 @@ def header_line(doc: dict) -> str:
     """The Markdown line a result file opens with, from a ``run_header`` (or an older result's
     date and command, whose commit was not recorded)."""
     return f"- date: {doc['date']}; command: `{doc['command']}`; commit {doc.get('commit') or 'not recorded'}"
+
+
+def write_result(out: Path, name: str, doc: dict, lines: list[str]) -> None:
+    """``<out>/<name>.json`` (``doc``) and ``<out>/<name>.md`` (``lines``), printed too."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps(doc, indent=1))
+    (out / f"{name}.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
