@@ -14,7 +14,8 @@ PREPROCESS_SPANS = {
     "detect": ("preprocess", 0.1, 1.0),
     "align": ("align", 0.0, 0.7),
     "regions": ("align", 0.8, 0.8),
-    "write": ("align", 0.8, 1.0),
+    "write": ("align", 0.8, 0.95),
+    "face_crops": ("align", 0.95, 1.0),
 }
 # Reported however recent the last report: they start long steps.
 FORCED = ("align", "regions")
@@ -29,9 +30,9 @@ class JobReport(Protocol):
 
 def preprocess_progress(report: JobReport, fitted: str = "") -> Progress:
     """The ``progress`` of ``preprocess_video`` as job progress (``PREPROCESS_SPANS``): decoding
-    and detection are the ``preprocess`` stage; the fit, the region masks and writing the frames
-    the ``align`` stage. ``fitted`` ends the fitting message (e.g. " to the driving video").
-    ``report``: a ``jobs.pipeline.Reporter``."""
+    and detection are the ``preprocess`` stage; the fit, the region masks, writing the frames and
+    cutting the face close-ups the ``align`` stage. ``fitted`` ends the fitting message (e.g. " to
+    the driving video"). ``report``: a ``jobs.pipeline.Reporter``."""
 
     def progress(event: ProgressEvent) -> None:
         stage, start, end = PREPROCESS_SPANS[event.stage]

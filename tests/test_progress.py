@@ -24,8 +24,8 @@ def test_fraction_and_rescaled():
 
 
 def test_preprocessing_as_job_progress():
-    """Decoding and detection are the job's preprocess stage; fitting, regions and writing its
-    align stage, with the messages a client sees."""
+    """Decoding and detection are the job's preprocess stage; fitting, regions, writing and the
+    face close-ups its align stage, with the messages a client sees."""
     seen = []
 
     def report(event: ProgressEvent, force: bool = False) -> None:
@@ -38,6 +38,7 @@ def test_preprocessing_as_job_progress():
         ProgressEvent("align", 0, 3, "fitting the body model"),
         ProgressEvent("regions", 40, 40, "rendering hand and face regions"),
         ProgressEvent("write", 40, 40, "writing frame 40/40"),
+        ProgressEvent("face_crops", 40, 40, "40 face close-ups"),
     ):
         progress(event)
     expected = [
@@ -45,7 +46,8 @@ def test_preprocessing_as_job_progress():
         ("preprocess", 0.55, "detecting the person: frame 20/40", False),
         ("align", 0.0, "fitting the body model to the driving video", True),
         ("align", 0.8, "rendering hand and face regions", True),
-        ("align", 1.0, "writing frame 40/40", False),
+        ("align", 0.95, "writing frame 40/40", False),
+        ("align", 1.0, "40 face close-ups", False),
     ]
     assert [(s, pytest.approx(f), m, force) for s, f, m, force in expected] == seen
 

@@ -137,6 +137,10 @@ def avatar(site, signer_video):
         ("fit-scale", fast["fit_scale"]),
     ):
         d.find_element(*_by(f"#{field}")).send_keys(value)
+    # Close-ups asked for on a video no larger than its frames: none are cut, the avatar is made.
+    closeups = d.find_element(*_by("#face-closeups"))
+    assert not closeups.is_selected()  # JobOptions' default
+    closeups.click()
     d.find_element(*_by("#upload-button")).click()
     stages = set()
     # The page redraws its lists as the job goes on: read them in the page, not by element handles.

@@ -465,6 +465,7 @@ async function uploadVideo(event) {
   addNumber(form, "max_frames", $("max-frames"));
   addNumber(form, "max_size", $("max-size"));
   addNumber(form, "fit_scale", $("fit-scale"));
+  if ($("face-closeups").checked) form.append("face_closeups", "true");
   $("upload-button").disabled = true;
   try {
     const res = await api("/avatars", { method: "POST", body: form });
