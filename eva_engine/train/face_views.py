@@ -1,7 +1,7 @@
 """The face close-ups as a second view of each training frame.
 
-A 512 px frame of a talking-head video leaves the eyes a few pixels tall: the image terms cannot
-tell an open lid from a closed one there. A dataset made from a larger video stores close-ups of
+A 512 px frame of a 1080p talking-head video leaves the eyes a few pixels tall: there a blink is
+a change of about 3 px for the image terms. A dataset made from a larger video stores close-ups of
 the face at the video's resolution (``data.face_crops``). Each step whose frame has one also
 renders the close-up's camera from the same posed Gaussians and adds the frame's own objective
 (``AvatarLoss``) on it, times ``weight``. Density control still reads the frame's render only.
