@@ -108,6 +108,12 @@ def test_face_close_ups_come_from_the_larger_video(signer, preprocessed, tmp_pat
         cut = cut_crop(large[i], crops.boxes[i].double().numpy(), crops.size, 2.0).astype(np.float32) / 255
         # The video's compression is the only difference.
         assert float(np.abs(crops.image(i).numpy() - cut).mean()) < 0.03
+    # Preprocessing the larger video itself cuts them from what it holds in memory: the same
+    # squares around its own detections, on every frame.
+    config = PreprocessConfig(max_size=256, fit=False, face_crops=FaceCropConfig(size=128, min_side=4.0))
+    direct = load_dataset(preprocess_video(video, tmp_path / "direct", config).dataset).face_crops
+    assert direct is not None and direct.frames == crops.frames and direct.size == crops.size
+    assert float((direct.boxes - crops.boxes).abs().max()) < 0.05 * float(crops.boxes[:, 2].median())
 
 
 def test_a_detection_resized_keeps_the_view():

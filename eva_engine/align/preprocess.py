@@ -250,9 +250,14 @@ def preprocess_video(
         video, out_dir, clip, det, keep, body, K, viewmat, rates, model, config, progress, overwrite
     )
     seconds["write"] = time.perf_counter() - started
-    if config.face_crops is not None and det.face_mesh is not None:
+    face_mesh = body.targets.face_mesh
+    if config.face_crops is not None and face_mesh is not None:
         started = time.perf_counter()
-        add_face_crops(root, video, config, progress)
+        # From what is in memory: the landmarks and masks the dataset was just written with.
+        masks = body.targets.person_masks
+        masks = masks if masks is not None else torch.ones(len(keep), h, w)
+        times = torch.as_tensor(clip.timestamps[keep], dtype=torch.float64)
+        _cut_face_crops(root, video, config, times, face_mesh, masks, progress)
         seconds["face_crops"] = time.perf_counter() - started
     n = len(keep)
     return PreprocessReport(str(root), len(clip), n, len(clip) - n, rates, body.initial, body.fitted, seconds)
@@ -424,15 +429,21 @@ def add_face_crops(
     face_mesh = ds.keypoint_extras.get("face_mesh")
     if face_mesh is None:
         return None
+    return _cut_face_crops(dataset_root, video, config, ds.timestamps, face_mesh, ds.masks(), progress)
+
+
+def _cut_face_crops(dataset_root, video, config: PreprocessConfig, timestamps, face_mesh, masks, progress):
+    """``write_face_crops`` from a decoding pass of ``video`` at its own size, with progress."""
+    n = len(timestamps)
     if progress is not None:
-        progress(ProgressEvent("face_crops", 0, len(ds), "cutting face close-ups"))
+        progress(ProgressEvent("face_crops", 0, n, "cutting face close-ups"))
     frames = iter_timed_frames(video, config.read_options(config.max_frames, None))
     crops = write_face_crops(
-        dataset_root, frames, ds.timestamps, face_mesh, ds.masks(), config.face_crops or FaceCropConfig()
+        dataset_root, frames, timestamps, face_mesh, masks, config.face_crops or FaceCropConfig()
     )
     if progress is not None:
-        n = len(crops.frames) if crops is not None else 0
-        progress(ProgressEvent("face_crops", len(ds), len(ds), f"{n} face close-ups"))
+        done = len(crops.frames) if crops is not None else 0
+        progress(ProgressEvent("face_crops", n, n, f"{done} face close-ups"))
     return crops
 
 
