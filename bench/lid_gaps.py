@@ -14,11 +14,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 from pathlib import Path
 
 import torch
-from machine import header_line, run_header
+from machine import header_line, run_header, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 BLINKS = (0.0, 0.25, 0.5, 0.6, 0.75, 1.0)
@@ -103,10 +102,7 @@ def main() -> None:
             label = "fitted − detected" if key == "fitted" else f"blink {key} − detected"
             lines.append(f"| {label} | " + " | ".join(f"{v:+.2f}" for v in vals) + " |")
         lines.append("")
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1))
-    (args.out / f"{args.name}.md").write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_result(args.out, args.name, doc, lines)
 
 
 if __name__ == "__main__":
