@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from eva_engine.align import InputChecks, PreprocessConfig, PreprocessError, preprocess_video
 from eva_engine.align.input_checks import body_found, person_height, refusal_reason
-from eva_engine.synth.hard import HARD_CASES, REFUSAL_CASES, HardVideo, render_hard_video
+from eva_engine.synth.hard import HARD_CASES, REFUSAL_CASES, HardVideo, hard_scene, render_hard_video
 
 BODY = {"pose": True, "face": True, "left_hand": False, "right_hand": True}
 POSE_ALONE = {"pose": True, "face": False, "left_hand": False, "right_hand": False}
@@ -115,3 +116,24 @@ def test_a_hard_clip_comes_with_its_truth(anny_model, tmp_path):
     assert diff[far].mean() < 3.0  # codec noise only
     assert diff[mask > 0].mean() > 2 * diff[far].mean()
     assert set(HARD_CASES) == {"clean", "closeup", "cropped", "blur", "dark", "second_person"}
+
+
+def test_a_hard_clips_scene_is_the_truth_it_rendered(anny_model, tmp_path):
+    """``hard_scene`` gives the poses and camera the clip was rendered with: the body posed and
+    filmed by them covers each frame's true mask (what a perfect fit would give)."""
+    from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
+
+    clip = render_hard_video(
+        "closeup", 1, tmp_path / "c", frames=3, size=96, model=anny_model, texture_size=256
+    )
+    scene = hard_scene("closeup", 1, frames=3, size=96, model=anny_model)
+    assert scene.sharp_params.batch_size == 3 and scene.viewmat.shape == (3, 4, 4) and scene.K.shape == (3, 3)
+    with torch.no_grad():
+        vertices = anny_model(scene.sharp_params).vertices
+    config = MeshRenderConfig(width=96, height=96, supersample=1)
+    with MeshRenderer(anny_model.faces, config) as renderer:
+        renderer.set_surface(colors=np.ones((anny_model.num_vertices, 3), np.float32))
+        for i in range(3):
+            body = renderer.render(vertices[i], scene.viewmat[i], scene.K).alpha.numpy() > 0.5
+            person = clip.truth(i)[1] > 127
+            assert (body & person).sum() / (body | person).sum() > 0.97

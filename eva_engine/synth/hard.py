@@ -156,22 +156,37 @@ def _walk_behind(params: BodyParams, n: int) -> BodyParams:
     return dataclasses.replace(params, transl=transl)
 
 
-def render_hard_video(
-    case: HardCase | str,
-    seed: int,
-    out: str | Path,
-    *,
-    frames: int = 60,
-    size: int = 512,
-    model=None,
-    supersample: int = 2,
-    texture_size: int = 1024,
-) -> HardVideo:
-    """Render ``frames`` frames (6 s of motion, ``size`` px square) of the signer of ``seed`` filmed
-    as ``case`` says; write ``out/video.mp4``, ``out/truth/{i:06d}.png`` / ``_mask.png`` and
-    ``out/hard_video.json``."""
-    import cv2
+@dataclasses.dataclass(frozen=True)
+class HardScene:
+    """What a hard clip films: the subject's motion and the camera, frame by frame.
 
+    params: BodyParams [F * S], S = ``shutter_instants`` per frame (frame-major), the sharp one at
+    ``centre``; viewmat: [F, 4, 4] world-to-camera; K: [3, 3]; other: the second person's
+    (BodyParams [F], Look) or None; times: [F] seconds."""
+
+    case: HardCase
+    params: BodyParams
+    shutter_instants: int
+    centre: int
+    viewmat: torch.Tensor
+    K: torch.Tensor
+    look: Look
+    other: tuple[BodyParams, Look] | None
+    times: np.ndarray
+    fps: float
+
+    @property
+    def sharp_params(self) -> BodyParams:
+        """The pose of each frame's sharp instant, what the truth images show: BodyParams [F]."""
+        return self.params[self.centre :: self.shutter_instants]
+
+
+def hard_scene(
+    case: HardCase | str, seed: int, *, frames: int = 60, size: int = 512, model=None
+) -> HardScene:
+    """The subject of ``seed``, its motion and the camera of ``case`` over ``frames`` frames of
+    ``size`` px square: what :func:`render_hard_video` renders, and the truth a fit is measured
+    against."""
     if isinstance(case, str):
         case = {**HARD_CASES, **REFUSAL_CASES}.get(case)
     if case is None:
@@ -180,9 +195,6 @@ def render_hard_video(
         raise ValueError(f"frames must be >= 1 and size >= 16, got {frames} and {size}")
     if model is None:
         model = load_body_model("anny")
-    out = Path(out)
-    truth_dir = out / "truth"
-    truth_dir.mkdir(parents=True, exist_ok=True)
     wild = PRESETS["wild"]
     rng = np.random.default_rng([seed, 1])  # the benchmark's subject for this seed
     shape = random_shape(model, rng)
@@ -215,22 +227,8 @@ def render_hard_video(
             params = dataclasses.replace(params, transl=params.transl - shift)
             other_params = dataclasses.replace(other_params, transl=other_params.transl + shift)
         other = (other_params, other_look)
-    background = DARK if case.dark else (1.0, 1.0, 1.0)
-    config = MeshRenderConfig(
-        width=size,
-        height=size,
-        supersample=supersample,
-        background=background,
-        light=wild.light,
-        light_frame="world",
-    )
-    K = intrinsics(size, size, case.fov_y_deg or wild.fov_y_deg)
-    distance = case.distance or wild.distance
     with torch.no_grad():
-        body = model(params)
-        posed = body.vertices.reshape(frames, len(offsets), -1, 3)
-        keypoints = model.keypoints(body).reshape(frames, len(offsets), -1, 3)[:, centre]  # [F, K, 3]
-        other_verts = model(other[0]).vertices if other is not None else None
+        keypoints = model.keypoints(model(params[centre :: len(offsets)]))  # [F, K, 3]
     if case.track_hand:
         hand = [
             i
@@ -244,6 +242,53 @@ def render_hard_video(
         targets = np.tile(np.array([x, nose_y + dy, z]), (frames, 1))
     else:
         targets = np.tile(np.asarray(wild.camera_target), (frames, 1))
+    distance = case.distance or wild.distance
+    viewmat = torch.stack(
+        [
+            torch.as_tensor(look_at(t + np.array([0.0, 0.0, distance]), t), dtype=torch.float32)
+            for t in targets
+        ]
+    )
+    K = torch.as_tensor(intrinsics(size, size, case.fov_y_deg or wild.fov_y_deg), dtype=torch.float32)
+    return HardScene(case, params, len(offsets), centre, viewmat, K, look, other, times, fps)
+
+
+def render_hard_video(
+    case: HardCase | str,
+    seed: int,
+    out: str | Path,
+    *,
+    frames: int = 60,
+    size: int = 512,
+    model=None,
+    supersample: int = 2,
+    texture_size: int = 1024,
+) -> HardVideo:
+    """Render ``frames`` frames (6 s of motion, ``size`` px square) of the signer of ``seed`` filmed
+    as ``case`` says (:func:`hard_scene`); write ``out/video.mp4``, ``out/truth/{i:06d}.png`` /
+    ``_mask.png`` and ``out/hard_video.json``."""
+    import cv2
+
+    if model is None:
+        model = load_body_model("anny")
+    scene = hard_scene(case, seed, frames=frames, size=size, model=model)
+    case, params, other, look, fps = scene.case, scene.params, scene.other, scene.look, scene.fps
+    samples, centre = scene.shutter_instants, scene.centre
+    out = Path(out)
+    truth_dir = out / "truth"
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    background = DARK if case.dark else (1.0, 1.0, 1.0)
+    config = MeshRenderConfig(
+        width=size,
+        height=size,
+        supersample=supersample,
+        background=background,
+        light=PRESETS["wild"].light,
+        light_frame="world",
+    )
+    with torch.no_grad():
+        posed = model(params).vertices.reshape(frames, samples, -1, 3)
+        other_verts = model(other[0]).vertices if other is not None else None
     bg = torch.tensor(background, dtype=torch.float32)
     video_frames = []
     with MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer:
@@ -259,8 +304,8 @@ def render_hard_video(
             )
         renderer.set_surface(texture=textures[0], **atlas)
         for i in range(frames):
-            viewmat = look_at(targets[i] + np.array([0.0, 0.0, distance]), targets[i])
-            shots = [renderer.render(posed[i, k], viewmat, K) for k in range(len(offsets))]
+            viewmat, K = scene.viewmat[i], scene.K
+            shots = [renderer.render(posed[i, k], viewmat, K) for k in range(samples)]
             sharp = shots[centre]
             rgb = torch.stack([s.rgb for s in shots]).mean(0)
             if other is not None:
@@ -284,7 +329,7 @@ def render_hard_video(
         "frames": frames,
         "size": size,
         "fps": fps,
-        "times": [float(t) for t in times],
+        "times": [float(t) for t in scene.times],
         "video": video.name,
         "look": dataclasses.asdict(look),
         "generator": "eva_engine.synth.hard",
