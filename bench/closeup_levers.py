@@ -14,9 +14,8 @@ guess); ``shape_held`` (the body shape held near its initial estimate in every f
 ``twice_the_iterations`` (1,200 instead of the fast preset's 600); ``true_fit`` (the poses and
 camera the clip was rendered with instead of the fit: how much of the loss the fit causes);
 ``outline_longer`` and ``outline_longer_no_3d`` (the fit's outline stage run to convergence, with
-and without the 3D term); ``pose_correction`` (each
-training frame's pose corrected while training). Variants that change only training reuse the
-baseline's dataset.
+and without the 3D term); ``pose_correction`` (each training frame's pose corrected while
+training). Variants that change only training reuse the baseline's dataset.
 
     .venv/bin/python bench/hard_inputs.py --seeds 0 --cases closeup   # the clip (once)
     .venv/bin/python bench/closeup_levers.py --seed 0 [--round 2] [--variants ...]  # run (claims)
@@ -46,7 +45,9 @@ CASE = "closeup"
 class Variant:
     """One change to the job path: preprocessing (``fov_y_deg``, ``shape_reg``) or training
     (``iterations``, ``overrides`` as ``eva_engine.train.with_overrides`` reads them); ``true_fit``:
-    the dataset's fitted poses and cameras replaced by the truth (:func:`with_true_fit`)."""
+    the dataset's fitted poses and cameras replaced by the truth (:func:`with_true_fit`);
+    ``stages``: (fit stage name or ``"*"`` for every stage, ``FitStage`` field, value) to set in the
+    fit before preprocessing again."""
 
     description: str
     fov_y_deg: float | None = None
@@ -112,9 +113,9 @@ def with_true_fit(ds, seed: int, model):
     from eva_engine.synth.hard import hard_scene
 
     h, w = ds.image_size
+    if h != w:
+        raise ValueError(f"the dataset's frames are {w}x{h}; a hard clip's are square")
     scene = hard_scene(CASE, seed, frames=FRAMES, size=w, model=model)
-    if (h, w) != (w, w):
-        raise ValueError(f"the dataset's frames are {w}x{h}, the clip's square")
     index = [int(np.abs(scene.times - float(t)).argmin()) for t in ds.timestamps]
     ds.params = scene.sharp_params[torch.tensor(index)]
     ds.viewmat = scene.viewmat[index]
