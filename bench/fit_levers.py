@@ -69,13 +69,11 @@ def clip_and_detections(case: str, seed: int, work: Path, model):
 
 def projected_keypoints(model, params, viewmat, K) -> torch.Tensor:
     """[F, K, 2] the model's keypoints in pixels. viewmat: [F, 4, 4] or [4, 4]; K: [3, 3]."""
-    from eva_engine.geometry import project_points
+    from eva_engine.geometry import project_points, to_camera
 
     with torch.no_grad():
         kp = model.keypoints(model(params))
-    viewmat = viewmat.expand(len(kp), 4, 4)
-    cam = torch.einsum("fij,fkj->fki", viewmat[:, :3, :3], kp) + viewmat[:, None, :3, 3]
-    return project_points(cam, K)
+    return project_points(to_camera(kp, viewmat), K)
 
 
 def run_fit(case: str, seed: int, name: str, work: Path, model) -> dict:
@@ -133,13 +131,14 @@ def world_landmark_errors(case: str, seed: int, work: Path, model) -> dict:
     """Angles (degrees, median over the frames) between MediaPipe's 3D upper arms and forearms
     and the true ones, in the camera's axes; the hips' mean visibility."""
     from eva_engine.body import KEYPOINT_NAMES
+    from eva_engine.geometry import to_camera
     from eva_engine.synth.hard import hard_scene
 
     hv, clip, det = clip_and_detections(case, seed, work, model)
     scene = hard_scene(case, seed, frames=len(hv.times), size=clip.frames.shape[2], model=model)
     with torch.no_grad():
         kp = model.keypoints(model(scene.sharp_params))
-    cam = (torch.einsum("fij,fkj->fki", scene.viewmat[:, :3, :3], kp) + scene.viewmat[:, None, :3, 3]).numpy()
+    cam = to_camera(kp, scene.viewmat).numpy()
     world = det.pose_world  # [F, 33, 4], x right, y down, z away: the camera's axes
     angles = {}
     for bone, (a, b) in ARMS.items():
