@@ -69,7 +69,12 @@ class Row:
 
 DEFAULT_ROW = "thin"
 """The row whose options are today's defaults."""
-OFF = ("regularizers.lambda_thin=0", "avatar.max_scale=null", "avatar.init_normal_ratio=1.0")
+OFF = (
+    "regularizers.lambda_thin=0",
+    "avatar.max_scale=null",
+    "avatar.init_normal_ratio=1.0",
+    "avatar.expression_colours=false",
+)
 """Every option this benchmark tried, off: main before the work (730d452)."""
 
 ROWS: dict[str, Row] = {
@@ -81,6 +86,15 @@ ROWS: dict[str, Row] = {
     "thin": Row(
         "thin along the surface normal (regulariser, 2 mm): the new default",
         (*OFF, "regularizers.lambda_thin=0.05", "regularizers.thin_target=0.002"),
+    ),
+    "thin_colours": Row(
+        "thin along the normal, and colours that follow the expression (issue 39)",
+        (
+            *OFF,
+            "regularizers.lambda_thin=0.05",
+            "regularizers.thin_target=0.002",
+            "avatar.expression_colours=true",
+        ),
     ),
     "thin_face_off": Row(
         "thin along the normal except on the face's Gaussians (issue 39)",

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
+# The expression actions that cover or uncover something: the lids, the jaw (Anny's ARKit names).
+REVEALING_ACTIONS = ("eyeBlinkLeft", "eyeBlinkRight", "jawOpen")
+
 SKINNING_KINDS = ("mesh", "field")
 
 
@@ -39,6 +42,11 @@ class AvatarConfig:
     expression_frames: an expression also turns and scales each Gaussian with the skin around
         its vertex (a closing lid stretches and faces the camera; ``avatar/surface_frames.py``);
         off: the vertex's offset only, as avatars saved before it have.
+    expression_colours: every Gaussian also carries a colour offset per revealing expression
+        action, blended by the frame's coefficients where the action moves its vertex (a closing
+        lid turns skin-coloured, an open mouth dark; ``avatar/expression_colours.py``).
+    expression_colour_actions: those actions by name (the body model's that it has; None, or a
+        model with none of them: all its actions).
     weight_mlp_bf16: while training, the weight-offset MLP multiplies in bfloat16 (its output,
         softmax and parameter gradients stay float32; ``networks.relu_mlp``). Rendering a trained
         avatar is float32 either way. Worth it where the CPU has native bfloat16 (AVX512-BF16).
@@ -61,6 +69,8 @@ class AvatarConfig:
     max_scale: tuple[float, float, float] | None = None
     init_normal_ratio: float = 1.0
     expression_frames: bool = False
+    expression_colours: bool = False
+    expression_colour_actions: tuple[str, ...] | None = REVEALING_ACTIONS
     weight_mlp_bf16: bool = False
 
     def __post_init__(self) -> None:
@@ -92,6 +102,7 @@ class AvatarConfig:
         unknown = set(data) - known
         if unknown:
             raise ValueError(f"unknown AvatarConfig field(s) {sorted(unknown)}")
-        if data.get("max_scale") is not None:  # a list in JSON
-            data = {**data, "max_scale": tuple(data["max_scale"])}
+        for key in ("max_scale", "expression_colour_actions"):  # lists in JSON
+            if data.get(key) is not None:
+                data = {**data, key: tuple(data[key])}
         return cls(**data)

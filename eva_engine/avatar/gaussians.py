@@ -5,7 +5,9 @@ strategies can replace them together with their optimizer state:
 
     means [N, 3] (metres, canonical), scales [N, 3] (log of standard deviations),
     quats [N, 4] (w, x, y, z, any norm), opacities [N] (logits),
-    sh0 [N, 1, 3] (DC spherical-harmonics term), shN [N, K - 1, 3] (higher degrees, K = (d + 1)^2).
+    sh0 [N, 1, 3] (DC spherical-harmonics term), shN [N, K - 1, 3] (higher degrees, K = (d + 1)^2),
+    and optionally sh0_expression [N, A, 3] (DC offsets per revealing expression action,
+    ``avatar/expression_colours.py``).
 
 Per-Gaussian tensors that are not learned (``PER_GAUSSIAN_BUFFERS``) follow every clone, split
 and prune too: ``part_ids [N]`` (index into ``PART_NAMES``, inherited by children) and
@@ -26,6 +28,7 @@ from eva_engine.render.sh import num_sh_bases
 
 PER_GAUSSIAN_BUFFERS = ("part_ids", "vertex_ids")
 SPLAT_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
+OPTIONAL_SPLAT_NAMES = ("sh0_expression",)
 
 
 class CanonicalGaussians(nn.Module):
@@ -52,13 +55,17 @@ class CanonicalGaussians(nn.Module):
         missing = [k for k in SPLAT_NAMES if k not in splats]
         if missing:
             raise ValueError(f"splats lack {missing}")
+        unknown = set(splats) - set(SPLAT_NAMES) - set(OPTIONAL_SPLAT_NAMES)
+        if unknown:
+            raise ValueError(f"unknown splats {sorted(unknown)}")
+        names = [k for k in (*SPLAT_NAMES, *OPTIONAL_SPLAT_NAMES) if k in splats]
         n = splats["means"].shape[0]
-        for k in SPLAT_NAMES:
+        for k in names:
             if splats[k].shape[0] != n:
                 raise ValueError(f"splats[{k!r}] has {splats[k].shape[0]} rows, expected {n}")
         if part_ids.shape != (n,) or vertex_ids.shape != (n,):
             raise ValueError(f"part_ids and vertex_ids must be [{n}]")
-        self.splats = nn.ParameterDict({k: nn.Parameter(splats[k].detach().clone()) for k in SPLAT_NAMES})
+        self.splats = nn.ParameterDict({k: nn.Parameter(splats[k].detach().clone()) for k in names})
         self.register_buffer("part_ids", part_ids.to(torch.int64).clone())
         self.register_buffer("vertex_ids", vertex_ids.to(torch.int64).clone())
         self.register_buffer("template_vertices", template_vertices.detach().clone())
@@ -140,6 +147,13 @@ class CanonicalGaussians(nn.Module):
     def sh(self) -> Tensor:
         """[N, K, 3] all SH coefficients."""
         return torch.cat([self.splats["sh0"], self.splats["shN"]], dim=1)
+
+    def add_expression_offsets(self, num_actions: int) -> None:
+        """Give every Gaussian zero colour offsets for ``num_actions`` expression actions (the
+        ``sh0_expression`` splat), unless it has them; before the optimizers are made."""
+        if "sh0_expression" not in self.splats:
+            sh0 = self.splats["sh0"]
+            self.splats["sh0_expression"] = nn.Parameter(sh0.new_zeros(len(self), num_actions, 3))
 
     def buffers_per_gaussian(self) -> dict[str, Tensor]:
         return {name: getattr(self, name) for name in PER_GAUSSIAN_BUFFERS}

@@ -4,7 +4,9 @@
   f_dc_0..2, f_rest_0..3(K-1)-1 channel-major, opacity (logit), scale_0..2 (log), rot_0..3
   (w, x, y, z)), so common splat viewers open it (in the rest pose);
 - ``avatar.safetensors``: what the PLY does not hold: the MLP weights, per-Gaussian part ids and
-  template vertex ids, and the body-model identity (name in the metadata, ``shape`` tensor);
+  template vertex ids, the body-model identity (name in the metadata, ``shape`` tensor), and with
+  ``AvatarConfig.expression_colours`` the colour offsets per expression action
+  (``splats.sh0_expression [N, A, 3]``, A actions) and their scale (``expression_range [A]``);
 - ``frames.safetensors`` (optional): the training frames (:class:`AvatarFrames`):
   ``params.<name>`` (``BodyParams`` fields, batch F), ``K [F, 3, 3]``, ``viewmat [F, 4, 4]`` and
   ``timestamps [F]``;
@@ -33,7 +35,7 @@ from safetensors.torch import load_file, save_file
 from eva_engine.avatar.config import AvatarConfig
 from eva_engine.avatar.coverage import Coverage
 from eva_engine.avatar.frames import AvatarFrames
-from eva_engine.avatar.gaussians import CanonicalGaussians
+from eva_engine.avatar.gaussians import OPTIONAL_SPLAT_NAMES, CanonicalGaussians
 from eva_engine.avatar.model import Avatar, template_vertices
 from eva_engine.body.model import BodyModel
 from eva_engine.body.params import BodyParams
@@ -213,6 +215,11 @@ def save_avatar(
     g = avatar.gaussians
     write_ply(root / PLY_NAME, dict(g.splats.items()))
     tensors = {"shape": avatar.shape, "part_ids": g.part_ids, "vertex_ids": g.vertex_ids}
+    for name in OPTIONAL_SPLAT_NAMES:  # not in the 3DGS PLY layout: kept with the other tensors
+        if name in g.splats:
+            tensors[f"splats.{name}"] = g.splats[name]
+    if avatar.config.expression_colours:
+        tensors["expression_range"] = avatar.expression_range
     for prefix, module in avatar.networks().items():
         tensors.update({f"{prefix}.{k}": v for k, v in module.state_dict().items()})
     tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
@@ -321,6 +328,7 @@ def _load_model(root: Path, meta: AvatarMeta, body: BodyModel | None, device: to
         raise AvatarFileError(f"saved shape has {shape.shape[0]} values, body model {len(body.shape_names)}")
     config = AvatarConfig.from_dict(meta.avatar_config)
     splats = read_ply(root / PLY_NAME)
+    splats |= {k: tensors[f"splats.{k}"] for k in OPTIONAL_SPLAT_NAMES if f"splats.{k}" in tensors}
     template = template_vertices(body, shape)
     ids = tensors["part_ids"], tensors["vertex_ids"]
     gaussians = CanonicalGaussians(splats, *ids, template, body.part_ids)
@@ -328,6 +336,8 @@ def _load_model(root: Path, meta: AvatarMeta, body: BodyModel | None, device: to
     for prefix, module in avatar.networks().items():
         state = {k[len(prefix) + 1 :]: v for k, v in tensors.items() if k.startswith(prefix + ".")}
         module.load_state_dict(state)
+    if config.expression_colours and "expression_range" in tensors:
+        avatar.expression_range.copy_(tensors["expression_range"])
     sh = meta.active_sh_degree
     avatar.active_sh_degree = sh if sh is not None else gaussians.sh_degree
     return avatar.to(device)

@@ -13,7 +13,9 @@ subject's ``shape`` and no expression. Posing a frame (``pose``):
 4. skinning with w = softmax(log(w_body[v] + eps) + f_w(gamma(p_c))) (``skin_gaussians``), or
    with GART's learnable weight field and latent bones (``AvatarConfig.skinning == "field"``,
    ``avatar/skinning_field.py``);
-5. colours from SH evaluated for the view direction rotated back into canonical space.
+5. colours from SH evaluated for the view direction rotated back into canonical space; with
+   ``AvatarConfig.expression_colours`` the DC term first takes the expression's colour offsets
+   (``avatar/expression_colours.py``).
 """
 
 from __future__ import annotations
@@ -24,6 +26,12 @@ import torch
 from torch import Tensor, nn
 
 from eva_engine.avatar.config import AvatarConfig
+from eva_engine.avatar.expression_colours import (
+    action_reach,
+    expression_range,
+    expression_sh0,
+    revealing_actions,
+)
 from eva_engine.avatar.gaussians import CanonicalGaussians
 from eva_engine.avatar.networks import LBSWeightOffsets, PoseRefiner, blend_log_skinning_weights
 from eva_engine.avatar.skinning import skin_gaussians
@@ -123,6 +131,15 @@ class Avatar(nn.Module):
         self.register_buffer(
             "template_normals", torch.from_numpy(normals).to(gaussians.template_vertices), persistent=False
         )
+        if config.expression_colours:
+            actions = revealing_actions(list(body.expression_names), config.expression_colour_actions)
+            gaussians.add_expression_offsets(len(actions))
+            # Derived from the body model, so not saved: [K] the actions, [V, K] what they move.
+            self.register_buffer("expression_actions", torch.tensor(actions), persistent=False)
+            reach = action_reach(body, self.shape, actions)
+            self.register_buffer("expression_reach", reach, persistent=False)
+            # [K] r_k, set from the training frames (``set_expression_range``) and saved.
+            self.register_buffer("expression_range", torch.ones(len(actions), dtype=body.dtype))
         self.active_sh_degree = gaussians.sh_degree
         self._weights_cache: tuple[list[Tensor], list[int], Tensor] | None = None
 
@@ -253,7 +270,28 @@ class Avatar(nn.Module):
         means, quats, rot = skin_gaussians(means, quats, weights, transforms)
         if len(carried):  # view directions undo the turn too
             rot = rot.index_copy(0, carried, rot[carried] @ turns)
-        return PosedGaussians(means, quats, scales, g.opacities(), g.sh(), rot, refined, weights)
+        sh = self.colours(refined)
+        return PosedGaussians(means, quats, scales, g.opacities(), sh, rot, refined, weights)
+
+    @torch.no_grad()
+    def set_expression_range(self, expression: Tensor) -> None:
+        """Scale the expression colours to the training frames' ``expression [F, E]`` (each
+        revealing action's largest coefficient there; ``avatar/expression_colours.py``)."""
+        if self.config.expression_colours:
+            self.expression_range.copy_(expression_range(expression, self.expression_actions))
+
+    def colours(self, params: BodyParams) -> Tensor:
+        """[N, B, 3] the SH coefficients (B bases) under one frame's (batch-1) expression."""
+        g = self.gaussians
+        if not self.config.expression_colours:
+            return g.sh()
+        coefficients = params.expression[0, self.expression_actions]
+        if not bool((coefficients != 0).any()):
+            return g.sh()
+        reach = self.expression_reach[g.vertex_ids]  # [N, K]
+        offsets = g.splats["sh0_expression"]
+        sh0 = expression_sh0(g.splats["sh0"], offsets, coefficients, reach, self.expression_range)
+        return torch.cat([sh0, g.splats["shN"]], dim=1)
 
     # -- rendering ---------------------------------------------------------------------------
     def forward(

@@ -30,6 +30,9 @@ class OptimConfig:
     MLPs unless ``weight_offsets_lr`` / ``pose_refine_lr`` set their own (the official code: 5e-5
     and 5e-6, the latter times ``pose_refine_part_scale`` per part, 0.05 for hands and face);
     ``loss_lr`` is for learnable parts of the loss (e.g. a confidence network).
+    ``sh0_expression_lr`` is for the colour offsets per expression action
+    (``AvatarConfig.expression_colours``): eight times the base colours' rate, since a blink is
+    in a few frames of a clip and its offsets learn from those steps only.
     """
 
     means_lr: float = 1.6e-4
@@ -39,6 +42,7 @@ class OptimConfig:
     opacities_lr: float = 5e-2
     sh0_lr: float = 2.5e-3
     shN_lr: float = 2.5e-3 / 20
+    sh0_expression_lr: float = 0.02
     mlp_lr: float = 1e-4
     loss_lr: float = 1e-3
     spatial_scale: float = 1.0
@@ -64,6 +68,7 @@ class OptimConfig:
             scales_lr=self.scales_lr * geo,
             sh0_lr=self.sh0_lr * factor,
             shN_lr=self.shN_lr * factor,
+            sh0_expression_lr=self.sh0_expression_lr * factor,
         )
 
     def splat_lrs(self) -> dict[str, float]:
@@ -74,6 +79,7 @@ class OptimConfig:
             "opacities": self.opacities_lr,
             "sh0": self.sh0_lr,
             "shN": self.shN_lr,
+            "sh0_expression": self.sh0_expression_lr,
         }
 
 

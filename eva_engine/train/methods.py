@@ -35,8 +35,9 @@
   ``eva-official-no-cadc``: the same with 3DGS's density control.
 
 None of them has the product's thin-along-the-normal regulariser (``PAPER_REGULARIZERS``), the
-novel-pose fix of ``docs/novel-views.md``, or its Gaussians carried by the skin's frame under an
-expression (``AvatarConfig.expression_frames``, ``docs/alignment.md``): the paper's rows stay the
+novel-pose fix of ``docs/novel-views.md``, its Gaussians carried by the skin's frame under an
+expression (``AvatarConfig.expression_frames``) or its colours that follow the expression
+(``AvatarConfig.expression_colours``, both ``docs/alignment.md``): the paper's rows stay the
 published methods.
 All of them keep ``DefaultStrategy.prune_unseen_parts`` (a part no training frame shows gets no
 Gaussians): on data that shows every part it changes nothing, so the paper's rows are unaffected.
@@ -149,6 +150,7 @@ def with_method(config: TrainConfig, method: str) -> TrainConfig:
         latent_bones=GART_LATENT_BONES if field else 0,
         init_opacity=0.99 if field else AvatarConfig.init_opacity,
         expression_frames=False,
+        expression_colours=False,
     )
     regularizers = GART_REGULARIZERS if switches.objective == "gart" else PAPER_REGULARIZERS
     config = dataclasses.replace(

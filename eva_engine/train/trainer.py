@@ -21,6 +21,7 @@ from torch import Tensor
 
 from eva_engine.avatar import Avatar, AvatarFrames, Camera, TrainingRecord
 from eva_engine.avatar.coverage import Coverage
+from eva_engine.avatar.expression_colours import clamp_offsets
 from eva_engine.body import load_body_model
 from eva_engine.body.model import PART_NAMES, BodyModel
 from eva_engine.body.params import BodyParams
@@ -263,6 +264,7 @@ class TrainingRun:
         weights = torch.Generator().manual_seed(config.seed)
         avatar = Avatar.create(body.to(device), shape, config.avatar, seed=config.seed, generator=weights)
         self.avatar = avatar.to(device)
+        self.avatar.set_expression_range(self.params.expression)
         self.avatar.active_sh_degree = 0
         self.loss_fn = AvatarLoss(config.loss, generator=weights).to(device)
         self.optimizers = make_optimizers(self.avatar, config)
@@ -359,6 +361,8 @@ class TrainingRun:
             opt.zero_grad(set_to_none=True)
         if self.max_scale is not None:
             avatar.gaussians.clamp_scales(self.max_scale)
+        if "sh0_expression" in avatar.gaussians.splats:
+            clamp_offsets(avatar.gaussians.splats["sh0_expression"])
         t = tick("optimizer", t)
         stats = self.strategy.step_post_backward(avatar.gaussians, self.optimizers, self.state, step, render)
         if stats:
