@@ -96,6 +96,16 @@ ROWS: dict[str, Row] = {
             "avatar.expression_colours=true",
         ),
     ),
+    "thin_blink_colours": Row(
+        "thin along the normal, and colours that follow the blinks only (issue 39)",
+        (
+            *OFF,
+            "regularizers.lambda_thin=0.05",
+            "regularizers.thin_target=0.002",
+            "avatar.expression_colours=true",
+            'avatar.expression_colour_actions=["eyeBlinkLeft","eyeBlinkRight"]',
+        ),
+    ),
     "thin_face_off": Row(
         "thin along the normal except on the face's Gaussians (issue 39)",
         (
