@@ -3,33 +3,8 @@ where that action acts (jawOpen below the eyes, browInnerUp above them)."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import torch
-from helpers.scenes import teacher_avatar
-
-from eva_engine.avatar import Camera
-from eva_engine.geometry import project_points, to_camera
-from eva_engine.render import look_at
-
-
-def face_camera(body, size: int) -> Camera:
-    """A close-up of the rest-pose face from the front."""
-    with torch.no_grad():
-        kp = body.keypoints(body(body.default_params(1)))[0]
-    names = list(body.keypoint_names)
-    centre = 0.5 * (kp[names.index("face_left_iris")] + kp[names.index("face_mouth_left")])
-    centre = torch.tensor([0.0, float(centre[1]), float(centre[2])])
-    f = size * 0.4 / 0.25  # a 25 cm wide view at 40 cm
-    K = torch.tensor([[f, 0.0, size / 2], [0.0, f, size / 2], [0.0, 0.0, 1.0]])
-    view = look_at((0.0, float(centre[1]), float(centre[2]) + 0.4), tuple(centre.tolist()))
-    return Camera(K, view, size, size)
-
-
-def project_y(body, camera: Camera, name: str) -> float:
-    with torch.no_grad():
-        kp = body.keypoints(body(body.default_params(1)))[0, [list(body.keypoint_names).index(name)]]
-    return float(project_points(to_camera(kp, camera.viewmat), camera.K)[0, 1])
+from helpers.scenes import dark_eye_pixels, dark_eyes_avatar, face_camera, project_y, teacher_avatar
 
 
 def fine_striped_avatar(body):
@@ -76,36 +51,6 @@ def test_facial_actions_in_a_pose_json_change_the_face_where_they_act(anny_model
         assert "jawOpen" in str(err)
     else:
         raise AssertionError("an unknown facial action was accepted")
-
-
-def dark_eyes_avatar(body, footprint: float, expression_frames: bool = False):
-    """The teacher on every surface vertex with dark eyeballs and light skin, its footprints
-    exp(-``footprint``) times the teacher's."""
-    from eva_engine.align.face_mesh import skin_faces
-
-    avatar = teacher_avatar(body, n=body.num_vertices)
-    avatar.config = dataclasses.replace(avatar.config, expression_frames=expression_frames)
-    g = avatar.gaussians
-    faces = body.faces.cpu().numpy()
-    skin = torch.zeros(body.num_vertices, dtype=torch.bool)
-    skin[torch.from_numpy(faces[skin_faces(faces, body.num_vertices)]).flatten()] = True
-    eyeball = ~skin[g.vertex_ids] & (g.part_ids == 2)  # the face's other pieces: eyes (and mouth)
-    assert int(eyeball.sum()) > 50
-    rgb = torch.where(eyeball[:, None], torch.full((1, 3), 0.02), torch.full((1, 3), 0.9))
-    with torch.no_grad():
-        g.splats["sh0"][:, 0] = (rgb - 0.5) / 0.28209479177387814
-        g.splats["scales"][:] -= footprint
-    return avatar
-
-
-def dark_eye_pixels(avatar, body, blink: float, size: int = 160) -> int:
-    """Dark pixels in the rows of the eyes of a frontal close-up with both eyes' blink at ``blink``."""
-    cam = face_camera(body, size)
-    eye_y = project_y(body, cam, "face_left_iris")
-    pose = {"expression": {"eyeBlinkLeft": blink, "eyeBlinkRight": blink}}
-    img = avatar.render(body.params_from_pose(pose), cam, torch.ones(3))
-    band = img[max(int(eye_y) - 12, 0) : int(eye_y) + 12]
-    return int((band.mean(-1) < 0.3).sum())
 
 
 def test_a_fitted_blink_closes_the_rendered_eye(anny_model):

@@ -8,7 +8,7 @@ import dataclasses
 
 import pytest
 import torch
-from test_avatar_expression import dark_eye_pixels, dark_eyes_avatar
+from helpers.scenes import dark_eye_pixels, dark_eyes_avatar, face_camera
 
 from eva_engine.avatar import Avatar
 from eva_engine.avatar.expression_colours import (
@@ -138,8 +138,6 @@ def test_an_eye_painted_on_the_lid_learns_to_close(anny_model):
     painted_closed = dark_eye_pixels(painted, anny_model, 1.0, size)
     truth_closed = dark_eye_pixels(truth, anny_model, 1.0, size)
     assert painted_closed > 3 * max(truth_closed, 10)  # the dark smear of a painted eye
-
-    from test_avatar_expression import face_camera
 
     cam, white = face_camera(anny_model, size), torch.ones(3)
     closed = blink_params(anny_model, 1.0)
