@@ -67,7 +67,7 @@ class Row:
     extra: dict = field(default_factory=dict)
 
 
-DEFAULT_ROW = "thin"
+DEFAULT_ROW = "thin_blink_colours"
 """The row whose options are today's defaults."""
 OFF = (
     "regularizers.lambda_thin=0",
@@ -84,7 +84,7 @@ ROWS: dict[str, Row] = {
         (*OFF, "avatar.max_scale=[0.01,0.005,0.005]", "avatar.init_normal_ratio=0.2"),
     ),
     "thin": Row(
-        "thin along the surface normal (regulariser, 2 mm): the new default",
+        "thin along the surface normal (regulariser, 2 mm): the default before the blink colours",
         (*OFF, "regularizers.lambda_thin=0.05", "regularizers.thin_target=0.002"),
     ),
     "thin_colours": Row(
@@ -97,7 +97,7 @@ ROWS: dict[str, Row] = {
         ),
     ),
     "thin_blink_colours": Row(
-        "thin along the normal, and colours that follow the blinks only (issue 39)",
+        "thin along the normal, and colours that follow the blinks only (issue 39): the default",
         (
             *OFF,
             "regularizers.lambda_thin=0.05",
@@ -482,22 +482,23 @@ def markdown(doc: dict) -> str:
                         f"{1000 * b['lpips_vgg']:.1f} | {100 * b['debris']:.2f} |"
                     )
             lines.append("")
+    baseline = doc.get("baseline", "before")
     lines += [
-        "## Against `before`",
+        f"## Against `{baseline}`",
         "",
         "Paired over the seeds both rows ran: the mean ± std over seeds of the per-seed relative gap; "
         "better / worse only when the mean exceeds the std (`bench/stats.py`), else no difference.",
         "",
     ]
-    base = methods.get("before")
+    base = methods.get(baseline)
     for name, e in methods.items():
-        if base is None or name == "before":
+        if base is None or name == baseline:
             continue
         lines.append(f"### {name}: {e['summary']}")
         lines.append("")
-        own = " ".join(o for o in e["overrides"] if o not in OFF)
+        own = " ".join(o for o in e["overrides"] if o not in base["overrides"])
         lines.append(
-            f"- overrides (after `before`'s): `{own or '(none)'}`"
+            f"- overrides (after `{baseline}`'s): `{own or '(none)'}`"
             + (f"; method `{e['method']}`" if e["method"] else "")
         )
         for split in SPLITS:
@@ -568,6 +569,11 @@ def main() -> None:
     )
     ap.add_argument("--merge", nargs="+", metavar="NAME", help="only combine the runs of result files")
     ap.add_argument("--replot", action="store_true", help="only rewrite the .md from the .json")
+    ap.add_argument(
+        "--baseline",
+        choices=list(ROWS),
+        help="the row the others are paired against (default: `before`; kept in the result file)",
+    )
     ap.add_argument("--out", type=Path, default=RESULTS, help="results folder")
     args = ap.parse_args()
     path = args.out / f"{args.name}.json"
@@ -577,6 +583,8 @@ def main() -> None:
             if args.merge
             else json.loads(path.read_text())
         )
+        if args.baseline:
+            doc["baseline"] = args.baseline
         path.write_text(json.dumps(doc, indent=1, default=str))
         (args.out / f"{args.name}.md").write_text(markdown(doc))
         print(markdown(doc))
@@ -647,6 +655,7 @@ def main() -> None:
                 **run_header(),
                 "load_average": [round(x, 2) for x in os.getloadavg()],
                 "total_seconds": previous + time.perf_counter() - started,
+                **({"baseline": args.baseline} if args.baseline else {}),
                 "config": config,
                 "methods": {
                     n: aggregate(

@@ -37,8 +37,8 @@ class Preset:
     avatar: dict[str, int | bool] = field(default_factory=dict)
 
 
-# Every preset carries the Gaussians an expression moves by the skin's frame (closed lids cover
-# the eye: docs/alignment.md).
+# Every preset carries the Gaussians an expression moves by the skin's frame, and recolours the
+# lids with the blinks (closed lids cover the eye: docs/alignment.md).
 PRESETS: dict[str, Preset] = {
     "tiny": Preset(
         "seconds, a test",
@@ -54,6 +54,7 @@ PRESETS: dict[str, Preset] = {
             "pe_frequencies": 4,
             "field_resolution": 32,
             "expression_frames": True,
+            "expression_colours": True,
         },
     ),
     "fast": Preset(
@@ -64,9 +65,18 @@ PRESETS: dict[str, Preset] = {
         sh_degree_interval=300,
         pose_correction_start=120,
         pose_correction_lr=4e-3,
-        avatar={"init_max_gaussians": 6000, "mlp_width": 64, "expression_frames": True},
+        avatar={
+            "init_max_gaussians": 6000,
+            "mlp_width": 64,
+            "expression_frames": True,
+            "expression_colours": True,
+        },
     ),
-    "default": Preset("the paper's", pose_correction_start=400, avatar={"expression_frames": True}),
+    "default": Preset(
+        "the paper's",
+        pose_correction_start=400,
+        avatar={"expression_frames": True, "expression_colours": True},
+    ),
 }
 """Preset name -> its schedule and model size: the one table of them."""
 

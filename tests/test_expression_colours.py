@@ -8,9 +8,10 @@ import dataclasses
 
 import pytest
 import torch
-from helpers.scenes import dark_eye_pixels, dark_eyes_avatar, face_camera
+from helpers.scenes import dark_eye_pixels, dark_eyes_avatar, face_camera, teacher_scene
 
 from eva_engine.avatar import Avatar
+from eva_engine.avatar.config import REVEALING_ACTIONS
 from eva_engine.avatar.expression_colours import (
     MAX_OFFSET,
     action_reach,
@@ -19,11 +20,15 @@ from eva_engine.avatar.expression_colours import (
     revealing_actions,
 )
 from eva_engine.avatar.io import load_avatar, save_avatar
+from eva_engine.train import preset, train_avatar
 from eva_engine.train.strategy.ops import duplicate, remove
 
 
 def with_expression_colours(avatar: Avatar) -> Avatar:
-    config = dataclasses.replace(avatar.config, expression_colours=True)
+    """``avatar`` with offsets for the three revealing actions (the presets take the blinks only)."""
+    config = dataclasses.replace(
+        avatar.config, expression_colours=True, expression_colour_actions=REVEALING_ACTIONS
+    )
     return Avatar(avatar.body, avatar.gaussians, avatar.shape, config)
 
 
@@ -35,7 +40,8 @@ def test_an_action_recolours_only_the_skin_it_moves(anny_model):
     names = list(anny_model.expression_names)
     actions = revealing_actions(names)
     assert [names[i] for i in actions] == ["eyeBlinkLeft", "eyeBlinkRight", "jawOpen"]
-    assert revealing_actions([f"expr_{i}" for i in range(10)]) == list(range(10))  # SMPL-X: all
+    smplx_names = [f"expr_{i}" for i in range(10)]  # PCA coefficients: none named, none recoloured
+    assert revealing_actions(smplx_names) == [] and revealing_actions(smplx_names, None) == list(range(10))
     assert revealing_actions(names, None) == list(range(len(names)))
     reach = action_reach(anny_model, anny_model.shape_defaults, actions)  # [V, K]
     assert reach.shape == (anny_model.num_vertices, 3) and reach.dtype == torch.bool
@@ -94,6 +100,23 @@ def test_rest_colours_exactly_at_zero_expression_and_saved_offsets_render_the_sa
     assert torch.allclose(loaded.pose(blink_params(anny_model, 1.0)).sh, closed)
     plain = load_avatar(save_avatar(dark_eyes_avatar(anny_model, 0.5), tmp_path / "b"))  # none
     assert "sh0_expression" not in plain.gaussians.splats
+
+
+def test_a_model_without_the_named_actions_trains_and_saves_with_no_offsets(smplx_model, tmp_path):
+    """SMPL-X's expression coefficients are unnamed PCA components, each moving the whole face: the
+    presets' blink colours give its avatar no offsets, and it trains, saves and loads as usual."""
+    ds, _ = teacher_scene(smplx_model, n_frames=3, size=32)
+    cfg = preset("tiny", iterations=20)
+    assert cfg.avatar.expression_colours
+    result = train_avatar(ds, cfg, body=smplx_model)
+    g = result.avatar.gaussians
+    assert g.splats["sh0_expression"].shape == (len(g), 0, 3)
+    assert result.losses[-1] < result.losses[0]
+    params = smplx_model.default_params(1)
+    params.expression[:] = 2.0
+    assert torch.equal(result.avatar.pose(params).sh, g.sh())
+    loaded = load_avatar(save_avatar(result.avatar, tmp_path / "a"), body=smplx_model)
+    assert loaded.config.expression_colours and len(loaded.expression_range) == 0
 
 
 def test_density_control_keeps_the_offsets_with_their_gaussians(anny_model):

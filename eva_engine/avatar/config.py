@@ -6,6 +6,9 @@ from dataclasses import asdict, dataclass, fields
 
 # The expression actions that cover or uncover something: the lids, the jaw (Anny's ARKit names).
 REVEALING_ACTIONS = ("eyeBlinkLeft", "eyeBlinkRight", "jawOpen")
+# The default's share of them: the blinks. The jaw's offsets fit a take's few open-jaw frames
+# and made the face worse in new poses (docs/alignment.md, "Colours that follow the expression").
+BLINK_ACTIONS = ("eyeBlinkLeft", "eyeBlinkRight")
 
 SKINNING_KINDS = ("mesh", "field")
 
@@ -45,8 +48,9 @@ class AvatarConfig:
     expression_colours: every Gaussian also carries a colour offset per revealing expression
         action, blended by the frame's coefficients where the action moves its vertex (a closing
         lid turns skin-coloured, an open mouth dark; ``avatar/expression_colours.py``).
-    expression_colour_actions: those actions by name (the body model's that it has; None, or a
-        model with none of them: all its actions).
+    expression_colour_actions: those actions by name, the body model's that it has (None: all
+        its actions; a model with none of the names, such as SMPL-X: none). The blinks by
+        default; ``REVEALING_ACTIONS`` adds the jaw.
     weight_mlp_bf16: while training, the weight-offset MLP multiplies in bfloat16 (its output,
         softmax and parameter gradients stay float32; ``networks.relu_mlp``). Rendering a trained
         avatar is float32 either way. Worth it where the CPU has native bfloat16 (AVX512-BF16).
@@ -70,7 +74,7 @@ class AvatarConfig:
     init_normal_ratio: float = 1.0
     expression_frames: bool = False
     expression_colours: bool = False
-    expression_colour_actions: tuple[str, ...] | None = REVEALING_ACTIONS
+    expression_colour_actions: tuple[str, ...] | None = BLINK_ACTIONS
     weight_mlp_bf16: bool = False
 
     def __post_init__(self) -> None:

@@ -14,7 +14,9 @@ coefficients, as 3D Gaussian Blendshapes (Ma et al. 2024) blend the attributes o
 - The actions are those that cover or uncover something (``REVEALING_ACTIONS``: the lids over
   the eyes, the jaw over the mouth's interior); the others move skin whose colour moves with it.
   With all 52, the mouth's correlated actions learnt offsets that cancel on the training frames
-  and not elsewhere: coloured speckles on held-out mouths.
+  and not elsewhere: coloured speckles on held-out mouths. The default keeps the blinks only
+  (``AvatarConfig.expression_colour_actions``): the jaw's offsets fit a take's few open-jaw
+  frames and made the face worse in new poses.
 - ``r_k`` is the largest coefficient of the action in the training frames
   (``expression_range``), so ``delta_k`` is the colour change at the most extreme training
   frame, and a coefficient beyond it does not extrapolate: a video whose fitted blinks reach
@@ -47,10 +49,12 @@ MAX_OFFSET = 1.0 / SH_C0  # an offset of at most the whole colour range per unit
 
 def revealing_actions(names: list[str], wanted: tuple[str, ...] | None = REVEALING_ACTIONS) -> list[int]:
     """Indices into ``names`` (a body model's expression names) of the ``wanted`` actions it has;
-    all of them when ``wanted`` is None or the model has none of those (SMPL-X's unnamed PCA
-    coefficients)."""
-    found = [names.index(a) for a in wanted or () if a in names]
-    return found or list(range(len(names)))
+    all of them when ``wanted`` is None. A model with none of those names (SMPL-X's unnamed PCA
+    coefficients, each of which moves the whole face) gets none: with every action the offsets
+    learnt speckles that cancel on the training frames only."""
+    if wanted is None:
+        return list(range(len(names)))
+    return [names.index(a) for a in wanted if a in names]
 
 
 @torch.no_grad()
@@ -61,7 +65,7 @@ def action_reach(body: BodyModel, shape: Tensor, actions: list[int], reach: floa
     k = len(actions)
     params = body.default_params(k + 1)
     params.shape = shape.to(params.shape).reshape(1, -1).expand(k + 1, -1).clone()
-    params.expression[torch.arange(1, k + 1), torch.tensor(actions)] = 1.0
+    params.expression[torch.arange(1, k + 1), torch.tensor(actions, dtype=torch.long)] = 1.0
     rest = body.canonical(params)  # [K + 1, V, 3]; row 0 is the neutral face
     moved = (rest[1:] - rest[:1]).norm(dim=-1)  # [K, V]
     return (moved > reach * moved.amax(dim=1, keepdim=True)).T.contiguous()

@@ -135,7 +135,9 @@ class Avatar(nn.Module):
             actions = revealing_actions(list(body.expression_names), config.expression_colour_actions)
             gaussians.add_expression_offsets(len(actions))
             # Derived from the body model, so not saved: [K] the actions, [V, K] what they move.
-            self.register_buffer("expression_actions", torch.tensor(actions), persistent=False)
+            self.register_buffer(
+                "expression_actions", torch.tensor(actions, dtype=torch.long), persistent=False
+            )
             reach = action_reach(body, self.shape, actions)
             self.register_buffer("expression_reach", reach, persistent=False)
             # [K] r_k, set from the training frames (``set_expression_range``) and saved.
