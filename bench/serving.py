@@ -7,8 +7,9 @@
 ``--service-dir``: a service data folder holding a finished avatar (``load`` and ``latency`` copy
 it to a temporary folder first; without it, ``eva demo --preset tiny`` makes one).
 
-- ``latency``: clients POST ``/avatars/{id}/render`` with a new pose each time and time the HTTP
-  round trip: p50/p95 at 256² and 512², 1 and 16 clients (bench/results/service.{json,md}).
+- ``latency``: clients POST ``/avatars/{id}/render`` with a new pose and camera each time, then
+  with a new camera only (the view slider), and time the HTTP round trip: p50/p95 at 256² and
+  512², 1 and 16 clients (bench/results/service.{json,md}).
 - ``load``: for ``--seconds``, 50 render clients and 2 upload clients (upload a video, then
   cancel the queued job) hit a keyed server with its default limits; clients honour
   ``Retry-After``. Reports p50/p95 per kind, every status, errors (any answer but 200/202, or a
@@ -125,13 +126,16 @@ def ready_avatar(base: str, headers: dict) -> dict:
     return avatars[-1]
 
 
-def pose_body(k: int, size: int, fmt: str = "png") -> dict:
+def pose_body(k: int, size: int, fmt: str = "png", vary: str = "pose") -> dict:
+    """Request ``k``: a new pose and camera (``vary="pose"``), or the one pose seen by a new
+    camera (``"camera"``: what turning the page's view slider sends)."""
     angle = 0.05 * (k % 30)  # radians; jawOpen stays within Anny's [0, 1]
+    posed = angle if vary == "pose" else 0.0
     return {
         "format": fmt,
         "pose": {
-            "joints": {"upperarm01.L": [0.0, 0.0, -0.6 - angle]},
-            "expression": {"jawOpen": angle / 1.5},
+            "joints": {"upperarm01.L": [0.0, 0.0, -0.6 - posed]},
+            "expression": {"jawOpen": posed / 1.5},
         },
         "camera": {"yaw": 10.0 * angle},
         "width": size,
@@ -168,7 +172,13 @@ def base_report(args) -> dict:
 
 # -- latency --------------------------------------------------------------------------------------
 def measure_latency(
-    base: str, avatar_id: str, size: int, clients: int, requests_per_client: int, fmt: str = "png"
+    base: str,
+    avatar_id: str,
+    size: int,
+    clients: int,
+    requests_per_client: int,
+    fmt: str = "png",
+    vary: str = "pose",
 ) -> dict:
     import httpx
 
@@ -181,7 +191,7 @@ def measure_latency(
             for i in range(requests_per_client):
                 while True:
                     t0 = time.perf_counter()
-                    body = pose_body(k * requests_per_client + i, size, fmt)
+                    body = pose_body(k * requests_per_client + i, size, fmt, vary)
                     r = api.post(f"/avatars/{avatar_id}/render", json=body)
                     if r.status_code != 503:
                         break
@@ -202,6 +212,7 @@ def measure_latency(
     return {
         "size": size,
         "format": fmt,
+        "varies": vary,
         "clients": clients,
         "requests": len(latencies),
         "errors": errors[:5],
@@ -221,8 +232,15 @@ def run_latency(args) -> None:
         measure_latency(base, avatar["avatar_id"], 64, 1, 2)  # load the avatar and warm up
         rows = [
             measure_latency(
-                base, avatar["avatar_id"], size, clients, max(2, args.requests // max(1, clients // 4)), fmt
+                base,
+                avatar["avatar_id"],
+                size,
+                clients,
+                max(2, args.requests // max(1, clients // 4)),
+                fmt,
+                vary,
             )
+            for vary in args.vary
             for fmt in args.format
             for size in (256, 512)
             for clients in (1, 16)
@@ -241,13 +259,16 @@ def run_latency(args) -> None:
         "clients share "
         "the render gate (2 renders at once by default; clients wait out 503s as Retry-After says)",
         "",
-        "| image | format | clients | requests | p50 ms | p95 ms | requests/s |",
-        "|---|---|---:|---:|---:|---:|---:|",
+        "Each request changes the pose and the camera (`pose`), or the camera only (`camera`: the "
+        "page's view slider).",
+        "",
+        "| changes | image | format | clients | requests | p50 ms | p95 ms | requests/s |",
+        "|---|---|---|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['size']}² | {r['format']} | {r['clients']} | {r['requests']} | {r['p50_ms']:.0f} "
-            f"| {r['p95_ms']:.0f} | {r['throughput_rps']:.1f} |"
+            f"| {r['varies']} | {r['size']}² | {r['format']} | {r['clients']} | {r['requests']} "
+            f"| {r['p50_ms']:.0f} | {r['p95_ms']:.0f} | {r['throughput_rps']:.1f} |"
         )
     write_report(args.name, report, lines, args.out)
 
@@ -899,6 +920,13 @@ def main() -> None:
     latency.add_argument("--requests", type=int, default=20, help="requests per client")
     latency.add_argument("--format", nargs="+", default=["png"], choices=["png", "jpeg"], help="formats")
     latency.add_argument("--name", default="service", help="result file stem")
+    latency.add_argument(
+        "--vary",
+        nargs="+",
+        default=["pose", "camera"],
+        choices=["pose", "camera"],
+        help="what each request changes: the pose and the camera, or the camera only",
+    )
     load = sub.add_parser("load", help="50 render clients + uploads; errors, memory, /healthz")
     load.add_argument("--service-dir", type=Path)
     load.add_argument(
