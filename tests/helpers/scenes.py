@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from eva_engine.align.face_mesh import skin_faces
 from eva_engine.avatar import Avatar, AvatarConfig, Camera
 from eva_engine.body.params import BodyParams
 from eva_engine.data import DatasetMeta, Frame
@@ -160,8 +161,6 @@ def project_y(body, camera: Camera, name: str) -> float:
 def dark_eyes_avatar(body, footprint: float, expression_frames: bool = False):
     """The teacher on every surface vertex with dark eyeballs and light skin, its footprints
     exp(-``footprint``) times the teacher's."""
-    from eva_engine.align.face_mesh import skin_faces
-
     avatar = teacher_avatar(body, n=body.num_vertices)
     avatar.config = dataclasses.replace(avatar.config, expression_frames=expression_frames)
     g = avatar.gaussians
