@@ -38,7 +38,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from eva_engine.avatar.config import REVEALING_ACTIONS
 from eva_engine.body.model import BodyModel
 from eva_engine.render.sh import SH_C0
 
@@ -47,7 +46,7 @@ MIN_RANGE = 0.05  # an action (nearly) absent from training: its offsets learn n
 MAX_OFFSET = 1.0 / SH_C0  # an offset of at most the whole colour range per unit coefficient
 
 
-def revealing_actions(names: list[str], wanted: tuple[str, ...] | None = REVEALING_ACTIONS) -> list[int]:
+def revealing_actions(names: list[str], wanted: tuple[str, ...] | None) -> list[int]:
     """Indices into ``names`` (a body model's expression names) of the ``wanted`` actions it has;
     all of them when ``wanted`` is None. A model with none of those names (SMPL-X's unnamed PCA
     coefficients, each of which moves the whole face) gets none: with every action the offsets
