@@ -3,6 +3,7 @@ gradients for extreme poses and degenerate Gaussians."""
 
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -19,7 +20,9 @@ from eva_engine.avatar import (
     quat_multiply,
     skin_gaussians,
 )
+from eva_engine.avatar.memo import InferenceMemo
 from eva_engine.avatar.networks import make_mlp, relu_mlp
+from eva_engine.avatar.skinning import blend_transforms, sparse_weights
 
 SMALL = dict(init_max_gaussians=600, mlp_width=16, pe_frequencies=2, sh_degree=1)
 
@@ -72,6 +75,25 @@ def test_skinning_weights_are_reused_only_while_nothing_they_depend_on_changes(a
         assert avatar.skinning_weights() is not changed
     with_grad = avatar.skinning_weights()  # training: never cached, differentiable
     assert with_grad.requires_grad and avatar.skinning_weights() is not with_grad
+
+
+def test_a_render_poses_the_gaussians_as_training_does(anny_model, avatars):
+    """Without autograd the Gaussians are blended with sparse weights and the shape's kept rest
+    (``Avatar.pose``): the same posed Gaussians as the dense, differentiable path."""
+    avatar, _ = avatars  # with the weight and pose MLPs
+    for seed in (4, 5):
+        params = random_params(anny_model, 1, seed=seed)
+        params.expression[:, :8] = 0.6
+        with torch.no_grad():
+            rendered = avatar.pose(params)
+        trained = avatar.pose(params)
+        assert trained.means.requires_grad
+        torch.testing.assert_close(rendered.means, trained.means.detach(), atol=1e-5, rtol=0)
+        torch.testing.assert_close(rendered.quats, trained.quats.detach(), atol=1e-5, rtol=0)
+        torch.testing.assert_close(rendered.sh, trained.sh.detach(), atol=0, rtol=0)
+    with torch.no_grad():  # a rendered avatar copies (its kept values do not travel)
+        copied = copy.deepcopy(avatar)
+        torch.testing.assert_close(copied.pose(params).means, avatar.pose(params).means)
 
 
 def test_gaussians_on_vertices_follow_the_body_exactly(anny_model, avatars):
@@ -163,6 +185,49 @@ def test_blend_weights_and_encoding():
     torch.testing.assert_close(w[1, :2], torch.tensor([0.5, 0.5]), atol=1e-6, rtol=0)
     enc = positional_encoding(torch.zeros(4, 3), 3)
     assert enc.shape == (4, 21) and torch.equal(enc[:, :3], torch.zeros(4, 3))
+
+
+def test_sparse_weights_blend_as_the_dense_ones():
+    gen = torch.Generator().manual_seed(0)
+    logits = torch.full((50, 104), -18.4)  # the softmax's ~1e-8 floor on the bones not followed
+    logits.scatter_(1, torch.randint(0, 104, (50, 3), generator=gen), torch.randn(50, 3, generator=gen))
+    logits[0] = 0.0  # a row spread evenly over every bone: each under 1e-2, all kept
+    weights = torch.softmax(logits, dim=1)
+    transforms = torch.eye(4).repeat(104, 1, 1)
+    transforms[:, :3, 3] = torch.randn(104, 3, generator=gen)
+    sparse = sparse_weights(weights)
+    assert sparse.layout == torch.sparse_csr and sparse._nnz() <= 50 * 3 + 104
+    torch.testing.assert_close(
+        blend_transforms(sparse, transforms), blend_transforms(weights, transforms), atol=1e-5, rtol=0
+    )
+    torch.testing.assert_close(sparse.to_dense().sum(1), torch.ones(50))
+    tiny = sparse_weights(torch.tensor([[0.5e-6, 1e-7, 0.0]]))  # nothing over the floor
+    torch.testing.assert_close(tiny.to_dense(), torch.tensor([[1.0, 0.0, 0.0]]))
+
+
+def test_the_inference_memo_keeps_a_value_only_while_its_inputs_are_unchanged():
+    calls = []
+    a, b = torch.ones(3), torch.zeros(2)
+
+    def compute():
+        calls.append(1)
+        return a.sum() + b.sum()
+
+    memo = InferenceMemo()
+    with torch.no_grad():
+        first = memo.get([a, b], compute)
+        assert memo.get([a, b], compute) is first and len(calls) == 1
+        a.add_(1.0)  # in place: a new version
+        assert float(memo.get([a, b], compute)) == 6.0 and len(calls) == 2
+        b = torch.zeros(2)  # another tensor, equal values
+        memo.get([a, b], compute)
+        assert len(calls) == 3
+    memo.get([a, b], compute)  # autograd on: computed every time, never kept
+    memo.get([a, b], compute)
+    assert len(calls) == 5
+    with torch.no_grad():
+        memo.get([a, b], compute)
+    assert len(calls) == 6
 
 
 def test_degenerate_blends_stay_finite():

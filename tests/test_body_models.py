@@ -252,6 +252,23 @@ def test_shape_shared_by_expanding_one_row(model):
     assert torch.allclose(model.posed_keypoints(expanded)[0], model.posed_keypoints(copied)[0], atol=1e-5)
 
 
+def test_rest_and_transforms_are_forwards_without_autograd_too(model):
+    """The render path's ``rest_and_transforms`` equals ``forward``'s rest and transforms, with
+    autograd and without (Anny then keeps the last shape's rest and adds the expression's), also
+    after the shape or the expression changes."""
+    for seed in (7, 8, 8):  # the repeat: the shape's kept rest is used
+        params = random_params(model, batch=1, seed=seed)
+        out = model(params)
+        with torch.no_grad():
+            rest, transforms = model.rest_and_transforms(params)
+            params.expression.zero_()
+            neutral_rest, _ = model.rest_and_transforms(params)
+        torch.testing.assert_close(rest, out.rest, atol=2e-6, rtol=0)
+        torch.testing.assert_close(transforms, out.transforms, atol=2e-6, rtol=0)
+        torch.testing.assert_close(neutral_rest, model(params).rest, atol=2e-6, rtol=0)
+        torch.testing.assert_close(neutral_rest, model.canonical(params), atol=2e-6, rtol=0)
+
+
 def test_keypoints_sides_and_order_at_rest(model):
     kp = model.keypoints(model(model.default_params(1)))[0]
     k = {n: kp[i] for i, n in enumerate(KEYPOINT_NAMES)}

@@ -22,6 +22,7 @@ import math
 import torch
 from torch import Tensor, nn
 
+from eva_engine.avatar.memo import InferenceMemo
 from eva_engine.body.model import nearest_vertex_index
 from eva_engine.geometry import mean_neighbour_distance, quat_from_z
 from eva_engine.render.sh import num_sh_bases
@@ -70,6 +71,7 @@ class CanonicalGaussians(nn.Module):
         self.register_buffer("vertex_ids", vertex_ids.to(torch.int64).clone())
         self.register_buffer("template_vertices", template_vertices.detach().clone())
         self.register_buffer("template_part_ids", template_part_ids.to(torch.int64).clone())
+        self._sh_memo = InferenceMemo()
 
     # -- construction ------------------------------------------------------------------------
     @classmethod
@@ -145,8 +147,10 @@ class CanonicalGaussians(nn.Module):
         return torch.sigmoid(self.splats["opacities"])
 
     def sh(self) -> Tensor:
-        """[N, K, 3] all SH coefficients."""
-        return torch.cat([self.splats["sh0"], self.splats["shN"]], dim=1)
+        """[N, K, 3] all SH coefficients (one tensor made once between renders of a trained
+        avatar, ``avatar/memo.py``: a copy of every coefficient per frame otherwise)."""
+        sh0, shn = self.splats["sh0"], self.splats["shN"]
+        return self._sh_memo.get((sh0, shn), lambda: torch.cat([sh0, shn], dim=1))
 
     def add_expression_offsets(self, num_actions: int) -> None:
         """Give every Gaussian zero colour offsets for ``num_actions`` expression actions (the

@@ -33,8 +33,9 @@ from eva_engine.avatar.expression_colours import (
     revealing_actions,
 )
 from eva_engine.avatar.gaussians import CanonicalGaussians
+from eva_engine.avatar.memo import InferenceMemo
 from eva_engine.avatar.networks import LBSWeightOffsets, PoseRefiner, blend_log_skinning_weights
-from eva_engine.avatar.skinning import skin_gaussians
+from eva_engine.avatar.skinning import skin_gaussians, sparse_weights
 from eva_engine.avatar.skinning_field import LatentBones, SkinningField
 from eva_engine.avatar.surface_frames import follow_skin
 from eva_engine.body.model import BodyModel
@@ -143,7 +144,8 @@ class Avatar(nn.Module):
             # [K] r_k, set from the training frames (``set_expression_range``) and saved.
             self.register_buffer("expression_range", torch.ones(len(actions), dtype=body.dtype))
         self.active_sh_degree = gaussians.sh_degree
-        self._weights_cache: tuple[list[Tensor], list[int], Tensor] | None = None
+        self._weights_memo = InferenceMemo()
+        self._sparse_weights_memo = InferenceMemo()
 
     # -- construction ------------------------------------------------------------------------
     @classmethod
@@ -218,34 +220,24 @@ class Avatar(nn.Module):
         """[N, J] per-Gaussian LBS weights (body-model weights of the nearest vertex + offsets),
         or [N, J + K] read from the skinning field (K latent bones). Without autograd (rendering a
         trained avatar) they are computed once and reused until a tensor they depend on changes
-        (a new tensor or an in-place update)."""
+        (``avatar/memo.py``)."""
         g = self.gaussians
         inputs = [g.means, g.vertex_ids, self.log_body_weights]
         for module in (self.weight_offsets, self.skinning_field):
             if module is not None:
                 inputs += list(module.parameters())
-        versions = [t._version for t in inputs]
-        cached = self._weights_cache
-        if (
-            cached is not None
-            and not torch.is_grad_enabled()
-            and len(cached[0]) == len(inputs)
-            and all(a is b for a, b in zip(cached[0], inputs, strict=True))
-            and cached[1] == versions
-        ):
-            return cached[2]
+        return self._weights_memo.get(inputs, self._compute_skinning_weights)
+
+    def _compute_skinning_weights(self) -> Tensor:
+        g = self.gaussians
         if self.skinning_field is not None:
-            weights = self.skinning_field(g.means)
-        else:
-            if self.weight_offsets is not None:
-                means = g.means.detach() if self.config.detach_weight_inputs else g.means
-                weights = self.weight_offsets.skinning_weights(
-                    means, self.log_body_weights, g.vertex_ids, bf16=self.config.weight_mlp_bf16
-                )
-            else:
-                weights = blend_log_skinning_weights(self.log_body_weights[g.vertex_ids], None)
-        self._weights_cache = (inputs, versions, weights) if not torch.is_grad_enabled() else None
-        return weights
+            return self.skinning_field(g.means)
+        if self.weight_offsets is not None:
+            means = g.means.detach() if self.config.detach_weight_inputs else g.means
+            return self.weight_offsets.skinning_weights(
+                means, self.log_body_weights, g.vertex_ids, bf16=self.config.weight_mlp_bf16
+            )
+        return blend_log_skinning_weights(self.log_body_weights[g.vertex_ids], None)
 
     def pose(self, params: BodyParams) -> PosedGaussians:
         """Pose the Gaussians for one frame: ``params`` with batch 1."""
@@ -253,11 +245,10 @@ class Avatar(nn.Module):
             raise ValueError(f"pose one frame at a time, got a batch of {params.batch_size}")
         g = self.gaussians
         refined = self.refine_pose(params)
-        body = self.body(refined)
-        transforms = body.transforms[0]  # [J, 4, 4]
+        rest, transforms = self.body.rest_and_transforms(refined)
+        rest, transforms = rest[0], transforms[0]  # [V, 3] with this frame's expression, [J, 4, 4]
         if self.latent_bones is not None:  # children of the root: [J + K, 4, 4]
             transforms = torch.cat([transforms, transforms[0] @ self.latent_bones(refined.joints)])
-        rest = body.rest[0]  # [V, 3] with this frame's expression
         weights = self.skinning_weights()
         means, quats, scales, carried, turns = follow_skin(
             g.means,
@@ -269,7 +260,10 @@ class Avatar(nn.Module):
             self.body.faces,
             frames=self.config.expression_frames,
         )
-        means, quats, rot = skin_gaussians(means, quats, weights, transforms)
+        blend = weights  # a render's blend reads the few bones each Gaussian follows
+        if not torch.is_grad_enabled():
+            blend = self._sparse_weights_memo.get([weights], lambda: sparse_weights(weights))
+        means, quats, rot = skin_gaussians(means, quats, blend, transforms)
         if len(carried):  # view directions undo the turn too
             rot = rot.index_copy(0, carried, rot[carried] @ turns)
         sh = self.colours(refined)

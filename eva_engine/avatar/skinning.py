@@ -16,6 +16,7 @@ hand-written backward) where it builds, and in these torch steps elsewhere;
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import roma
@@ -26,6 +27,7 @@ from torch.autograd.function import once_differentiable
 from eva_engine.native import Kernel, NativeLibrary
 
 ORTHONORMALIZE_EPS = 1e-8
+SPARSE_WEIGHT_FLOOR = 1e-6  # ``sparse_weights``: the softmax's floor on a bone is ~1e-8
 SKINNING = NativeLibrary(
     "eva_skinning",
     Path(__file__).resolve().parent / "csrc" / "skinning.cpp",
@@ -35,9 +37,26 @@ SKINNING = NativeLibrary(
 
 
 def blend_transforms(weights: Tensor, transforms: Tensor) -> Tensor:
-    """weights: [N, J]; transforms: [J, 4, 4] -> blended [N, 3, 4]."""
+    """weights: [N, J] (dense, or sparse CSR from ``sparse_weights``); transforms: [J, 4, 4] ->
+    blended [N, 3, 4]."""
     j = transforms.shape[0]
     return (weights @ transforms[:, :3, :].reshape(j, 12)).view(-1, 3, 4)
+
+
+def sparse_weights(weights: Tensor, floor: float = SPARSE_WEIGHT_FLOOR) -> Tensor:
+    """[N, J] skinning weights (rows summing to 1) -> the same as a sparse CSR tensor, without
+    the entries under ``floor``, rows renormalised: for rendering a trained avatar, whose
+    Gaussians each follow a few of the body's bones (the softmax leaves ~1e-8 on each of the
+    others), so the blend reads a few entries per row instead of J (``docs/speed.md``). A
+    point moves by at most the dropped weight (under J x ``floor``) times the bones' spread.
+    Without autograd only (no gradient reaches the dropped entries); a row with no entry over
+    ``floor`` keeps its largest."""
+    keep = (weights >= floor) | (weights == weights.amax(dim=1, keepdim=True))
+    kept = torch.where(keep, weights, torch.zeros_like(weights))
+    kept = kept / kept.sum(dim=1, keepdim=True).clamp_min(torch.finfo(kept.dtype).tiny)
+    with warnings.catch_warnings():  # "sparse CSR support is in beta": only its matmul is used
+        warnings.simplefilter("ignore", UserWarning)
+        return kept.to_sparse_csr()
 
 
 def orthonormalize(m: Tensor, eps: float = ORTHONORMALIZE_EPS) -> Tensor:

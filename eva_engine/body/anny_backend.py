@@ -166,6 +166,9 @@ class AnnyBody(BodyModel):
         self.keypoint_regressor = self._build_keypoints(model, labels, any_label)
         # Keypoint-space LBS data per regressor (``posed_points``), dropped with the regressor.
         self._point_spaces: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+        # Rendering's caches (``_rest_of_one``): the last shape's rest, the actions' blendshapes.
+        self._shaped_rest: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+        self._world_expression_shapes: tuple[torch.Tensor, torch.Tensor] | None = None
         self.keypoint_names = list(KEYPOINT_NAMES)
 
     # -- BodyModel ---------------------------------------------------------------------------
@@ -188,7 +191,12 @@ class AnnyBody(BodyModel):
 
     def _rest(self, params: BodyParams) -> tuple[torch.Tensor, torch.Tensor]:
         """Rest vertices [B, V, 3] and rest bone heads [B, J, 3], world frame."""
-        coeffs = self._blendshape_coeffs(params)
+        if params.batch_size == 1 and not torch.is_grad_enabled():
+            return self._rest_of_one(params)
+        return self._rest_of_coeffs(self._blendshape_coeffs(params))
+
+    def _rest_of_coeffs(self, coeffs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``_rest`` from blendshape coefficients [B, C]."""
         rest = self.anny.get_rest_vertices(coeffs)
         heads = self.anny.template_bone_heads[None] + torch.einsum(
             "cjd,bc->bjd", self.anny.bone_heads_blendshapes, coeffs
@@ -196,18 +204,71 @@ class AnnyBody(BodyModel):
         c_t = self.anny_to_world.T
         return rest @ c_t, heads @ c_t
 
+    def _rest_of_one(self, params: BodyParams) -> tuple[torch.Tensor, torch.Tensor]:
+        """``_rest`` of one frame without autograd, as a render calls it: the rest is linear in
+        the coefficients (phenotype block, then the facial actions), so the shape's part is kept
+        for the last shape seen and only the expression's is added per call (the 188-coefficient
+        blend of every vertex, recomputed for the same shape at every render before)."""
+        shape = params.shape.to(self.dtype)
+        expression = params.expression.to(self.dtype)
+        cached = self._shaped_rest
+        if (
+            cached is None
+            or cached[0].shape != shape.shape
+            or cached[0].device != shape.device
+            or not torch.equal(cached[0], shape)
+        ):
+            neutral = self._blendshape_coeffs(
+                BodyParams(
+                    root_orient=params.root_orient,
+                    transl=params.transl,
+                    joints=params.joints,
+                    expression=torch.zeros_like(expression),
+                    shape=shape,
+                )
+            )
+            cached = (shape.clone(), *self._rest_of_coeffs(neutral))
+            self._shaped_rest = cached  # one tuple: a reader in another thread sees old or new
+        _, rest, heads = cached
+        if bool((expression != 0).any()):
+            vertex_shapes, head_shapes = self._expression_blendshapes()
+            rest = rest + torch.einsum("be,evd->bvd", expression, vertex_shapes)
+            heads = heads + torch.einsum("be,ejd->bjd", expression, head_shapes)
+        return rest, heads
+
+    def _expression_blendshapes(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The facial actions' blendshapes in the world frame: vertices [E, V, 3], bone heads
+        [E, J, 3] (the last E of Anny's coefficients); made on first use."""
+        if self._world_expression_shapes is None:
+            e = len(self.expression_names)
+            c_t = self.anny_to_world.T
+            self._world_expression_shapes = (
+                (self.anny.blendshapes[-e:] @ c_t).contiguous(),
+                (self.anny.bone_heads_blendshapes[-e:] @ c_t).contiguous(),
+            )
+        return self._world_expression_shapes
+
     def canonical(self, params: BodyParams) -> torch.Tensor:
         coeffs = self._blendshape_coeffs(params)
         return self.anny.get_rest_vertices(coeffs) @ self.anny_to_world.T
 
     def forward(self, params: BodyParams) -> BodyOutput:
+        rest, transforms, joints = self._skeleton(params)
+        vertices = lbs(rest, self.skinning_weights, transforms)
+        return BodyOutput(vertices=vertices, joints=joints, transforms=transforms, rest=rest)
+
+    def rest_and_transforms(self, params: BodyParams) -> tuple[torch.Tensor, torch.Tensor]:
+        rest, transforms, _ = self._skeleton(params)
+        return rest, transforms
+
+    def _skeleton(self, params: BodyParams) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Rest vertices [B, V, 3], LBS transforms [B, J, 4, 4] and posed joints [B, J, 3]."""
         rest, heads = self._rest(params)
         rotvecs = torch.cat([params.root_orient[:, None], params.joints], dim=1).to(self.dtype)
         transforms, joints = self.tree.forward_kinematics(
             axis_angle_to_matrix(rotvecs), heads, params.transl.to(self.dtype)
         )
-        vertices = lbs(rest, self.skinning_weights, transforms)
-        return BodyOutput(vertices=vertices, joints=joints, transforms=transforms, rest=rest)
+        return rest, transforms, joints
 
     def keypoints(self, output: BodyOutput) -> torch.Tensor:
         return self.keypoint_regressor(output.vertices, output.joints)

@@ -75,6 +75,13 @@ class BodyModel(torch.nn.Module, abc.ABC):
     def forward(self, params: BodyParams) -> BodyOutput:
         """Pose the body: ``params`` with batch B -> :class:`BodyOutput` with batch B."""
 
+    def rest_and_transforms(self, params: BodyParams) -> tuple[torch.Tensor, torch.Tensor]:
+        """``forward``'s ``rest`` [B, V, 3] and ``transforms`` [B, J, 4, 4] for a caller that
+        skins its own points (an avatar's Gaussians). Backends may override it with a path that
+        skips posing the mesh."""
+        out = self.forward(params)
+        return out.rest, out.transforms
+
     @abc.abstractmethod
     def canonical(self, params: BodyParams) -> torch.Tensor:
         """Rest-pose vertices [B, V, 3] for ``params.shape`` and ``params.expression`` (pose,
