@@ -103,8 +103,17 @@ def _renders(driver) -> int:
 
 
 def _idle(driver) -> bool:
-    """No render in flight and none waiting."""
-    return not driver.execute_script("return state.rendering || state.dirty")
+    """No render in flight and none waiting: the full image of the sliders is shown."""
+    return not driver.execute_script("return state.rendering || state.dirty || state.moving || !state.sharp")
+
+
+# Records each new image of the pose panel: its size and whether the page asked for a preview.
+RECORD_RENDERS = """
+window.shown = [];
+const img = document.getElementById("pose-image");
+new MutationObserver(() => shown.push([img.dataset.detail, img.naturalWidth, img.naturalHeight]))
+  .observe(img, {attributes: true, attributeFilter: ["data-renders"]});
+"""
 
 
 def _image(driver) -> np.ndarray:
@@ -187,6 +196,7 @@ def test_move_sliders_and_the_avatar_changes(site, avatar):
     wait_for(lambda: _renders(d) >= 1 and _idle(d), 60, "the first render of the pose panel")
     before, count = _image(d), _renders(d)
     assert (np.abs(before - 255).sum(-1) > 40).mean() > 0.03  # the avatar is in the picture
+    d.execute_script(RECORD_RENDERS)
     # A person drags the slider; here the keyboard moves it (each key press is an input event).
     for name, keys in (
         ("arm_out.L", [Keys.ARROW_RIGHT] * 35),
@@ -202,6 +212,9 @@ def test_move_sliders_and_the_avatar_changes(site, avatar):
     wait_for(lambda: _renders(d) > count and _idle(d), 60, "the re-render after moving the sliders")
     after = _image(d)
     assert after.shape == before.shape
+    # Previews (half size) while the sliders moved, then the full image once they rested.
+    shown = d.execute_script("return shown")
+    assert ["preview", 180, 210] in shown and shown[-1] == ["full", 360, 420], shown
     assert np.abs(after - before).mean() > 1.0  # the picture changed with the pose
     d.execute_script("window.scrollTo(0, 0)")
     d.save_screenshot(str(OUT / "web_page_posed.png"))

@@ -3,7 +3,10 @@
 
 const POSE_SIZE = { width: 360, height: 420 };
 const POLL_MS = 1000;
-const RENDER_DEBOUNCE_MS = 120;
+// While a slider moves, each render is a preview: half the size, JPEG (a third of the pixels to
+// draw and no PNG to encode); once the sliders rest for SETTLE_MS, the full image follows.
+const PREVIEW = { width: POSE_SIZE.width / 2, height: POSE_SIZE.height / 2, format: "jpeg" };
+const SETTLE_MS = 120; // as long as the debounce before previews: the full image comes as soon
 
 const state = {
   key: sessionStorage.getItem("eva-api-key"),
@@ -16,8 +19,10 @@ const state = {
   thumbnails: new Map(), // avatar id -> object URL
   jobs: new Map(), // job id -> {kind, label, avatarId, animationId, info}
   rendering: false,
-  dirty: false,
-  renderTimer: null,
+  dirty: false, // the sliders changed since the last request was sent
+  moving: false, // a slider moved in the last SETTLE_MS
+  sharp: false, // the image shown is the full render of the sliders
+  settleTimer: null,
   poseUrl: null,
   animationUrl: null,
   animationId: null,
@@ -356,9 +361,17 @@ function showCamera() {
   $("camera-zoom").nextElementSibling.textContent = `${zoom().toFixed(2)}×`;
 }
 
+// A slider moved: render the new pose as soon as the request in flight is back (one at a time,
+// the latest sliders win), as previews while the sliders keep moving.
 function scheduleRender() {
-  clearTimeout(state.renderTimer);
-  state.renderTimer = setTimeout(renderPose, RENDER_DEBOUNCE_MS);
+  state.dirty = true;
+  state.moving = true;
+  clearTimeout(state.settleTimer);
+  state.settleTimer = setTimeout(() => {
+    state.moving = false;
+    renderPose();
+  }, SETTLE_MS);
+  renderPose();
 }
 
 // A pose or view beyond what the training video showed still renders; the service says so.
@@ -380,10 +393,11 @@ function showWarnings(header) {
 
 async function renderPose() {
   if (!state.selected) return;
-  if (state.rendering) { // one request at a time; the latest sliders win
+  if (state.rendering) { // one request at a time: the one in flight calls again when back
     state.dirty = true;
     return;
   }
+  const preview = state.moving;
   state.rendering = true;
   state.dirty = false;
   const avatarId = state.selected;
@@ -391,11 +405,12 @@ async function renderPose() {
   img.classList.add("busy");
   const started = performance.now();
   try {
-    const body = { pose: poseFromSliders(), camera: cameraFromSliders(), ...POSE_SIZE };
+    const body = { pose: poseFromSliders(), camera: cameraFromSliders(), ...(preview ? PREVIEW : POSE_SIZE) };
     const res = await api(`/avatars/${avatarId}/render`, {
       method: "POST", headers: { "content-type": "application/json" }, body: JSON.stringify(body),
     });
     if (!res.ok) {
+      state.sharp = true; // nothing better to show until a slider moves again: no retry loop
       $("pose-status").textContent = await errorText(res);
       return;
     }
@@ -408,14 +423,17 @@ async function renderPose() {
     });
     if (state.poseUrl) URL.revokeObjectURL(state.poseUrl);
     state.poseUrl = url;
+    state.sharp = !preview && !state.dirty;
+    img.dataset.detail = preview ? "preview" : "full";
     img.dataset.renders = String(Number(img.dataset.renders) + 1);
     $("pose-status").textContent = `Rendered in ${Math.round(performance.now() - started)} ms. Move a slider to pose the avatar.`;
   } catch (err) {
+    state.sharp = true;
     $("pose-status").textContent = `Render failed: ${err.message}`;
   } finally {
     img.classList.remove("busy");
     state.rendering = false;
-    if (state.dirty && state.selected) renderPose();
+    if (state.selected && (state.dirty || (!state.moving && !state.sharp))) renderPose();
   }
 }
 
