@@ -12,6 +12,7 @@ from eva_engine.body import (
     BodyModel,
     BodyParams,
     lbs,
+    nearest_vertex_index,
     nearest_vertex_weights,
 )
 
@@ -267,6 +268,26 @@ def test_rest_and_transforms_are_forwards_without_autograd_too(model):
         torch.testing.assert_close(transforms, out.transforms, atol=2e-6, rtol=0)
         torch.testing.assert_close(neutral_rest, model(params).rest, atol=2e-6, rtol=0)
         torch.testing.assert_close(neutral_rest, model.canonical(params), atol=2e-6, rtol=0)
+
+
+def test_nearest_vertices_are_the_brute_force_ones(model):
+    """The k-d tree search (CPU) returns the same nearest vertices and distances as comparing
+    every point with every vertex in float64, and copes with no points at all."""
+    from eva_engine.body.model import _knn
+
+    vertices = model.canonical(model.default_params(1))[0]
+    g = torch.Generator().manual_seed(3)
+    points = vertices[torch.randint(0, len(vertices), (3000,), generator=g)]
+    points = points + 0.02 * torch.randn(points.shape, generator=g)
+    points[:10] = vertices[:10]  # on a vertex: distance 0
+    brute = torch.cdist(points.double(), vertices.double())
+    dist, idx = _knn(points, vertices, 4)
+    expected = brute.topk(4, dim=1, largest=False)
+    torch.testing.assert_close(dist.double(), expected.values, atol=1e-6, rtol=0)
+    assert (idx == expected.indices).float().mean() > 0.999  # only float32 near-ties may swap
+    assert torch.equal(nearest_vertex_index(points, vertices), brute.argmin(dim=1))
+    assert nearest_vertex_index(points[:0], vertices).shape == (0,)
+    assert nearest_vertex_weights(points[:0], vertices, model.skinning_weights).shape == (0, model.num_joints)
 
 
 def test_keypoints_sides_and_order_at_rest(model):

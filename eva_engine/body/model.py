@@ -253,26 +253,46 @@ def nearest_vertex_weights(
     if vertices.shape[0] == 1:
         return weights.expand(points.shape[0], -1).clone()
     k = min(k, vertices.shape[0] - 1)
+    dist, idx = _knn(points.detach(), vertices.detach(), k + 1, chunk)
+    if k == 1:
+        return weights[idx[:, 0]]
     out = []
-    for p in points.detach().split(chunk):
-        dist, idx = _knn(p, vertices.detach(), k + 1)
-        if k == 1:
-            out.append(weights[idx[:, 0]])
-            continue
-        inv = 1.0 / dist.clamp_min(1e-12)
+    for d, i in zip(dist.split(chunk), idx.split(chunk), strict=True):  # [chunk, k, J] at a time
+        inv = 1.0 / d.clamp_min(1e-12)
         alpha = (inv[:, :k] - inv[:, k:]).clamp_min(0.0)
         # All k+1 distances equal (a measure-zero tie): fall back to a plain average.
         alpha = torch.where(alpha.sum(1, keepdim=True) > 0, alpha, torch.ones_like(alpha))
         alpha = alpha / alpha.sum(1, keepdim=True)
-        out.append(torch.einsum("nk,nkj->nj", alpha, weights[idx[:, :k]]))
+        out.append(torch.einsum("nk,nkj->nj", alpha, weights[i[:, :k]]))
     return torch.cat(out) if out else weights.new_zeros(0, weights.shape[1])
 
 
-def _knn(points: torch.Tensor, vertices: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Exact distances [N, k] and indices [N, k] of the k nearest vertices, ascending. cdist's
-    fast matrix-product path loses ~1e-4 m near zero, so it only shortlists candidates."""
-    shortlist = min(k + 8, vertices.shape[0])
-    cand = torch.cdist(points, vertices).topk(shortlist, dim=1, largest=False).indices
+def _knn(
+    points: torch.Tensor, vertices: torch.Tensor, k: int, chunk: int = 4096
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Exact distances [N, k] and indices [N, k] of the k nearest vertices, ascending.
+
+    On CPU a k-d tree (scipy's, float64) finds them: by brute force, refreshing the Gaussians'
+    nearest vertices was an eighth of a short training's time (``docs/speed.md``). Elsewhere
+    cdist shortlists candidates ``chunk`` points at a time (its fast matrix-product path loses
+    ~1e-4 m near zero, so it only shortlists). Either way the distances returned are recomputed
+    exactly in the inputs' dtype and the candidates ordered by them."""
+    if points.shape[0] == 0:
+        empty = torch.zeros(0, k, dtype=torch.int64, device=points.device)
+        return points.new_zeros(0, k), empty
+    if points.device.type == "cpu":
+        from scipy.spatial import cKDTree
+
+        _, found = cKDTree(vertices.double().numpy()).query(points.double().numpy(), k=k)
+        cand = torch.from_numpy(found).reshape(points.shape[0], k).to(torch.int64)
+    else:
+        shortlist = min(k + 8, vertices.shape[0])
+        cand = torch.cat(
+            [
+                torch.cdist(p, vertices).topk(shortlist, dim=1, largest=False).indices
+                for p in points.split(chunk)
+            ]
+        )
     dist = (vertices[cand] - points[:, None]).norm(dim=-1)
     dist, order = dist.sort(dim=1)
     return dist[:, :k], cand.gather(1, order[:, :k])
@@ -280,8 +300,7 @@ def _knn(points: torch.Tensor, vertices: torch.Tensor, k: int) -> tuple[torch.Te
 
 def nearest_vertex_index(points: torch.Tensor, vertices: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
     """Index [N] of the nearest vertex (of [V, 3]) to each of ``points`` [N, 3]."""
-    out = [_knn(p, vertices.detach(), 1)[1][:, 0] for p in points.detach().split(chunk)]
-    return torch.cat(out) if out else torch.zeros(0, dtype=torch.int64, device=points.device)
+    return _knn(points.detach(), vertices.detach(), 1, chunk)[1][:, 0]
 
 
 def part_ids_from_weights(
