@@ -32,20 +32,8 @@ from pathlib import Path
 
 from serving import base_report, ensure_service_dir, header, ready_avatar, serve_only
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-CHROMEDRIVER = shutil.which("chromedriver")
-CHROMIUM_FLAGS = (
-    "--headless=new",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--disable-dev-shm-usage",
-    "--window-size=1400,1000",
-)
+from service.headless_browser import missing, start_chromium
+
 DRAGS = (  # (label, CSS selector of the slider)
     ("left arm out", 'input[data-control="arm_out.L"]'),
     ("right elbow", 'input[data-control="elbow.R"]'),
@@ -75,20 +63,6 @@ const timer = setInterval(() => {
   }
 }, 16);
 """
-
-
-def browser():
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = CHROMIUM
-    profile = tempfile.mkdtemp(prefix="eva-bench-chromium-")
-    for flag in (*CHROMIUM_FLAGS, f"--user-data-dir={profile}"):
-        options.add_argument(flag)
-    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
-    driver.set_page_load_timeout(60)
-    return driver, profile
 
 
 def wait(driver, script: str, timeout: float, what: str):
@@ -144,7 +118,7 @@ def run(args) -> dict:
     driver = profile = None
     try:
         avatar = ready_avatar(stack.base_url, {})
-        driver, profile = browser()
+        driver, profile = start_chromium()
         driver.get(f"{stack.base_url}/")
         card = f'.avatar-card[data-avatar-id="{avatar["avatar_id"]}"]'
         wait(driver, f"return document.querySelector('{card}')", 60, "the avatar's card")
@@ -230,12 +204,8 @@ def main() -> None:
     ap.add_argument("--name", default="page_sliders")
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results")
     args = ap.parse_args()
-    try:
-        import selenium  # noqa: F401
-    except ImportError:
-        raise SystemExit("skipped: selenium is not installed (pip install -e '.[dev]')") from None
-    if not (Path(CHROMIUM).exists() and CHROMEDRIVER):
-        raise SystemExit("skipped: no Chromium / chromedriver here (scripts/install-system-deps.sh)")
+    if reason := missing():
+        raise SystemExit(f"skipped: {reason}")
     write(run(args), args.out, args.name)
 
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import io
 import json
 import shutil
-import tempfile
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -21,43 +20,19 @@ from helpers import service as svc
 from helpers.service import EVA, free_port, log_tail, start_process, start_worker, stop, wait_for
 from PIL import Image
 
+from service import headless_browser
+
 signer_video = svc.signer_video  # fixtures
 other_signer_video = svc.other_signer_video
 
 pytestmark = pytest.mark.slow
 OUT = Path(__file__).resolve().parent.parent / "out"
-CHROMIUM, CHROMEDRIVER = shutil.which("chromium") or "/usr/bin/chromium", shutil.which("chromedriver")
-# Chromium's own network calls fail on a closed network: keep it quiet (see the machine notes).
-CHROMIUM_FLAGS = (
-    "--headless=new",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--disable-dev-shm-usage",
-    "--window-size=1400,1000",
-)
 
 
 def _browser():
-    selenium = pytest.importorskip("selenium", reason="selenium is not installed (pip install -e '.[dev]')")
-    del selenium
-    if not (Path(CHROMIUM).exists() and CHROMEDRIVER):
-        pytest.skip("no Chromium / chromium-driver here (scripts/install-system-deps.sh installs them)")
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = CHROMIUM
-    profile = tempfile.mkdtemp(prefix="eva-chromium-")
-    for flag in (*CHROMIUM_FLAGS, f"--user-data-dir={profile}"):
-        options.add_argument(flag)
-    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
-    driver.set_page_load_timeout(60)
-    return driver, profile
+    if reason := headless_browser.missing():
+        pytest.skip(reason)
+    return headless_browser.start_chromium()
 
 
 @pytest.fixture(scope="module")
