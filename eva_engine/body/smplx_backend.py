@@ -146,18 +146,28 @@ class SmplxBody(BodyModel):
         return self._shaped(params)
 
     def forward(self, params: BodyParams) -> BodyOutput:
-        s = self.smplx
-        shaped = rest = self._shaped(params)  # [B, V, 3]
-        heads = torch.einsum("jv,bvd->bjd", s.J_regressor, rest)
-        rotvecs = torch.cat([params.root_orient[:, None], params.joints], dim=1).to(self.dtype)
-        rotations = axis_angle_to_matrix(rotvecs)  # [B, J, 3, 3]
+        shaped, rotations, transforms, joints = self._skeleton(params)
+        rest = shaped
         if self.config.pose_correctives:
             eye = torch.eye(3, dtype=rotations.dtype, device=rotations.device)
             feature = (rotations[:, 1:] - eye).flatten(1)  # [B, (J - 1) * 9]
-            rest = rest + (feature @ s.posedirs).view_as(rest)
-        transforms, joints = self.tree.forward_kinematics(rotations, heads, params.transl.to(self.dtype))
+            rest = rest + (feature @ self.smplx.posedirs).view_as(rest)
         vertices = lbs(rest, self.skinning_weights, transforms)
         return BodyOutput(vertices=vertices, joints=joints, transforms=transforms, rest=shaped)
+
+    def rest_and_transforms(self, params: BodyParams) -> tuple[torch.Tensor, torch.Tensor]:
+        shaped, _, transforms, _ = self._skeleton(params)
+        return shaped, transforms
+
+    def _skeleton(self, params: BodyParams) -> tuple[torch.Tensor, ...]:
+        """Shaped rest vertices [B, V, 3], joint rotations [B, J, 3, 3], LBS transforms
+        [B, J, 4, 4] and posed joints [B, J, 3] (no mesh posed)."""
+        shaped = self._shaped(params)  # [B, V, 3]
+        heads = torch.einsum("jv,bvd->bjd", self.smplx.J_regressor, shaped)
+        rotvecs = torch.cat([params.root_orient[:, None], params.joints], dim=1).to(self.dtype)
+        rotations = axis_angle_to_matrix(rotvecs)  # [B, J, 3, 3]
+        transforms, joints = self.tree.forward_kinematics(rotations, heads, params.transl.to(self.dtype))
+        return shaped, rotations, transforms, joints
 
     def keypoints(self, output: BodyOutput) -> torch.Tensor:
         if self.keypoint_regressor is None:
