@@ -3,7 +3,7 @@
 
 const POSE_SIZE = { width: 360, height: 420 };
 const POLL_MS = 1000;
-// While a slider moves, each render is a preview: half the size, JPEG (a third of the pixels to
+// While a slider moves, each render is a preview: half the size, JPEG (a quarter of the pixels to
 // draw and no PNG to encode); once the sliders rest for SETTLE_MS, the full image follows.
 const PREVIEW = { width: POSE_SIZE.width / 2, height: POSE_SIZE.height / 2, format: "jpeg" };
 const SETTLE_MS = 120; // as long as the debounce before previews: the full image comes as soon
