@@ -166,9 +166,15 @@ class AnnyBody(BodyModel):
         self.keypoint_regressor = self._build_keypoints(model, labels, any_label)
         # Keypoint-space LBS data per regressor (``posed_points``), dropped with the regressor.
         self._point_spaces: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-        # Rendering's caches (``_rest_of_one``): the last shape's rest, the actions' blendshapes.
+        # Rendering's (``_rest_of_one``): the facial actions' blendshapes in the world frame,
+        # vertices [E, V, 3] and bone heads [E, J, 3] (the last E of Anny's coefficients), and
+        # the last shape's rest.
+        e, c_t = len(self.expression_names), c.T
+        self.register_buffer("expression_vertex_shapes", model.blendshapes[-e:] @ c_t, persistent=False)
+        self.register_buffer(
+            "expression_head_shapes", model.bone_heads_blendshapes[-e:] @ c_t, persistent=False
+        )
         self._shaped_rest: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
-        self._world_expression_shapes: tuple[torch.Tensor, torch.Tensor] | None = None
         self.keypoint_names = list(KEYPOINT_NAMES)
 
     # -- BodyModel ---------------------------------------------------------------------------
@@ -219,34 +225,15 @@ class AnnyBody(BodyModel):
             or not torch.equal(cached[0], shape)
         ):
             neutral = self._blendshape_coeffs(
-                BodyParams(
-                    root_orient=params.root_orient,
-                    transl=params.transl,
-                    joints=params.joints,
-                    expression=torch.zeros_like(expression),
-                    shape=shape,
-                )
+                dataclasses.replace(params, expression=torch.zeros_like(expression))
             )
             cached = (shape.clone(), *self._rest_of_coeffs(neutral))
             self._shaped_rest = cached  # one tuple: a reader in another thread sees old or new
         _, rest, heads = cached
         if bool((expression != 0).any()):
-            vertex_shapes, head_shapes = self._expression_blendshapes()
-            rest = rest + torch.einsum("be,evd->bvd", expression, vertex_shapes)
-            heads = heads + torch.einsum("be,ejd->bjd", expression, head_shapes)
+            rest = rest + torch.einsum("be,evd->bvd", expression, self.expression_vertex_shapes)
+            heads = heads + torch.einsum("be,ejd->bjd", expression, self.expression_head_shapes)
         return rest, heads
-
-    def _expression_blendshapes(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The facial actions' blendshapes in the world frame: vertices [E, V, 3], bone heads
-        [E, J, 3] (the last E of Anny's coefficients); made on first use."""
-        if self._world_expression_shapes is None:
-            e = len(self.expression_names)
-            c_t = self.anny_to_world.T
-            self._world_expression_shapes = (
-                (self.anny.blendshapes[-e:] @ c_t).contiguous(),
-                (self.anny.bone_heads_blendshapes[-e:] @ c_t).contiguous(),
-            )
-        return self._world_expression_shapes
 
     def canonical(self, params: BodyParams) -> torch.Tensor:
         coeffs = self._blendshape_coeffs(params)
