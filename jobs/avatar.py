@@ -98,7 +98,7 @@ def _train(
 
     result = train_avatar(ds, config, body=body, progress=progress)
     report(ProgressEvent("train", 0.95, 1, "scoring the avatar on unseen frames"), force=True)
-    metrics = ImageMetrics()  # LPIPS networks loaded once for both
+    metrics = ImageMetrics()  # its AlexNet serves the training-frame metrics too
     quality = quality_report(result.avatar, ds, metrics)
     record = result.record(
         config,
@@ -120,9 +120,13 @@ def _train(
 
 
 def _training_metrics(avatar, ds, metrics=None) -> dict:
-    """PSNR / SSIM / LPIPS of the avatar on up to METRIC_FRAMES of its training frames."""
-    from eva_engine.eval import evaluate_avatar
+    """PSNR / SSIM / LPIPS-Alex of the avatar on up to METRIC_FRAMES of its training frames
+    (``metrics``: an ``ImageMetrics`` whose AlexNet is reused). No LPIPS-VGG, the held-out
+    report's score: on training frames it cost 5% of a real job (``bench/results/quality_cost.md``)
+    for a number that only says how well the avatar fits what it saw, as PSNR and LPIPS-Alex do."""
+    from eva_engine.eval import ImageMetrics, evaluate_avatar
 
+    metrics = ImageMetrics(lpips_alex=metrics.lpips_alex if metrics is not None else None, vgg=False)
     train = list(ds.splits.get("train", []))
     if not train:
         return {}
@@ -132,7 +136,7 @@ def _training_metrics(avatar, ds, metrics=None) -> dict:
     full = result.regions.get("full")
     out = {"split": "train", "frames": result.num_frames, "render_fps": result.render_fps}
     if full is not None:
-        out.update(psnr=full.psnr, ssim=full.ssim, lpips_vgg=full.lpips_vgg, lpips_alex=full.lpips_alex)
+        out.update(psnr=full.psnr, ssim=full.ssim, lpips_alex=full.lpips_alex)
     return out
 
 

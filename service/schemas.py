@@ -177,7 +177,9 @@ class AvatarInfo(BaseModel):
     train_seconds: float | None = None
     final_loss: float | None = None
     metrics: dict[str, Any] = Field(
-        default_factory=dict, description="Fit on training frames: psnr, ssim, lpips_vgg, lpips_alex."
+        default_factory=dict,
+        description="Fit on training frames: psnr, ssim, lpips_alex (lpips_vgg, the "
+        "perceptual score users compare, is the held-out quality report's).",
     )
     quality: QualityReport | None = Field(
         None,

@@ -52,6 +52,18 @@ def test_the_teacher_beats_an_untrained_avatar(anny_model, metrics):
         evaluate_avatar(teacher, ds, split="test_view", metrics=metrics)
 
 
+def test_metrics_without_vgg_score_the_rest_the_same(anny_model, metrics):
+    ds, teacher = teacher_scene(anny_model, n_frames=3, size=48)
+    both = evaluate_avatar(teacher, ds, metrics=metrics)
+    light = evaluate_avatar(teacher, ds, metrics=ImageMetrics(lpips_alex=metrics.lpips_alex, vgg=False))
+    assert set(light.regions) == set(both.regions)
+    for region, scores in light.regions.items():
+        assert scores.lpips_vgg is None and both.regions[region].lpips_vgg is not None
+        same = dataclasses.replace(both.regions[region], lpips_vgg=None)
+        assert scores == same
+    assert "lpips_vgg" not in light.per_frame[2]["full"]
+
+
 def test_region_metrics_crop_to_the_region(metrics):
     torch.manual_seed(0)
     target = torch.rand(64, 64, 3)

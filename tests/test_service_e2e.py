@@ -109,6 +109,8 @@ def test_avatar_metadata(live, ready):
     assert info["num_gaussians"] > 100 and info["iterations"] == 6 and info["train_seconds"] > 0
     assert info["num_frames"] == svc.SIGNER_FRAMES and info["frame_size"] == [256, 256]  # held-out ones too
     assert math.isfinite(info["metrics"]["psnr"]) and 0 < info["metrics"]["ssim"] <= 1
+    # On training frames LPIPS-Alex only: VGG, the costly one, is for the held-out report.
+    assert 0 < info["metrics"]["lpips_alex"] < 1 and "lpips_vgg" not in info["metrics"]
     # Its quality report: 4 of the 8 frames kept out of training and scored, what detection saw,
     # and the verdict: 6 iterations make a poor avatar, and the report says why in words.
     held_out, detection = info["quality"]["held_out"], info["quality"]["detection"]

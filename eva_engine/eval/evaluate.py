@@ -88,6 +88,8 @@ class PoseRefinement:
 
 class ImageMetrics:
     """PSNR, SSIM and both LPIPS networks on one image pair; holds the LPIPS modules (build once).
+    With ``vgg=False`` no ``lpips_vgg``: VGG-16 costs ~25x AlexNet (870 against 35 ms for a 256²
+    pair on one core), which a score nobody compares across avatars need not pay.
 
     ``metrics(pred, target)`` with [H, W, 3] images in [0, 1] -> {metric: float}; with
     ``mask [H, W]`` the pair is first cropped to the mask's box (module docstring); with the
@@ -95,10 +97,12 @@ class ImageMetrics:
     ``silhouette_iou`` on the same crop.
     """
 
-    def __init__(self, pad: int = PAD, min_crop: int = MIN_CROP, lpips_alex: LPIPS | None = None) -> None:
+    def __init__(
+        self, pad: int = PAD, min_crop: int = MIN_CROP, lpips_alex: LPIPS | None = None, vgg: bool = True
+    ) -> None:
         self.pad, self.min_crop = pad, min_crop
         self.lpips_alex = lpips_alex or LPIPS("alex")
-        self.lpips_vgg = LPIPS("vgg")
+        self.lpips_vgg = LPIPS("vgg") if vgg else None
 
     def box(self, mask: Tensor) -> tuple[int, int, int, int]:
         """The crop box ``(x0, y0, x1, y1)`` of a region mask [H, W] (module docstring)."""
@@ -116,12 +120,10 @@ class ImageMetrics:
         a, b = pred.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]
         x0, y0, x1, y1 = self.box(mask) if mask is not None else (0, 0, pred.shape[1], pred.shape[0])
         a, b = a[..., y0:y1, x0:x1], b[..., y0:y1, x0:x1]
-        out = {
-            "psnr": float(psnr(a, b)[0]),
-            "ssim": float(ssim(a, b)[0]),
-            "lpips_vgg": float(self.lpips_vgg(a, b)[0]),
-            "lpips_alex": float(self.lpips_alex(a, b)[0]),
-        }
+        out = {"psnr": float(psnr(a, b)[0]), "ssim": float(ssim(a, b)[0])}
+        if self.lpips_vgg is not None:
+            out["lpips_vgg"] = float(self.lpips_vgg(a, b)[0])
+        out["lpips_alex"] = float(self.lpips_alex(a, b)[0])
         if pred_alpha is not None and person_mask is not None:
             out[PLACEMENT] = silhouette_iou(pred_alpha[y0:y1, x0:x1], person_mask[y0:y1, x0:x1])
         return out
@@ -156,11 +158,11 @@ class RegionMetrics:
     (a frame with both hands gives two hand crops); box_px: median longer side of the region's
     box (before growing to ``MIN_CROP``); silhouette_iou: the placement diagnostic (module
     docstring), absent where it was not measured; debris, holes: the silhouette errors (the full
-    image only)."""
+    image only); lpips_vgg: None when scored without VGG (``ImageMetrics(vgg=False)``)."""
 
     psnr: float
     ssim: float
-    lpips_vgg: float
+    lpips_vgg: float | None
     lpips_alex: float
     frames: int
     crops: int = 0
@@ -197,7 +199,7 @@ class EvalResult:
         of_mask = {**REGION_OF_MASK, **EXTRA_REGION_OF_MASK}
         names = [n for n, r in of_mask.items() if r == region] if region != "full" else ["full"]
         rows = [f[n] for f in self.per_frame.values() for n in names if n in f and PLACEMENT in f[n]]
-        if len(rows) < 4:
+        if len(rows) < 4 or any("lpips_vgg" not in r for r in rows):
             return None
         iou = torch.tensor([r[PLACEMENT] for r in rows], dtype=torch.float64)
         lp = torch.tensor([r["lpips_vgg"] for r in rows], dtype=torch.float64)
@@ -305,7 +307,7 @@ def evaluate_avatar(
             1 for r in per_frame.values() for name, reg in of_mask.items() if reg == region and name in r
         )
         regions[region] = RegionMetrics(
-            **_mean(found),
+            **{"lpips_vgg": None, **_mean(found)},
             frames=len(found),
             crops=n_crops if region != "full" else len(found),
             box_px=float(statistics.median(boxes[region])) if region in boxes else float(max(h, w)),
