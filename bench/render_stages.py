@@ -12,7 +12,6 @@ Writes ``<name>.json`` and ``<name>.md``.
 from __future__ import annotations
 
 import argparse
-import io
 import json
 from pathlib import Path
 
@@ -27,13 +26,10 @@ def median_ms(fn, repeats: int) -> float:
 
 
 def png(image: np.ndarray) -> bytes:
-    """PNG as the render endpoint encodes it (``service.rendering.encode_image``; bench/serving.py
-    shadows the ``service`` package on this path)."""
-    from PIL import Image
+    """PNG as the render endpoint encodes it (``service.rendering.encode_image``)."""
+    from service.rendering import encode_image
 
-    buf = io.BytesIO()
-    Image.fromarray(image).save(buf, format="PNG", compress_level=1)
-    return buf.getvalue()
+    return encode_image(image, "png")
 
 
 def measure(avatar_dir: Path, size: int, threads: int, repeats: int) -> dict:
@@ -46,6 +42,15 @@ def measure(avatar_dir: Path, size: int, threads: int, repeats: int) -> dict:
     torch.set_num_threads(threads)
     avatar = load_saved_avatar(avatar_dir).avatar
     params = avatar.body.default_params(1)
+    turns = iter(range(1, 10**9))
+
+    def new_pose():
+        """The rest pose turned by a new 1e-5 rad each call: a pose the avatar has not just posed
+        (``Avatar.pose`` keeps the last one for a request that changes only the camera)."""
+        turned = params.map(torch.clone)
+        turned.root_orient[0, 1] = 1e-5 * next(turns)
+        return turned
+
     camera = camera_from_spec(CameraSpec(), size, size)
     background = torch.ones(3)
     with torch.no_grad():
@@ -72,12 +77,16 @@ def measure(avatar_dir: Path, size: int, threads: int, repeats: int) -> dict:
             "threads": threads,
             "gaussians": len(opacities),
             "pairs": bins.num_intersections,
+            "png_bytes": len(png(np.asarray(image))),
             "ms": {
-                "pose": median_ms(lambda: avatar.pose(params), repeats),
+                "pose": median_ms(lambda: avatar.pose(new_pose()), repeats),
                 "project": median_ms(project, repeats),
                 "bin": median_ms(bin_, repeats),
                 "composite": median_ms(composite, repeats),
                 "render_image": median_ms(
+                    lambda: render_image(avatar, new_pose(), camera, (1.0, 1.0, 1.0)), repeats
+                ),
+                "same_pose": median_ms(
                     lambda: render_image(avatar, params, camera, (1.0, 1.0, 1.0)), repeats
                 ),
                 "png": median_ms(lambda: png(np.asarray(image)), repeats),
@@ -111,9 +120,11 @@ def main() -> None:
         f"- machine: {doc['machine']}",
         *([f"- note: {args.note}"] if args.note else []),
         f"- avatar: `{args.avatar}`, {rows[0]['gaussians']} Gaussians, rest pose, front camera, "
-        f"{args.size}² px, {rows[0]['pairs']} Gaussian-tile pairs (8 px tiles, the default); medians of "
+        f"{args.size}² px, {rows[0]['pairs']} Gaussian-tile pairs (8 px tiles, the default), a PNG of "
+        f"{rows[0]['png_bytes'] / 1024:.1f} KB; medians of "
         f"{args.repeats} calls (ms); the stages one by one on the same posed Gaussians; render_image: "
-        "the whole render (pose, SH colours, rasterize), as the endpoint calls it",
+        "the whole render (pose, SH colours, rasterize) of a new pose, as the endpoint calls it; "
+        "same_pose: the same of the pose posed last (a request that changes only the camera)",
         "",
         "| threads | " + " | ".join(stages) + " |",
         "|---:|" + "---:|" * len(stages),

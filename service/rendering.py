@@ -23,6 +23,7 @@ from eva_engine.avatar.render_spec import render_image as _render_image
 from eva_engine.body import BodyModel, BodyParams, load_body_model
 from eva_engine.render.camera import Camera
 from eva_engine.render.sh import SH_C0
+from service.png import encode_png
 
 
 class RenderBusy(Exception):
@@ -158,13 +159,13 @@ def render_image(loaded: LoadedAvatar, params: BodyParams, camera: Camera, backg
 
 
 def encode_image(image: np.ndarray, fmt: str) -> bytes:
+    """[H, W, 3] uint8 -> the bytes of a PNG (``service.png``) or a JPEG (quality 92) file."""
+    if fmt == "png":
+        return encode_png(image)
     from PIL import Image
 
     buf = io.BytesIO()
-    if fmt == "png":  # level 1: a third faster than the default 6, ~2% larger on renders
-        Image.fromarray(image).save(buf, format="PNG", compress_level=1)
-    else:
-        Image.fromarray(image).save(buf, format="JPEG", quality=92)
+    Image.fromarray(image).save(buf, format="JPEG", quality=92)
     return buf.getvalue()
 
 

@@ -230,6 +230,47 @@ def test_the_inference_memo_keeps_a_value_only_while_its_inputs_are_unchanged():
     assert len(calls) == 6
 
 
+def test_the_inference_memo_compares_its_key_by_value():
+    calls = []
+    memo = InferenceMemo()
+    with torch.no_grad():
+        first = memo.get([], lambda: calls.append(1) or torch.ones(1), key=[torch.tensor([1.0, 2.0])])
+        again = memo.get(
+            [], lambda: calls.append(1), key=[torch.tensor([1.0, 2.0])]
+        )  # new tensor, same values
+        assert again is first and len(calls) == 1
+        for other in ([torch.tensor([1.0, 2.5])], [torch.tensor([1.0, 2.0], dtype=torch.float64)], []):
+            memo.get([], lambda: calls.append(1), key=other)
+        assert len(calls) == 4
+        nan = [torch.tensor([float("nan")])]
+        memo.get([], lambda: calls.append(1), key=nan)
+        memo.get([], lambda: calls.append(1), key=nan)  # NaN equals nothing: computed again
+        assert len(calls) == 6
+
+
+def test_a_render_that_changes_only_the_camera_reuses_the_posed_gaussians(anny_model):
+    avatar = Avatar.create(anny_model, anny_model.shape_defaults, AvatarConfig(**SMALL), seed=4)
+    params = random_params(anny_model, 1, seed=5)
+    params.expression[0, 0] = 0.6  # with an expression: the skin's frames too
+    with torch.no_grad():
+        posed = avatar.pose(params)
+        assert avatar.pose(params.map(torch.clone)) is posed  # equal values, new tensors
+        moved = params.map(torch.clone)
+        moved.joints[0, 3, 0] += 0.1
+        assert avatar.pose(moved) is not posed
+        avatar.gaussians.splats["means"].add_(0.01)  # the avatar changed in place: posed again
+        fresh = avatar.pose(params)
+        shift = (fresh.means - posed.means).norm(dim=-1)  # 1.7 cm in canonical space
+        assert fresh is not posed and bool(((shift > 0.01) & (shift < 0.03)).all())
+        # The kept pose renders what posing anew renders, through another camera too.
+        for cam in (front_camera(24), _behind_camera(24)):
+            kept = avatar.render(params, cam)
+            avatar._posed_memo = InferenceMemo()
+            torch.testing.assert_close(kept, avatar.render(params, cam), atol=0, rtol=0)
+    with_grad = avatar.pose(params)  # training: never kept
+    assert with_grad is not avatar.pose(params) and with_grad.means.requires_grad
+
+
 def test_degenerate_blends_stay_finite():
     m = torch.zeros(3, 3, 3, requires_grad=True)  # all-zero blended matrix (opposite rotations)
     r = orthonormalize(m)

@@ -146,6 +146,7 @@ class Avatar(nn.Module):
         self.active_sh_degree = gaussians.sh_degree
         self._weights_memo = InferenceMemo()
         self._sparse_weights_memo = InferenceMemo()
+        self._posed_memo = InferenceMemo()
 
     # -- construction ------------------------------------------------------------------------
     @classmethod
@@ -240,9 +241,16 @@ class Avatar(nn.Module):
         return blend_log_skinning_weights(self.log_body_weights[g.vertex_ids], None)
 
     def pose(self, params: BodyParams) -> PosedGaussians:
-        """Pose the Gaussians for one frame: ``params`` with batch 1."""
+        """Pose the Gaussians for one frame: ``params`` with batch 1. Without autograd the last
+        pose is kept while the avatar's tensors and the values of ``params`` stay the same: a
+        render that changes only the camera (the page's view slider) skips the posing. Read the
+        result, never modify it in place."""
         if params.batch_size != 1:
             raise ValueError(f"pose one frame at a time, got a batch of {params.batch_size}")
+        own = [*self.parameters(), *self.buffers()]
+        return self._posed_memo.get(own, lambda: self._pose(params), key=list(params.tensors().values()))
+
+    def _pose(self, params: BodyParams) -> PosedGaussians:
         g = self.gaussians
         refined = self.refine_pose(params)
         rest, transforms = self.body.rest_and_transforms(refined)
