@@ -88,8 +88,8 @@ class PoseRefinement:
 
 class ImageMetrics:
     """PSNR, SSIM and both LPIPS networks on one image pair; holds the LPIPS modules (build once).
-    With ``vgg=False`` no ``lpips_vgg``: VGG-16 costs ~25x AlexNet (870 against 35 ms for a 256²
-    pair on one core), which a score nobody compares across avatars need not pay.
+    With ``vgg=False`` no ``lpips_vgg``: VGG-16 is by far the costlier network, and a job's
+    training-frame metrics do without it (``bench/results/quality_cost.md``).
 
     ``metrics(pred, target)`` with [H, W, 3] images in [0, 1] -> {metric: float}; with
     ``mask [H, W]`` the pair is first cropped to the mask's box (module docstring); with the
