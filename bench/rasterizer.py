@@ -350,8 +350,9 @@ def _markdown(report: dict) -> str:
         f"{report['load_average_at_end']}; per round {report['load_average_per_round']}. "
         + _load_remark(report["load_average_at_start"][0])
         + "; the variants ran interleaved round by round so the ratios compare like with like",
-        f"- variants: `before` = commit {before[:12]} (main before the compiled kernels, its default "
-        'tiled torch rasterizer); `torch` = this commit with `RasterConfig(kernel="torch")` (the '
+        f"- variants: `before` = commit {before[:12]} (`--before`; "
+        + ("main before the compiled kernels, " if report["before_ref"] == BEFORE else "")
+        + 'its default rasterizer); `torch` = this commit with `RasterConfig(kernel="torch")` (the '
         "fallback); `cpp` = this commit with the compiled C++ kernels (the default where they build)",
         f"- {report['rounds']} interleaved rounds x {report['repeats']} timed runs (after a warm-up) per "
         "variant, each round a fresh process per (config, variant, mode); medians over all runs",
@@ -485,7 +486,7 @@ def main() -> None:
             per_round.append(_load())
     summary = _summary(results)
     report = dict(
-        **run_header(),
+        run_header(),  # its machine line replaced by the detailed record below
         machine=_machine(args.threads),
         omp_wait_policy=args.omp_wait_policy,
         load_average_at_start=load_start,
