@@ -51,6 +51,16 @@ def measure(avatar_dir: Path, size: int, threads: int, repeats: int) -> dict:
         turned.root_orient[0, 1] = 1e-5 * next(turns)
         return turned
 
+    names = list(avatar.body.expression_names)
+    face = [names.index(n) for n in ("jawOpen", "eyeBlinkLeft", "eyeBlinkRight") if n in names]
+
+    def new_face():
+        """A new pose with the jaw open 0.3 and the eyes half shut: the skin's frames carry the
+        Gaussians the expression moves (``avatar/surface_frames.py``)."""
+        posed = new_pose()
+        posed.expression[0, face] = torch.tensor([0.3, 0.5, 0.5][: len(face)], dtype=posed.expression.dtype)
+        return posed
+
     camera = camera_from_spec(CameraSpec(), size, size)
     background = torch.ones(3)
     with torch.no_grad():
@@ -80,6 +90,7 @@ def measure(avatar_dir: Path, size: int, threads: int, repeats: int) -> dict:
             "png_bytes": len(png(np.asarray(image))),
             "ms": {
                 "pose": median_ms(lambda: avatar.pose(new_pose()), repeats),
+                "pose_face": median_ms(lambda: avatar.pose(new_face()), repeats),
                 "project": median_ms(project, repeats),
                 "bin": median_ms(bin_, repeats),
                 "composite": median_ms(composite, repeats),
@@ -124,6 +135,7 @@ def main() -> None:
         f"{rows[0]['png_bytes'] / 1024:.1f} KB; medians of "
         f"{args.repeats} calls (ms); the stages one by one on the same posed Gaussians; render_image: "
         "the whole render (pose, SH colours, rasterize) of a new pose, as the endpoint calls it; "
+        "pose_face: posing a new pose with the jaw open 0.3 and both eyes half shut; "
         "same_pose: the same of the pose posed last (a request that changes only the camera)",
         "",
         "| threads | " + " | ".join(stages) + " |",

@@ -6,7 +6,13 @@ import math
 
 import torch
 
-from eva_engine.avatar.surface_frames import LEVER_REACH, SCALE_RANGE, follow_skin, rotation_between
+from eva_engine.avatar.surface_frames import (
+    LEVER_REACH,
+    SCALE_RANGE,
+    follow_skin,
+    normals_and_areas,
+    rotation_between,
+)
 from eva_engine.render.projection import quat_to_rotmat
 
 
@@ -84,6 +90,24 @@ def test_a_turned_patch_turns_its_gaussians_and_levers_only_those_within_reach()
     torch.testing.assert_close(out_scales, scales)  # a rigid turn keeps the area
     torch.testing.assert_close(out_means[0], means[0] @ rot.T + shift)  # on the skin: levered
     torch.testing.assert_close(out_means[1], means[1] + deformed[12] - rest[12])  # far off: the offset
+
+
+def test_the_rest_surface_kept_for_the_whole_mesh_carries_the_same():
+    """A renderer keeps the rest mesh's normals and areas (``rest_surface``); the moved vertices'
+    are those computed from only the triangles around them."""
+    rest, faces = grid(7)
+    g = torch.Generator().manual_seed(1)
+    deformed = rest.clone()
+    deformed[10:20] += 2e-3 * torch.randn(10, 3, generator=g, dtype=rest.dtype)  # a patch moves
+    ids = torch.arange(len(rest))
+    means, quats, scales = gaussians_on(rest, ids, lift=1e-3)
+    fresh = follow_skin(means, quats, scales, ids, rest, deformed, faces)
+    kept = follow_skin(
+        means, quats, scales, ids, rest, deformed, faces, rest_surface=normals_and_areas(rest, faces)
+    )
+    assert len(fresh[3]) > 0
+    for a, b in zip(fresh, kept, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
 
 
 def test_collapsed_and_exploded_skin_gives_finite_bounded_gaussians_and_gradients():

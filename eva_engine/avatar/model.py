@@ -37,7 +37,7 @@ from eva_engine.avatar.memo import InferenceMemo
 from eva_engine.avatar.networks import LBSWeightOffsets, PoseRefiner, blend_log_skinning_weights
 from eva_engine.avatar.skinning import skin_gaussians, sparse_weights
 from eva_engine.avatar.skinning_field import LatentBones, SkinningField
-from eva_engine.avatar.surface_frames import follow_skin
+from eva_engine.avatar.surface_frames import follow_skin, normals_and_areas
 from eva_engine.body.model import BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.geometry import vertex_normals
@@ -147,6 +147,7 @@ class Avatar(nn.Module):
         self._weights_memo = InferenceMemo()
         self._sparse_weights_memo = InferenceMemo()
         self._posed_memo = InferenceMemo()
+        self._rest_surface_memo = InferenceMemo()
 
     # -- construction ------------------------------------------------------------------------
     @classmethod
@@ -258,6 +259,12 @@ class Avatar(nn.Module):
         if self.latent_bones is not None:  # children of the root: [J + K, 4, 4]
             transforms = torch.cat([transforms, transforms[0] @ self.latent_bones(refined.joints)])
         weights = self.skinning_weights()
+        rest_surface = None  # the template's normals and areas, kept between renders
+        if self.config.expression_frames and not torch.is_grad_enabled():
+            template, faces = g.template_vertices, self.body.faces
+            rest_surface = self._rest_surface_memo.get(
+                [template, faces], lambda: normals_and_areas(template, faces)
+            )
         means, quats, scales, carried, turns = follow_skin(
             g.means,
             g.splats["quats"],
@@ -267,6 +274,7 @@ class Avatar(nn.Module):
             rest,
             self.body.faces,
             frames=self.config.expression_frames,
+            rest_surface=rest_surface,
         )
         blend = weights  # a render's blend reads the few bones each Gaussian follows
         if not torch.is_grad_enabled():

@@ -33,7 +33,7 @@ MOVED = 1e-7  # metres: a vertex displaced less keeps the identity frame (float 
 _EPS = 1e-12
 
 
-def _normals_and_areas(vertices: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+def normals_and_areas(vertices: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
     """(unit vertex normals [V, 3] (area-weighted; +Z where undefined), vertex areas [V] (a
     third of each incident triangle's)) of ``vertices [V, 3]`` with ``faces [F, 3]``."""
     v0, v1, v2 = (vertices[faces[:, c]] for c in range(3))
@@ -69,18 +69,25 @@ def rotation_between(a: Tensor, b: Tensor) -> Tensor:
     return eye + vx + (vx @ vx) / (1.0 + c).clamp_min(1e-6)[..., None, None]
 
 
-def surface_frames(rest: Tensor, deformed: Tensor, faces: Tensor, moved: Tensor) -> tuple[Tensor, Tensor]:
+def surface_frames(
+    rest: Tensor,
+    deformed: Tensor,
+    faces: Tensor,
+    moved: Tensor,
+    rest_surface: tuple[Tensor, Tensor] | None = None,
+) -> tuple[Tensor, Tensor]:
     """Per-vertex frame change of a mesh from ``rest [V, 3]`` to ``deformed [V, 3]``.
 
-    faces: [F, 3]; moved: [V] bool, the vertices to compute (the others get the identity).
-    Returns (rotations [M, 3, 3], scales [M]) for the M moved vertices, in the order of
-    ``moved.nonzero()``: the turn of the vertex normal and sqrt(deformed area / rest area),
-    clamped to ``SCALE_RANGE``.
+    faces: [F, 3]; moved: [V] bool, the vertices to compute (the others get the identity);
+    rest_surface: ``normals_and_areas(rest, faces)`` when the caller keeps it (the same rest for
+    every frame). Returns (rotations [M, 3, 3], scales [M]) for the M moved vertices, in the
+    order of ``moved.nonzero()``: the turn of the vertex normal and sqrt(deformed area / rest
+    area), clamped to ``SCALE_RANGE``.
     """
     # A vertex's normal and area come from the triangles around it: only those of moved vertices.
     around = faces[moved[faces].any(dim=-1)]
-    n0, a0 = _normals_and_areas(rest, around)
-    n1, a1 = _normals_and_areas(deformed, around)
+    n0, a0 = rest_surface if rest_surface is not None else normals_and_areas(rest, around)
+    n1, a1 = normals_and_areas(deformed, around)
     n0, a0, n1, a1 = n0[moved], a0[moved], n1[moved], a1[moved]
     scale = (a1.clamp_min(_EPS) / a0.clamp_min(_EPS)).sqrt().clamp(*SCALE_RANGE)
     return rotation_between(n0, n1), scale
@@ -96,6 +103,7 @@ def follow_skin(
     faces: Tensor,
     frames: bool = True,
     reach: float = LEVER_REACH,
+    rest_surface: tuple[Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Canonical Gaussians carried from the ``rest [V, 3]`` surface to the ``deformed [V, 3]`` one
     (module docstring): each moves by its vertex's offset; with ``frames``, one whose vertex moved
@@ -103,16 +111,17 @@ def follow_skin(
     vertex its offset from the vertex turns and scales too.
 
     means: [N, 3]; quats: [N, 4] (w, x, y, z); scales: [N, 3]; vertex_ids: [N] each Gaussian's
-    vertex; faces: [F, 3]. Returns (means [N, 3], quats [N, 4], scales [N, 3], carried [M] the
-    indices of the Gaussians whose vertex moved, rotations [M, 3, 3] theirs; M = 0 without
-    ``frames``). Without ``frames`` or with no vertex moved, quats and scales are returned as
-    they are.
+    vertex; faces: [F, 3]; rest_surface: ``normals_and_areas(rest, faces)``, kept by a caller
+    that carries Gaussians from one rest for many frames. Returns (means [N, 3], quats [N, 4],
+    scales [N, 3], carried [M] the indices of the Gaussians whose vertex moved, rotations
+    [M, 3, 3] theirs; M = 0 without ``frames``). Without ``frames`` or with no vertex moved,
+    quats and scales are returned as they are.
     """
     means = means + (deformed - rest)[vertex_ids]
     moved = (deformed - rest).abs().amax(dim=-1) > MOVED
     if not frames or not bool(moved[vertex_ids].any()):
         return means, quats, scales, vertex_ids.new_zeros(0), quats.new_zeros(0, 3, 3)
-    rot_v, scale_v = surface_frames(rest, deformed, faces, moved)
+    rot_v, scale_v = surface_frames(rest, deformed, faces, moved, rest_surface)
     slot = torch.full_like(moved, -1, dtype=torch.long)
     slot[moved] = torch.arange(int(moved.sum()), device=moved.device)
     carried = torch.nonzero(moved[vertex_ids]).squeeze(-1)  # [M] Gaussians
