@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import typer
@@ -27,6 +28,8 @@ def setup(
 
     console = Console(stderr=True)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    # The kernels compile meanwhile: the Anny build keeps about one core busy, the compiler the other.
+    kernels = ThreadPoolExecutor(max_workers=1).submit(_build_kernels, force)
     started = time.perf_counter()
     with console.status("Anny body-model cache (first build takes about a minute)..."):
         path = prepare_anny_cache(cache_dir, force=force)
@@ -47,13 +50,9 @@ def setup(
             f"[green]ok[/] face-mesh correspondence: {int(corr.valid.sum())} of {len(corr.valid)} landmarks "
             f"({time.perf_counter() - started:.0f} s)"
         )
-    from eva_engine.avatar.skinning import SKINNING
-    from eva_engine.render.native import RASTER
-
-    for library in (RASTER, SKINNING):
-        started = time.perf_counter()
-        with console.status(f"{library.what} C++ kernels (compiled once per machine)..."):
-            ops = library.load(force=force)
+    with console.status("C++ kernels (compiled once per machine)..."):
+        built = kernels.result()
+    for library, ops, seconds in built:
         if ops is None:
             # Not fatal: the torch kernels give the same results, only slower.
             console.print(
@@ -61,10 +60,26 @@ def setup(
                 f"{library.unavailable_reason()}"
             )
         else:
-            console.print(f"[green]ok[/] {library.what} C++ kernels ({time.perf_counter() - started:.0f} s)")
+            console.print(
+                f"[green]ok[/] {library.what} C++ kernels ({seconds:.0f} s, beside the steps above)"
+            )
     try:
         weights = prepare_lpips()
     except LPIPSWeightsError as err:
         console.print(f"[red]error[/] LPIPS weights: {err}")
         raise typer.Exit(1) from err
     console.print("[green]ok[/] LPIPS weights " + ", ".join(f"{k}: {v}" for k, v in weights.items()))
+
+
+def _build_kernels(force: bool) -> list[tuple[object, object, float]]:
+    """Compile (or load) the rasterizer's and the skinning's C++ kernels: (library, ops or None,
+    seconds) each."""
+    from eva_engine.avatar.skinning import SKINNING
+    from eva_engine.render.native import RASTER
+
+    built = []
+    for library in (RASTER, SKINNING):
+        started = time.perf_counter()
+        ops = library.load(force=force)
+        built.append((library, ops, time.perf_counter() - started))
+    return built
