@@ -170,13 +170,13 @@ class Coverage(BaseModel):
                     f"the camera is at {what} {value:.0f} deg ({side}); training saw "
                     f"{rng.min:.0f} to {rng.max:.0f} deg: surfaces there were never fitted"
                 )
-        joints = params.joints[0].detach().double()
+        joints = params.joints[0].detach().double().tolist()  # [P][3] floats: one copy, not P
         outside = []
-        for j, name in enumerate(body.pose_joint_names):
+        for name, values in zip(body.pose_joint_names, joints, strict=True):
             ranges = self.joints.get(name)
             if ranges is None:
                 continue
-            excess = max(r.excess(float(v)) for r, v in zip(ranges, joints[j].tolist(), strict=True))
+            excess = max(r.excess(v) for r, v in zip(ranges, values, strict=True))
             if excess > m.joint_rad:
                 outside.append((excess, name))
         if outside:
@@ -184,11 +184,11 @@ class Coverage(BaseModel):
             names = ", ".join(f"{n} ({math.degrees(e):.0f} deg)" for e, n in outside[:6])
             more = f" and {len(outside) - 6} more" if len(outside) > 6 else ""
             out.append(f"joints bent beyond what training showed: {names}{more}")
-        expr = params.expression[0].detach().double()
+        expr = params.expression[0].detach().double().tolist()
         beyond = [
             name
-            for e, name in enumerate(body.expression_names)
-            if name in self.expression and self.expression[name].excess(float(expr[e])) > m.expression
+            for name, value in zip(body.expression_names, expr, strict=True)
+            if name in self.expression and self.expression[name].excess(value) > m.expression
         ]
         if beyond:
             more = f" and {len(beyond) - 6} more" if len(beyond) > 6 else ""
