@@ -20,9 +20,9 @@ from eva_engine.avatar import (
     quat_multiply,
     skin_gaussians,
 )
-from eva_engine.avatar.memo import InferenceMemo
 from eva_engine.avatar.networks import make_mlp, relu_mlp
 from eva_engine.avatar.skinning import blend_transforms, sparse_weights
+from eva_engine.memo import InferenceMemo
 
 SMALL = dict(init_max_gaussians=600, mlp_width=16, pe_frequencies=2, sh_degree=1)
 

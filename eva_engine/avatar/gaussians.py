@@ -22,9 +22,9 @@ import math
 import torch
 from torch import Tensor, nn
 
-from eva_engine.avatar.memo import InferenceMemo
 from eva_engine.body.model import nearest_vertex_index
 from eva_engine.geometry import mean_neighbour_distance, quat_from_z
+from eva_engine.memo import InferenceMemo
 from eva_engine.render.sh import num_sh_bases
 
 PER_GAUSSIAN_BUFFERS = ("part_ids", "vertex_ids")
@@ -148,7 +148,7 @@ class CanonicalGaussians(nn.Module):
 
     def sh(self) -> Tensor:
         """[N, K, 3] all SH coefficients (one tensor made once between renders of a trained
-        avatar, ``avatar/memo.py``: a copy of every coefficient per frame otherwise)."""
+        avatar, ``eva_engine/memo.py``: a copy of every coefficient per frame otherwise)."""
         sh0, shn = self.splats["sh0"], self.splats["shN"]
         return self._sh_memo.get((sh0, shn), lambda: torch.cat([sh0, shn], dim=1))
 

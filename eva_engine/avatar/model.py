@@ -33,7 +33,6 @@ from eva_engine.avatar.expression_colours import (
     revealing_actions,
 )
 from eva_engine.avatar.gaussians import CanonicalGaussians
-from eva_engine.avatar.memo import InferenceMemo
 from eva_engine.avatar.networks import LBSWeightOffsets, PoseRefiner, blend_log_skinning_weights
 from eva_engine.avatar.skinning import skin_gaussians, sparse_weights
 from eva_engine.avatar.skinning_field import LatentBones, SkinningField
@@ -41,6 +40,7 @@ from eva_engine.avatar.surface_frames import follow_skin, normals_and_areas
 from eva_engine.body.model import BodyModel
 from eva_engine.body.params import BodyParams
 from eva_engine.geometry import vertex_normals
+from eva_engine.memo import InferenceMemo
 from eva_engine.render import RasterConfig, RenderOutput, eval_sh, rasterize
 from eva_engine.render.camera import Camera
 
@@ -222,7 +222,7 @@ class Avatar(nn.Module):
         """[N, J] per-Gaussian LBS weights (body-model weights of the nearest vertex + offsets),
         or [N, J + K] read from the skinning field (K latent bones). Without autograd (rendering a
         trained avatar) they are computed once and reused until a tensor they depend on changes
-        (``avatar/memo.py``)."""
+        (``eva_engine/memo.py``)."""
         g = self.gaussians
         inputs = [g.means, g.vertex_ids, self.log_body_weights]
         for module in (self.weight_offsets, self.skinning_field):

@@ -71,6 +71,7 @@ from eva_engine.body.keypoints import KEYPOINT_NAMES, KeypointRegressor
 from eva_engine.body.kinematics import KinematicTree, axis_angle_to_matrix
 from eva_engine.body.model import PART_NAMES, BodyModel, BodyOutput, lbs
 from eva_engine.body.params import BodyParams
+from eva_engine.memo import InferenceMemo
 
 logger = logging.getLogger(__name__)
 
@@ -174,7 +175,7 @@ class AnnyBody(BodyModel):
         self.register_buffer(
             "expression_head_shapes", model.bone_heads_blendshapes[-e:] @ c_t, persistent=False
         )
-        self._shaped_rest: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+        self._shaped_rest = InferenceMemo()
         self.keypoint_names = list(KEYPOINT_NAMES)
 
     # -- BodyModel ---------------------------------------------------------------------------
@@ -217,19 +218,12 @@ class AnnyBody(BodyModel):
         blend of every vertex, recomputed for the same shape at every render before)."""
         shape = params.shape.to(self.dtype)
         expression = params.expression.to(self.dtype)
-        cached = self._shaped_rest
-        if (
-            cached is None
-            or cached[0].shape != shape.shape
-            or cached[0].device != shape.device
-            or not torch.equal(cached[0], shape)
-        ):
-            neutral = self._blendshape_coeffs(
-                dataclasses.replace(params, expression=torch.zeros_like(expression))
-            )
-            cached = (shape.clone(), *self._rest_of_coeffs(neutral))
-            self._shaped_rest = cached  # one tuple: a reader in another thread sees old or new
-        _, rest, heads = cached
+
+        def shaped():
+            neutral = dataclasses.replace(params, expression=torch.zeros_like(expression))
+            return self._rest_of_coeffs(self._blendshape_coeffs(neutral))
+
+        rest, heads = self._shaped_rest.get([], shaped, key=[shape])
         if bool((expression != 0).any()):
             rest = rest + torch.einsum("be,evd->bvd", expression, self.expression_vertex_shapes)
             heads = heads + torch.einsum("be,ejd->bjd", expression, self.expression_head_shapes)

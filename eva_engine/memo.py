@@ -1,8 +1,9 @@
-"""``InferenceMemo``: one tensor derived from others, kept between renders of a trained avatar.
+"""``InferenceMemo``: one value derived from tensors, kept between renders of a trained avatar.
 
 A render without autograd recomputes what only depends on the avatar's own tensors (its
-skinning weights through the weight MLP, its SH coefficients gathered into one tensor): the same
-value every call until training or a load changes a tensor. The memo keeps the value while
+skinning weights through the weight MLP, its SH coefficients gathered into one tensor, the body
+model's rest mesh for the avatar's shape): the same value every call until training or a load
+changes a tensor. The memo keeps the value while
 autograd is off and every input is the same object at the same in-place version
 (``Tensor._version``, which ``copy_``, optimizer steps and ``clamp_`` bump), and, for a value
 that also depends on a request (a pose), while the ``key`` tensors hold the same values as last
