@@ -12,7 +12,10 @@ Objective over all frames at once (batched body model, shape shared by the clip)
 - ``L_bp`` (body prior): VPoser is licensed, so its role is played by (a) the robust 3D term
   against MediaPipe's metric pose world landmarks (EVA's J^3D_b guidance), (b) anatomical range
   limits per joint part (a hinge on the rotation angle), (c) a pull toward the initial estimate
-  (the official code's stage 1 term), and (d) temporal smoothness across frames.
+  (the official code's stage 1 term), and (d) temporal smoothness across frames. An
+  articulation prior of the body's redundant bones (``body_prior``: the arms' second bones only
+  twist, the elbow is a hinge, clavicle, shoulder, spine and neck bones move little) is an
+  option, off by default (``FitStage.body_prior``).
 - ``L_hp`` (hand prior): psi_z, the robust term on relative finger depth only, against
   MediaPipe's hand landmark depth (relative to the wrist, converted to metres at the model's
   wrist depth and scaled by ``hand_depth_scale``: MediaPipe's depths are compressed) -- EVA uses

@@ -141,6 +141,12 @@ class ArticulationPrior:
     projectors: Tensor  # [M, 3, 3]
     weights: Tensor  # [M]
 
+    def penalty(self, rotvecs: Tensor) -> Tensor:
+        """The weighted squared implausible parts, mean over frames and these joints; rotvecs:
+        [F, P, 3] pose joints."""
+        off_axis = (self.projectors @ rotvecs[:, self.joints, :, None]).squeeze(-1)  # [F, M, 3]
+        return (self.weights * off_axis.square().sum(-1)).mean()
+
 
 def articulation_prior(model: BodyModel, metacarpal_weight: float = 0.3) -> ArticulationPrior:
     """The hand's joint types from the rest skeleton, for any body model with finger chains.

@@ -8,6 +8,7 @@ import dataclasses
 import torch
 from torch import Tensor
 
+from eva_engine.align.body_prior import body_articulation_prior
 from eva_engine.align.face_mesh import OPENING_PAIRS, load_correspondence
 from eva_engine.align.hands import articulation_prior
 from eva_engine.align.robust import weighted_gm, z_only_gm
@@ -71,6 +72,7 @@ class FitProblem:
         self.joint_limit = limits[part]  # [P]
         uses_prior = any(s.hand_prior > 0 for s in config.stages)
         self.articulation = articulation_prior(model) if uses_prior else None
+        self.body_articulation = None  # built per stage for the current shape (run_stage)
         self.face_mesh = None  # (regressor, landmark indices) of the dense face term
         self.opening_pairs = None  # [2, Q] positions in those landmark indices
         dense = config.dense_face and targets.face_mesh is not None
@@ -187,9 +189,9 @@ class FitProblem:
         if stage.init_pull > 0:
             total = total + stage.init_pull * (rotvecs - self.init.joints).square().mean()
         if stage.hand_prior > 0 and self.articulation is not None:
-            a = self.articulation
-            off_axis = (a.projectors @ rotvecs[:, a.joints, :, None]).squeeze(-1)  # [F, M, 3]
-            total = total + stage.hand_prior * (a.weights * off_axis.square().sum(-1)).mean()
+            total = total + stage.hand_prior * self.articulation.penalty(rotvecs)
+        if stage.body_prior > 0 and self.body_articulation is not None:
+            total = total + stage.body_prior * self.body_articulation.penalty(rotvecs)
         if stage.smooth > 0 and t.num_frames > 1:
             smooth = (rotvecs[1:] - rotvecs[:-1]).square().mean()
             smooth = smooth + _rotation_distance(params.root_orient[1:], params.root_orient[:-1]).mean()
@@ -220,6 +222,9 @@ class FitProblem:
         return weighted_gm(res[..., None], conf, cfg.sigma_face_z)
 
     def run_stage(self, stage: FitStage, progress: Progress | None) -> tuple[float, float]:
+        if stage.body_prior > 0:  # the axes of the shape fitted so far (body_articulation_prior)
+            prior = body_articulation_prior(self.model, self.values["shape"])
+            self.body_articulation = prior if prior.joints.numel() else None
         moving = [g for g in stage.optimize if self.values[g].numel() > 0]
         for g in self.values:
             self.values[g].requires_grad_(g in moving)

@@ -43,6 +43,12 @@ class FitStage:
     hand_z: float = 0.0
     init_pull: float = 0.0
     hand_prior: float = 0.0
+    body_prior: float = 0.0
+    """Weight of the body's articulation prior (``align.body_prior``): the arms' second bones
+    twist only, the elbow is a hinge, the clavicle, shoulder, spine and neck bones move little.
+    Off in every default stage: it steadies the synthetic close-up's skin, and real people's
+    shoulders and necks move where it holds them (``docs/alignment.md``, "The body's redundant
+    bones")."""
     smooth: float = 0.1
     limits: float = 1.0
     range_weight: float = 10.0
