@@ -15,7 +15,9 @@ guess); ``shape_held`` (the body shape held near its initial estimate in every f
 camera the clip was rendered with instead of the fit: how much of the loss the fit causes);
 ``outline_longer`` and ``outline_longer_no_3d`` (the fit's outline stage run to convergence, with
 and without the 3D term); ``pose_correction`` (each training frame's pose corrected while
-training). Variants that change only training reuse the baseline's dataset.
+training); ``body_prior`` (the fit's articulation prior of the body's redundant bones,
+``align.body_prior``, off in the job path). Variants that change only training reuse the
+baseline's dataset.
 
     .venv/bin/python bench/hard_inputs.py --seeds 0 --cases closeup   # the clip (once)
     .venv/bin/python bench/closeup_levers.py --seed 0 [--round 2] [--variants ...]  # run (claims)
@@ -79,6 +81,10 @@ VARIANTS = {
     "pose_correction": Variant(
         "per-frame pose correction while training (`TrainConfig.pose_correction`, off in every preset)",
         overrides=("pose_correction.enabled=true",),
+    ),
+    "body_prior": Variant(
+        "the body's articulation prior in every fit stage (`FitStage.body_prior` 0.3)",
+        stages=(("*", "body_prior", 0.3),),
     ),
     "true_fit": Variant(
         "the true poses and camera instead of the fit (what a perfect fit would give)", true_fit=True
@@ -241,8 +247,10 @@ def report(args) -> None:
         "- runs: round 1 (2026-11-26), `python bench/closeup_levers.py --seed 0`; round 2 (2026-11-27), "
         "`python bench/closeup_levers.py --seed S --round 2 --variants ...`, its own clips and datasets "
         "(seed 0: those of `hard_inputs.py --seeds 0 --cases closeup --max-scale-cm 10`; seeds 1-2: the "
-        "clip and the job's preprocessing made anew). Two or three processes of 1 thread at once on the "
-        "2 cores: the times are inflated by that sharing",
+        "clip and the job's preprocessing made anew); round 3 (2026-11-28), `python bench/closeup_levers.py "
+        "--seed S --round 3 --variants baseline body_prior`, the clips rendered and preprocessed anew as "
+        "`hard_inputs.py` does (the prior's axes then from the default shape, not the subject's). Two "
+        "or three processes of 1 thread at once on the 2 cores: the times are inflated by that sharing",
         f"- machine: {runs[0]['machine'] if runs else describe()}",
         f"- clip: `eva_engine.synth.hard` case `{CASE}`, {FRAMES} frames of 512 px; the job path at the job "
         "defaults (`bench/hard_inputs.py`), one change per variant",

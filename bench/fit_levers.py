@@ -9,6 +9,11 @@ renders it), for the fit variants of ``closeup_levers.VARIANTS`` that change the
 - *fit IoU*: the fitted body's silhouette against the true person mask, mean over the frames;
 - *joint error*: fitted against true keypoints, projected (px, mean over the frames; the
   truth through the true camera, the fit through the guessed one), per group;
+- *skin error*: fitted against true projections of the same vertices, px, per part (the
+  vertices each bone moves most: torso, upper arm, forearm; those in the frame), median over the
+  part, mean over the frames; and the torso's *slide*: the frame-to-frame spread (std over the
+  frames, norm of x and y) of the torso's mean offset. A constant offset (a fitted shape unlike
+  the true one) an avatar absorbs; a slide smears what is drawn on the skin;
 - *fit (s)*: the fit's time on 1 thread.
 
 And what MediaPipe's 3D world landmarks (the fit's 3D term) get wrong: the angle between their
@@ -16,7 +21,7 @@ upper arms and forearms and the true ones, per case, beside the hips' visibility
 world skeleton is centred on the hips, which a close-up leaves out of frame).
 
     .venv/bin/python bench/fit_levers.py --seed 0 [--cases ...] [--variants ...]   # run (claims)
-    .venv/bin/python bench/fit_levers.py --report                                # gather
+    .venv/bin/python bench/fit_levers.py --report [--name NAME]                  # gather
 """
 
 from __future__ import annotations
@@ -35,13 +40,19 @@ from hard_inputs import FRAMES, SIZE, claim
 from machine import describe, header_line, run_header, write_result
 
 ROOT = Path(__file__).resolve().parents[1]
-FIT_VARIANTS = ("baseline", "true_fov", "outline_longer", "outline_longer_no_3d")
+FIT_VARIANTS = ("baseline", "true_fov", "outline_longer", "outline_longer_no_3d", "body_prior")
+SKIN_PARTS = {
+    "torso": ("spine", "clavicle", "shoulder"),
+    "upper arm": ("upperarm",),
+    "forearm": ("lowerarm",),
+}
 JOINT_GROUPS = {
     "head": ("nose", "left_eye", "right_eye"),
     "shoulders": ("left_shoulder", "right_shoulder"),
     "elbows": ("left_elbow", "right_elbow"),
     "wrists": ("left_hand_wrist", "right_hand_wrist"),
 }
+SKIN_COLUMNS = (*SKIN_PARTS, "torso slide")
 ARMS = {"upper arm": ("shoulder", "elbow"), "forearm": ("elbow", "wrist")}
 
 
@@ -76,6 +87,35 @@ def projected_keypoints(model, params, viewmat, K) -> torch.Tensor:
     return project_points(to_camera(kp, viewmat), K)
 
 
+def skin_errors(model, fitted, fit_view, fit_K, truth, true_view, true_K, size: int) -> dict:
+    """Per part of ``SKIN_PARTS``: the fitted and true projections of its vertices compared
+    (module docstring); ``"torso slide"``: the spread of the torso's mean offset over the frames.
+    fitted / truth: BodyParams [F]; *_view: [F, 4, 4]; *_K: [3, 3]."""
+    from eva_engine.geometry import project_points, to_camera
+
+    with torch.no_grad():
+        uv_fit = project_points(to_camera(model(fitted).vertices, fit_view), fit_K)
+        uv_true = project_points(to_camera(model(truth).vertices, true_view), true_K)
+    bones = model.skinning_weights.argmax(dim=1).tolist()
+    names = model.joint_names
+    seen = ((uv_true >= 0) & (uv_true < size)).all(-1)  # [F, V]
+    out = {}
+    for part, prefixes in SKIN_PARTS.items():
+        mine = torch.tensor([names[b].startswith(prefixes) for b in bones])
+        per_frame, offsets = [], []
+        for f in range(len(uv_fit)):
+            m = mine & seen[f]
+            if int(m.sum()) < 20:
+                continue
+            d = uv_fit[f, m] - uv_true[f, m]
+            per_frame.append(float(d.norm(dim=-1).median()))
+            offsets.append(d.mean(0))
+        out[part] = float(np.mean(per_frame)) if per_frame else float("nan")
+        if part == "torso" and len(offsets) > 1:
+            out["torso slide"] = float(torch.stack(offsets).std(0).norm())
+    return out
+
+
 def run_fit(case: str, seed: int, name: str, work: Path, model) -> dict:
     from eva_engine.align.camera import guess_camera
     from eva_engine.align.clip import fit_clip
@@ -98,6 +138,9 @@ def run_fit(case: str, seed: int, name: str, work: Path, model) -> dict:
         for idx in [[KEYPOINT_NAMES.index(n) for n in names]]
     }
     n = len(clip.timestamps)
+    skin = skin_errors(
+        model, fit.params, viewmat.expand(n, 4, 4), K, scene.sharp_params, scene.viewmat, scene.K, w
+    )
     frames = _FitFrames(
         fit.params, viewmat.expand(n, 4, 4), K.expand(n, 3, 3), torch.as_tensor(clip.timestamps), (h, w)
     )
@@ -108,6 +151,7 @@ def run_fit(case: str, seed: int, name: str, work: Path, model) -> dict:
         "variant": name,
         "fit_iou": float(np.mean(ious)),
         "joint_error_px": errors,
+        "skin_error_px": skin,
         "fit_s": seconds,
     }
 
@@ -190,10 +234,12 @@ def report(args) -> None:
             for r in (r for r in runs if r["case"] == case and r["variant"] == name):
                 b = base.get((case, r["seed"]))
                 gain = f"{r['fit_iou'] - b['fit_iou']:+.3f}" if b else "-"
-                e = r["joint_error_px"]
+                e, k = r["joint_error_px"], r.get("skin_error_px", {})
                 rows.append(
                     f"| {case} | {name} | {r['seed']} | {r['fit_iou']:.3f} | {gain} | "
                     + " | ".join(f"{e[g]:.1f}" for g in JOINT_GROUPS)
+                    + " | "
+                    + " | ".join(f"{k[p]:.1f}" if p in k else "-" for p in SKIN_COLUMNS)
                     + f" | {r['fit_s']:.0f} |"
                 )
     world_rows = [
@@ -207,20 +253,24 @@ def report(args) -> None:
         "# The fit against the truth on the hard clips",
         "",
         header_line(header),
-        "- runs: `python bench/fit_levers.py --seed 0` (1 thread, beside two training runs on the 2 cores: "
-        "the times are inflated by that sharing)",
+        "- runs: `python bench/fit_levers.py --seed S [--variants ...]` (1 thread, beside training runs on "
+        "the 2 cores: the times are inflated by that sharing)",
         f"- machine: {runs[0]['machine'] if runs else describe()}",
         f"- clips: `eva_engine.synth.hard`, {FRAMES} frames of {SIZE} px; the job path's fit "
         "(`JobOptions().preprocess_config`), one change per variant (`bench/closeup_levers.py`'s `VARIANTS`)",
         "",
         "Fit IoU: the fitted body's silhouette against the true person mask, mean over the frames (the "
         "true poses give 0.997 on the close-up); gain: against the baseline. Joint error: fitted against "
-        "true keypoints in the image, px (512 px frames), mean over the frames.",
+        "true keypoints in the image, px (512 px frames), mean over the frames. Skin error: fitted against "
+        "true projections of each part's vertices, px, median over the part, mean over the frames; torso "
+        "slide: the frame-to-frame spread of the torso's mean offset, px (the module docstring).",
         "",
         "| case | variant | seed | fit IoU | gain | "
         + " | ".join(f"{g} (px)" for g in JOINT_GROUPS)
+        + " | "
+        + " | ".join(f"skin: {p} (px)" for p in SKIN_COLUMNS)
         + " | fit (s) |",
-        "|---|---|---:|---:|---:|" + "---:|" * len(JOINT_GROUPS) + "---:|",
+        "|---|---|---:|---:|---:|" + "---:|" * (len(JOINT_GROUPS) + len(SKIN_COLUMNS)) + "---:|",
         *rows,
         "",
         "What the fit's 3D term is held to: the angle between MediaPipe's 3D world landmarks' arm bones "
@@ -232,7 +282,7 @@ def report(args) -> None:
         *world_rows,
     ]
     doc = {**header, "runs": runs, "world_landmarks": worlds}
-    write_result(args.out, "fit_levers", doc, lines)
+    write_result(args.out, args.name, doc, lines)
 
 
 def main() -> None:
@@ -243,6 +293,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=ROOT / "data" / "hard_inputs")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
+    ap.add_argument("--name", default="fit_levers", help="the report's file stem")
     ap.add_argument("--report", action="store_true", help="gather the runs' results")
     args = ap.parse_args()
     report(args) if args.report else run(args)
