@@ -27,10 +27,12 @@ detections and two of three clips' avatars get worse (``bench/results/body_prior
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from eva_engine.align.hands import ArticulationPrior
 from eva_engine.body import BodyModel
+from eva_engine.body.rest_axes import rest_axes
 
 SEGMENT_BONES = ("clavicle", "shoulder01")
 """Bones between the chest and the arm, per side (``.L`` / ``.R``)."""
@@ -41,30 +43,27 @@ def body_articulation_prior(
     model: BodyModel, shape: torch.Tensor | None = None, segment_weight: float = 0.3
 ) -> ArticulationPrior:
     """The prior over the pose joints of ``model`` (module docstring). Axes come from the rest
-    skeleton of ``shape`` [1, S] (None: the default shape); the kinematics rotate about
-    world-aligned axes at the rest heads, so rest axes are the rotation vectors' axes. The subject's
-    own shape matters: an elbow's hinge is a few degrees off between body shapes, and at a right
-    angle of flexion that is a sideways bend the prior would fight. ``segment_weight``: the weight
-    of the clavicle, shoulder, spine and neck bones' whole rotation, relative to the arm bones'
-    off-axis part (1)."""
+    skeleton of ``shape`` [1, S] (``body.rest_axes``; None: the default shape); the kinematics
+    rotate about world-aligned axes at the rest heads, so rest axes are the rotation vectors'
+    axes. The subject's own shape matters: an elbow's hinge is a few degrees off between body
+    shapes, and at a right angle of flexion that is a sideways bend the prior would fight.
+    ``segment_weight``: the weight of the clavicle, shoulder, spine and neck bones' whole
+    rotation, relative to the arm bones' off-axis part (1)."""
     names = list(model.joint_names)
     arm = ("upperarm01", "upperarm02", "lowerarm01", "lowerarm02", "wrist")
     needed = [f"{b}.{s}" for b in arm for s in "LR"]
     if any(n not in names for n in needed):
         empty = torch.zeros(0, 3, 3)
         return ArticulationPrior(torch.zeros(0, dtype=torch.int64), empty, torch.zeros(0))
-    with torch.no_grad():
-        rest = model.default_params(1)
-        if shape is not None:
-            rest.shape = shape[:1].detach().to(rest.shape)
-        heads = model(rest).joints[0].double().cpu()
-    j = {n: heads[i] for i, n in enumerate(names)}
+    axes = rest_axes(model, (shape if shape is not None else model.default_params(1).shape).detach())
+    if not all(np.isfinite(a[s]).all() for a in (axes.upper_arm, axes.forearm, axes.elbow) for s in "LR"):
+        raise ValueError("the rest skeleton's arm is straight or degenerate: no elbow axis")
     eye = torch.eye(3, dtype=torch.float64)
 
-    def unit(v: torch.Tensor) -> torch.Tensor:
-        if float(v.norm()) < 1e-9:  # a straight rest arm has no hinge axis
-            raise ValueError("the rest skeleton's arm is straight or degenerate: no elbow axis")
-        return v / v.norm()
+    def along(axis: np.ndarray) -> torch.Tensor:
+        """The projector that keeps all but the turn about ``axis``."""
+        a = torch.as_tensor(axis, dtype=torch.float64)
+        return eye - torch.outer(a, a)
 
     joints, projectors, weights = [], [], []
 
@@ -75,12 +74,9 @@ def body_articulation_prior(
             weights.append(weight)
 
     for s in "LR":
-        upper = unit(j[f"lowerarm01.{s}"] - j[f"upperarm01.{s}"])
-        fore = unit(j[f"wrist.{s}"] - j[f"lowerarm01.{s}"])
-        elbow = unit(torch.linalg.cross(upper, fore))
-        add(f"upperarm02.{s}", eye - torch.outer(upper, upper), 1.0)
-        add(f"lowerarm01.{s}", eye - torch.outer(elbow, elbow), 1.0)
-        add(f"lowerarm02.{s}", eye - torch.outer(fore, fore), 1.0)
+        add(f"upperarm02.{s}", along(axes.upper_arm[s]), 1.0)
+        add(f"lowerarm01.{s}", along(axes.elbow[s]), 1.0)
+        add(f"lowerarm02.{s}", along(axes.forearm[s]), 1.0)
         for bone in SEGMENT_BONES:
             add(f"{bone}.{s}", eye, segment_weight)
     for bone in CHAIN_BONES:

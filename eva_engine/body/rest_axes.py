@@ -1,8 +1,8 @@
-"""Anatomical rotation axes of one subject's rest skeleton, in world axes: the elbow's hinge, the
-forearm's twist, the palm's normal, the wrist's flexion and each finger's curl. A rotation about
-them bends a joint the way the body bends, for any phenotype; the pose controls (sliders) and the
-synthetic benchmark's signing motion are built on them. The joints are Anny's (``lowerarm01.L``,
-``finger2-1.R``, ...).
+"""Anatomical rotation axes of one subject's rest skeleton, in world axes: the upper arm's and the
+forearm's twist, the elbow's hinge, the palm's normal, the wrist's flexion and each finger's
+curl. A rotation about them bends a joint the way the body bends, for any phenotype; the pose
+controls (sliders), the synthetic benchmark's signing motion and the fit's body prior are built
+on them. The joints are Anny's (``lowerarm01.L``, ``finger2-1.R``, ...).
 """
 
 from __future__ import annotations
@@ -22,6 +22,9 @@ class RestAxes:
 
     elbow: dict[str, np.ndarray]
     forearm: dict[str, np.ndarray]
+    """The forearm's direction, elbow to wrist (its twist axis)."""
+    upper_arm: dict[str, np.ndarray]
+    """The upper arm's direction, shoulder to elbow (its twist axis)."""
     palm: dict[str, np.ndarray]
     """The palm's normal, out of the palm."""
     finger: dict[str, list[np.ndarray]]
@@ -42,12 +45,13 @@ def rest_axes(model: BodyModel, shape: torch.Tensor) -> RestAxes:
         kp = model.keypoints(out)[0].double().numpy()
     j = {n: out.joints[0, i].double().numpy() for i, n in enumerate(model.joint_names)}
     names = list(model.keypoint_names)
-    axes = RestAxes({}, {}, {}, {}, {})
+    axes = RestAxes({}, {}, {}, {}, {}, {})
     for s, side in (("L", "left"), ("R", "right")):
         upper = _unit(j[f"lowerarm01.{s}"] - j[f"upperarm01.{s}"])
         fore = _unit(j[f"wrist.{s}"] - j[f"lowerarm01.{s}"])
         axes.elbow[s] = _unit(np.cross(upper, fore))  # + angle = more flexion
         axes.forearm[s] = fore
+        axes.upper_arm[s] = upper
         w, a, b, m = (j[f"{x}.{s}"] for x in ("wrist", "finger2-1", "finger5-1", "finger3-1"))
         n = _unit(np.cross(a - w, b - w))
         tip = kp[names.index(f"{side}_hand_middle_finger_tip")]
