@@ -48,8 +48,8 @@ test-fast: install
 	$(PYTEST) -m "not slow" --durations=10
 
 bench: install
-	$(BIN)/python bench/rasterizer.py
-	$(BIN)/python bench/body.py
+	$(BIN)/python -m bench rasterizer
+	$(BIN)/python -m bench body
 
 clean:
 	rm -rf $(VENV) out

@@ -1,8 +1,8 @@
 """Alignment benchmark: MediaPipe detections -> body-model fit, measured against ground truth,
 plus the real videos in ../shared/reference/videos (reprojection statistics and overlays).
 
-    .venv/bin/python bench/align.py                       # synthetic wild bench + real videos
-    .venv/bin/python bench/align.py --no-videos --frames 60
+    .venv/bin/python -m bench align                       # synthetic wild bench + real videos
+    .venv/bin/python -m bench align --no-videos --frames 60
 
 Synthetic part: the `wild` preset (UPB-like waist-up signer, 512 px); detections come from running
 MediaPipe Holistic on the rendered frames (train + novel-pose frames, in temporal order); the
@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import portable_path, run_header
 
+from bench.machine import local_path, portable_path, run_header, write_result
 from eva_engine.align import (
     FitTargets,
     PreprocessConfig,
@@ -503,7 +503,7 @@ def markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=150)
     parser.add_argument(
@@ -518,7 +518,7 @@ def main() -> None:
     parser.add_argument("--table3-iterations", type=int, default=None)
     parser.add_argument("--table3-scale", type=float, default=0.5, help="image scale for the Table 3 runs")
     parser.add_argument("--out", type=Path, default=RESULTS)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     model = load_body_model("anny")
     report = {
@@ -527,15 +527,14 @@ def main() -> None:
     }
     print(json.dumps(report["synthetic"], indent=1), flush=True)
     if args.table3:
-        dataset = Path(report["synthetic"]["dataset"])
+        dataset = local_path(report["synthetic"]["dataset"])
         report["table3"] = table3(
             model, dataset, args.table3_preset, args.table3_iterations, args.table3_scale
         )
     if not args.no_videos and VIDEOS.is_dir():
         report["videos"] = real_videos(model, args.video_frames, args.video_every)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "align.json").write_text(json.dumps(report, indent=1))
-    (args.out / "align.md").write_text(markdown(report))
+    write_result(args.out, "align", report, markdown(report))
     print(markdown(report))
 
 

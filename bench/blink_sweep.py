@@ -1,7 +1,7 @@
 """Where a blink is lost (issue 39): the lid gap along the blink action, as the fit's model sees
 it, as MediaPipe reads it on renders, and on a trained avatar.
 
-    .venv/bin/python bench/blink_sweep.py --dataset $V/dataset --avatar $V/avatar-product-s0 \
+    .venv/bin/python -m bench blink_sweep --dataset $V/dataset --avatar $V/avatar-product-s0 \
         --name blink_sweep --out bench/results/expressions/blink
 
 Both lids' ``eyeBlinkLeft`` and ``eyeBlinkRight`` are set to each value of ``--blinks``, every
@@ -24,12 +24,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
-from machine import header_line, run_header
+
+from bench.machine import header_line, run_header, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results" / "expressions"
 LIDS = ((159, 145), (386, 374))
@@ -84,7 +84,7 @@ def anny_sweep(model, reg, ids, values: list[float]) -> dict:
     return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dataset", type=Path)
     ap.add_argument("--avatar", type=Path)
@@ -92,7 +92,7 @@ def main() -> None:
     ap.add_argument("--blinks", default="0,0.25,0.5,0.75,1")
     ap.add_argument("--name", default="blink_sweep")
     ap.add_argument("--out", type=Path, default=RESULTS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     torch.set_num_threads(1)
 
     from eva_engine.align.face_mesh import detect_face_mesh, load_correspondence
@@ -173,8 +173,7 @@ def main() -> None:
             sheet = np.concatenate([im[y0 : y1 + pad, x0 : x1 + pad] for im in [target, *images]], axis=1)
 
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1) + "\n")
-    (args.out / f"{args.name}.md").write_text(markdown(doc))
+    write_result(args.out, args.name, doc, markdown(doc))
     if sheet is not None:
         from PIL import Image
 

@@ -1,6 +1,6 @@
 """Body-model speed: forward and forward+backward at batch 1 and 150 (a whole clip), on CPU.
 
-    .venv/bin/python bench/body.py [--threads 2] [--repeats 5] [--backends anny smplx]
+    .venv/bin/python -m bench body [--threads 2] [--repeats 5] [--backends anny smplx]
 
 "forward" is ``model(params)`` plus ``model.keypoints(out)``; "forward+backward" adds the
 backward pass of a loss on vertices and keypoints to every parameter (pose, root, translation,
@@ -11,16 +11,15 @@ files. Writes ``bench/results/body.json`` and ``body.md``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
 from pathlib import Path
 
 import torch
-from machine import cpu_name, run_header
-from timing import time_call
 
+from bench.machine import cpu_name, run_header, write_result
+from bench.timing import time_call
 from eva_engine.body import load_body_model
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -57,7 +56,7 @@ def bench_model(model, batch: int, repeats: int) -> dict:
     }
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -66,7 +65,7 @@ def main() -> None:
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 150])
     parser.add_argument("--backends", nargs="+", default=["anny", "smplx"])
     parser.add_argument("--out", type=Path, default=RESULTS)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
     results: dict = {}
@@ -100,8 +99,6 @@ def main() -> None:
         "note": "CPU shared with other jobs when recorded; timings are noisy.",
         "results": results,
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "body.json").write_text(json.dumps(record, indent=2) + "\n")
     lines = [
         "# Body model benchmark",
         "",
@@ -126,7 +123,7 @@ def main() -> None:
         "(13,718 vertices) + keypoints; keypoints-only: `posed_keypoints` (keypoint-space LBS, shape "
         "shared by the clip), what alignment calls.",
     ]
-    (args.out / "body.md").write_text("\n".join(lines) + "\n")
+    write_result(args.out, "body", record, lines)
 
 
 if __name__ == "__main__":

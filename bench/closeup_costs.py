@@ -2,7 +2,7 @@
 size) and training with them (the ``avatar.json`` times of avatars trained with and without).
 
     D=data/face_default/gesturing-nosmooth
-    .venv/bin/python bench/closeup_costs.py --cut $D/dataset <video> \
+    .venv/bin/python -m bench closeup_costs --cut $D/dataset <video> \
         --avatars $D/avatar-product-s0 $D/avatar-face-s0 --name closeup_costs --out <folder>
 
 ``--cut`` cuts the dataset's close-ups again in place (the same ones: the cut is deterministic).
@@ -17,12 +17,12 @@ import json
 import time
 from pathlib import Path
 
-from machine import header_line, run_header, write_result
+from bench.machine import header_line, run_header, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     from eva_engine.align.preprocess import PreprocessConfig, add_face_crops
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -30,7 +30,7 @@ def main() -> None:
     ap.add_argument("--avatars", nargs="*", type=Path, default=[])
     ap.add_argument("--name", default="closeup_costs")
     ap.add_argument("--out", type=Path, default=RESULTS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     doc = {**run_header(), "cuts": [], "avatars": []}
     for dataset, video in args.cut:
         started = time.perf_counter()
@@ -79,7 +79,7 @@ def main() -> None:
                 f"| `{a['avatar']}` | {a['face_view_weight']:g} | {a['train_seconds']:.1f} | "
                 f"{t.get('face_view', 0.0):.1f} | {t.get('backward', float('nan')):.1f} |"
             )
-    write_result(args.out, args.name, doc, lines)
+    write_result(args.out, args.name, doc, lines, show=True)
 
 
 if __name__ == "__main__":

@@ -19,9 +19,9 @@ training); ``body_prior`` (the fit's articulation prior of the body's redundant 
 ``align.body_prior``, off in the job path). Variants that change only training reuse the
 baseline's dataset.
 
-    .venv/bin/python bench/hard_inputs.py --seeds 0 --cases closeup   # the clip (once)
-    .venv/bin/python bench/closeup_levers.py --seed 0 [--round 2] [--variants ...]  # run (claims)
-    .venv/bin/python bench/closeup_levers.py --report                   # gather
+    .venv/bin/python -m bench hard_inputs --seeds 0 --cases closeup   # the clip (once)
+    .venv/bin/python -m bench closeup_levers --seed 0 [--round 2] [--variants ...]  # run (claims)
+    .venv/bin/python -m bench closeup_levers --report                   # gather
 """
 
 from __future__ import annotations
@@ -36,8 +36,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from hard_inputs import FRAMES, claim, restore_frames, score
-from machine import describe, header_line, run_header
+
+from bench.hard_inputs import FRAMES, claim, restore_frames, score
+from bench.machine import describe, header_line, run_header, write_result
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE = "closeup"
@@ -239,7 +240,6 @@ def report(args) -> None:
                 f"{np.mean(changes):+.1f} ± {np.std(changes, ddof=1):.1f}% (mean ± std of the changes)"
             )
     header = run_header()
-    command = header["command"]
     lines = [
         "# The close-up hard case: which lever moves it",
         "",
@@ -273,12 +273,10 @@ def report(args) -> None:
     for r in found:
         name = run_name(r["variant"], r["seed"], r.get("round", 1))
         shutil.copy(args.work / "levers" / name / "sheet.jpg", sheets / f"{name}.jpg")
-    (args.out / "closeup_levers.md").write_text("\n".join(lines) + "\n")
-    (args.out / "closeup_levers.json").write_text(json.dumps({"command": command, "runs": runs}, indent=1))
-    print("\n".join(lines))
+    write_result(args.out, "closeup_levers", {**header, "runs": runs}, lines, show=True)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=None)
@@ -288,7 +286,7 @@ def main() -> None:
     ap.add_argument("--round", type=int, default=1, help="a round of runs, paired with its own baseline")
     ap.add_argument("--previous", type=Path, default=None, help="--report: an earlier report's JSON")
     ap.add_argument("--report", action="store_true", help="gather the runs' results")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     report(args) if args.report else run(args)
 
 

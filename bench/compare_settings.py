@@ -2,9 +2,9 @@
 trained by ``bench/paper_tables.py`` with and without ``--set`` overrides, compared paired over
 the seeds (``stats.compare_paired``: a gap counts only when its mean exceeds its std).
 
-    .venv/bin/python bench/paper_tables.py --preset fast --threads 1 --seeds 0 --methods eva \\
+    .venv/bin/python -m bench paper_tables --preset fast --threads 1 --seeds 0 --methods eva \\
         --set loss.lpips_every=2 --out bench/results/speed_quality --name lpips2_seed0   # per seed
-    .venv/bin/python bench/compare_settings.py --results bench/results/speed_quality \\
+    .venv/bin/python -m bench compare_settings --results bench/results/speed_quality \\
         --base exact --settings detach lpips2 --name summary
 
 Reads ``<results>/<name>_seed*.json`` for the base and every setting (one file per seed, as the
@@ -20,9 +20,9 @@ import json
 import statistics
 from pathlib import Path
 
-from machine import header_line, run_header
-from paper_tables import merge, paired_regions, trained_on
-from stats import compare_paired, mean_std
+from bench.machine import header_line, run_header
+from bench.paper_tables import merge, paired_regions, trained_on
+from bench.stats import compare_paired, mean_std
 
 
 def load(results: Path, name: str) -> dict:
@@ -94,13 +94,13 @@ def markdown(base_name: str, base: dict, settings: dict[str, dict], header: dict
     return "\n".join(lines)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--results", type=Path, required=True, help="folder of the per-seed result files")
     ap.add_argument("--base", required=True, help="result name of the base setting")
     ap.add_argument("--settings", nargs="+", required=True, help="result names of the other settings")
     ap.add_argument("--name", default="summary", help="markdown file stem")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     base = load(args.results, args.base)
     settings = {name: load(args.results, name) for name in args.settings}
     text = markdown(args.base, base, settings, run_header())

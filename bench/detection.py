@@ -1,8 +1,8 @@
 """How often MediaPipe Holistic finds each hand and the face in the reference videos, by the size
 of the frames it is given (``PreprocessConfig.detect_max_size``).
 
-    .venv/bin/python bench/detection.py                 # ../shared/reference/videos (skips if absent)
-    .venv/bin/python bench/detection.py --videos DIR --sizes 512 1280
+    .venv/bin/python -m bench detection                 # ../shared/reference/videos (skips if absent)
+    .venv/bin/python -m bench detection --videos DIR --sizes 512 1280
 
 Each video is sampled as ``bench/real_videos.py`` samples it (about ``--frames`` frames, every
 k-th), and every size runs the detector in video mode over the same frames, resized so their long
@@ -12,14 +12,13 @@ side is at most that size (never upscaled). Writes ``bench/results/detection.{js
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
 from pathlib import Path
 
-from machine import header_line, run_header
-from real_videos import DEFAULT_VIDEOS, frame_count, videos_or_skip
+from bench.machine import header_line, run_header, write_result
+from bench.real_videos import DEFAULT_VIDEOS, frame_count, videos_or_skip
 
 RESULTS = Path(__file__).resolve().parent / "results"
 PARTS = ("pose", "left_hand", "right_hand", "face")
@@ -59,14 +58,14 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--videos", type=Path, default=DEFAULT_VIDEOS, help="folder of videos")
     ap.add_argument("--frames", type=int, default=280, help="frames to sample per video")
     ap.add_argument("--sizes", type=int, nargs="+", default=[512, 768, 1024, 1280, 1920])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--name", default="detection", help="result file stem")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     videos = videos_or_skip(args.videos)
     if not videos:
         return
@@ -88,8 +87,7 @@ def main() -> None:
             entry["sizes"][str(size)] = measure(video, args.frames, size)
         doc["videos"][video.name] = entry
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"{args.name}.json").write_text(json.dumps(doc, indent=1))
-    (RESULTS / f"{args.name}.md").write_text(markdown(doc))
+    write_result(RESULTS, args.name, doc, markdown(doc))
     print(markdown(doc))
 
 

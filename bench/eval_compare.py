@@ -3,7 +3,7 @@ setting changed), per region and metric: mean ± std of each, the per-seed relat
 verdict of ``stats.compare_paired`` (better / worse only when the mean gap exceeds its standard
 deviation, otherwise "no difference").
 
-    .venv/bin/python bench/eval_compare.py --before a_s0.json a_s1.json a_s2.json \\
+    .venv/bin/python -m bench eval_compare --before a_s0.json a_s1.json a_s2.json \\
         --after b_s0.json b_s1.json b_s2.json --name thin_face --out bench/results/...
 
 Writes ``<name>.json`` and ``<name>.md`` in ``--out``.
@@ -15,8 +15,8 @@ import argparse
 import json
 from pathlib import Path
 
-from machine import header_line, run_header
-from stats import compare_paired, fmt, mean_std
+from bench.machine import header_line, run_header, write_result
+from bench.stats import compare_paired, fmt, mean_std
 
 LOWER_IS_BETTER = {"psnr": False, "ssim": False, "lpips_vgg": True, "lpips_alex": True}
 SCALE = {"psnr": 1.0, "ssim": 1.0, "lpips_vgg": 1000.0, "lpips_alex": 1000.0}
@@ -52,7 +52,7 @@ def compare_runs(before: list[Path], after: list[Path]) -> list[dict]:
     return rows
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--before", type=Path, nargs="+", required=True)
     ap.add_argument("--after", type=Path, nargs="+", required=True)
@@ -60,7 +60,7 @@ def main() -> None:
     ap.add_argument("--after-label", default="after")
     ap.add_argument("--name", required=True)
     ap.add_argument("--out", type=Path, required=True)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     rows = compare_runs(args.before, args.after)
     doc = {
         **run_header(),
@@ -68,8 +68,6 @@ def main() -> None:
         "after": [str(p) for p in args.after],
         "rows": rows,
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1))
     lines = [
         f"# {args.after_label} against {args.before_label}, paired",
         "",
@@ -86,8 +84,7 @@ def main() -> None:
             f"| {r['region']} | {r['metric']} | {fmt(r['before'], scale, digits)} | "
             f"{fmt(r['after'], scale, digits)} | {fmt(r['gap_percent'], 1.0, 1)} | {r['verdict']} |"
         )
-    (args.out / f"{args.name}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_result(args.out, args.name, doc, lines, show=True)
 
 
 if __name__ == "__main__":

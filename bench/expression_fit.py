@@ -1,7 +1,7 @@
 """One rendered face, fitted (issue 39): how much of a blink and an open jaw the face stage of the
 fit recovers from MediaPipe's face mesh, and whether the true expression is the stage's optimum.
 
-    .venv/bin/python bench/expression_fit.py --name one_face --out bench/results/expressions
+    .venv/bin/python -m bench expression_fit --name one_face --out bench/results/expressions
 
 The painted Anny face is rendered head-on (``align.face_mesh.render_face``) neutral and with
 ``--truth`` (default: both eyes 80% closed, the jaw half open); MediaPipe's face mesh runs on both
@@ -23,7 +23,8 @@ import sys
 from pathlib import Path
 
 import torch
-from machine import header_line, run_header, write_result
+
+from bench.machine import header_line, run_header, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results" / "expressions"
 
@@ -38,12 +39,12 @@ def recovered(fitted: float, neutral: float, truth: float) -> float:
     return round((fitted - neutral) / change, 3) if abs(change) > 5e-3 else float("nan")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--truth", default="eyeBlinkLeft=0.8,eyeBlinkRight=0.8,jawOpen=0.5")
     ap.add_argument("--name", default="one_face")
     ap.add_argument("--out", type=Path, default=RESULTS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     torch.set_num_threads(1)
 
     from eva_engine.align.evaluate import expression_error_by_group, targets_from_params
@@ -168,7 +169,7 @@ def main() -> None:
             f"| {label} | {f['gaps']['mouth']:.3f} | {f['gaps']['eyes']:.3f} | {share['mouth']} "
             f"| {share['eyes']} | {err} | {top} |"
         )
-    write_result(args.out, args.name, doc, lines)
+    write_result(args.out, args.name, doc, lines, show=True)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,7 @@
 stage of the product, per video, with a contact sheet of face close-ups.
 
     V=data/real_videos_hands/latentsync_demo3_gesturing
-    .venv/bin/python bench/expressions.py --case gesturing $V/dataset $V/avatar-eva-<tag> --name expressions
+    .venv/bin/python -m bench expressions --case gesturing $V/dataset $V/avatar-eva-<tag> --name expressions
 
 Per case (a preprocessed dataset and an avatar trained on it): over the test frames
 (``--split``), MediaPipe Holistic's face mesh on single images (no tracking) of the target
@@ -28,15 +28,15 @@ render, of the frames with the widest-open mouth and the most closed eyes in the
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
 
 import numpy as np
 import torch
-from machine import header_line, run_header
-from stats import fmt, mean_std
+
+from bench.machine import header_line, run_header, write_result
+from bench.stats import fmt, mean_std
 
 RESULTS = Path(__file__).resolve().parent / "results"
 STAGES = ("detected", "fitted", "refitted", "truth", "blurred", "render")
@@ -380,7 +380,7 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
         "--case",
@@ -404,7 +404,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--name", default="expressions")
     ap.add_argument("--out", type=Path, default=RESULTS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     doc = {
         **run_header(),
@@ -430,8 +430,7 @@ def main() -> None:
             Image.fromarray(sheet).save(args.out / name, quality=85, optimize=True)
             entry["contact_sheet"] = name
         doc["cases"][label] = entry
-        (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1))
-        (args.out / f"{args.name}.md").write_text(markdown(doc))
+        write_result(args.out, args.name, doc, markdown(doc))
     print(markdown(doc))
 
 

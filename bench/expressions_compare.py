@@ -1,7 +1,7 @@
 """Two groups of ``bench/expressions.py`` cases paired by seed: the render stage's mouth and eye
 agreement and, with ``--closeup``, the close-ups as images.
 
-    .venv/bin/python bench/expressions_compare.py bench/results/expressions/closeups/closeup_gesturing.json \
+    .venv/bin/python -m bench expressions_compare bench/results/expressions/closeups/closeup_gesturing.json \
         --before base --after face --name closeup_gesturing_paired
 
 Cases are ``<group>_s<seed>``; a seed present in both groups is a pair. Correlations and range
@@ -17,8 +17,8 @@ import json
 import math
 from pathlib import Path
 
-from machine import header_line, run_header, write_result
-from stats import compare_paired, fmt, mean_std
+from bench.machine import header_line, run_header, write_result
+from bench.stats import compare_paired, fmt, mean_std
 
 RESULTS = Path(__file__).resolve().parent / "results"
 # (key, label, higher is better, relative gap)
@@ -65,14 +65,14 @@ def absolute(after: list[float], before: list[float], higher_is_better: bool) ->
     return ("better" if (gaps["mean"] > 0) == higher_is_better else "worse"), gaps
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("results", type=Path, nargs="+", help="bench/expressions.py JSON files")
     ap.add_argument("--before", required=True, help="case group (label without _s<seed>)")
     ap.add_argument("--after", required=True)
     ap.add_argument("--name", required=True)
     ap.add_argument("--out", type=Path, default=RESULTS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     cases: dict = {}
     for path in args.results:
         cases.update(json.loads(path.read_text())["cases"])
@@ -129,7 +129,7 @@ def main() -> None:
             f"| {r['label']} | {r['seeds']} | {fmt(r['before'])} | {fmt(r['after'])} | "
             f"{fmt(r['gap'])}{unit} | {r['verdict']} |"
         )
-    write_result(args.out, args.name, doc, lines)
+    write_result(args.out, args.name, doc, lines, show=True)
 
 
 if __name__ == "__main__":

@@ -8,20 +8,17 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 from PIL import Image
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import header_line, run_header  # noqa: E402
-
-from eva_engine.avatar import load_saved_avatar, read_avatar_meta  # noqa: E402
-from eva_engine.body import load_body_model  # noqa: E402
-from eva_engine.data import load_dataset  # noqa: E402
-from eva_engine.render.camera import Camera, intrinsics, look_at  # noqa: E402
+from bench.machine import header_line, run_header
+from eva_engine.avatar import load_saved_avatar, read_avatar_meta
+from eva_engine.body import load_body_model
+from eva_engine.data import load_dataset
+from eva_engine.render.camera import Camera, intrinsics, look_at
 
 
 def rotate(v: torch.Tensor, axis: torch.Tensor, degrees: float) -> torch.Tensor:
@@ -44,7 +41,7 @@ def pick_frames(dataset, ids: list[int], names: list[str]) -> dict[str, int]:
     }
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--avatar", type=Path, required=True)
     p.add_argument("--dataset", type=Path, required=True)
@@ -55,7 +52,7 @@ def main() -> None:
     p.add_argument("--fov", type=float, default=30.0)
     p.add_argument("--out", type=Path, required=True, help="the sheet (.jpg); the note beside it (.md)")
     p.add_argument("--note", default="")
-    args = p.parse_args()
+    args = p.parse_args(argv)
     torch.set_num_threads(1)
 
     ds = load_dataset(args.dataset)

@@ -1,6 +1,6 @@
 """First contact: a fresh clone's ``make demo``, timed phase by phase.
 
-    python3 bench/first_contact.py            # clones this repository's HEAD into a temp folder
+    python3 -m bench.first_contact          # clones this repository's HEAD into a temp folder
 
 Runs with the system Python (the clone makes its own venv). ``make`` echoes each command as it
 starts, so the install's steps are timed from the echoed lines: system packages, the venv, the
@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import machine
+from bench import machine
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -80,12 +80,12 @@ def demo_phases(lines: list[tuple[float, str]]) -> dict[str, float]:
     return {}
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repo", type=Path, default=ROOT, help="the repository to clone (its HEAD)")
     parser.add_argument("--keep", action="store_true", help="keep the clone")
     parser.add_argument("--name", default="first_contact")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
     commit = machine.commit(args.repo)
     work = Path(tempfile.mkdtemp(prefix="eva-first-contact-"))

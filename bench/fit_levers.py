@@ -20,8 +20,8 @@ And what MediaPipe's 3D world landmarks (the fit's 3D term) get wrong: the angle
 upper arms and forearms and the true ones, per case, beside the hips' visibility (MediaPipe's
 world skeleton is centred on the hips, which a close-up leaves out of frame).
 
-    .venv/bin/python bench/fit_levers.py --seed 0 [--cases ...] [--variants ...]   # run (claims)
-    .venv/bin/python bench/fit_levers.py --report [--name NAME]                  # gather
+    .venv/bin/python -m bench fit_levers --seed 0 [--cases ...] [--variants ...]   # run (claims)
+    .venv/bin/python -m bench fit_levers --report [--name NAME]                  # gather
 """
 
 from __future__ import annotations
@@ -35,9 +35,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from closeup_levers import VARIANTS, fit_iou, preprocess_config
-from hard_inputs import FRAMES, SIZE, claim
-from machine import describe, header_line, run_header, write_result
+
+from bench.closeup_levers import VARIANTS, fit_iou, preprocess_config
+from bench.hard_inputs import FRAMES, SIZE, claim
+from bench.machine import describe, header_line, run_header, write_result
 
 ROOT = Path(__file__).resolve().parents[1]
 FIT_VARIANTS = ("baseline", "true_fov", "outline_longer", "outline_longer_no_3d", "body_prior")
@@ -282,10 +283,10 @@ def report(args) -> None:
         *world_rows,
     ]
     doc = {**header, "runs": runs, "world_landmarks": worlds}
-    write_result(args.out, args.name, doc, lines)
+    write_result(args.out, args.name, doc, lines, show=True)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cases", nargs="+", default=None)
@@ -295,7 +296,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
     ap.add_argument("--name", default="fit_levers", help="the report's file stem")
     ap.add_argument("--report", action="store_true", help="gather the runs' results")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     report(args) if args.report else run(args)
 
 

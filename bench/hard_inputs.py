@@ -17,9 +17,9 @@ folder to run it again.
 ``--report`` gathers them into ``bench/results/hard_inputs.{json,md}`` and the contact sheets
 (``--previous``: an earlier report's JSON, for the runs whose work folders are gone).
 
-    .venv/bin/python bench/hard_inputs.py --seeds 0 1 2       # run (about 7 min a case and seed)
-    .venv/bin/python bench/hard_inputs.py --seeds 0 --max-scale-cm 10   # the jobs' bound
-    .venv/bin/python bench/hard_inputs.py --report            # gather
+    .venv/bin/python -m bench hard_inputs --seeds 0 1 2       # run (about 7 min a case and seed)
+    .venv/bin/python -m bench hard_inputs --seeds 0 --max-scale-cm 10   # the jobs' bound
+    .venv/bin/python -m bench hard_inputs --report            # gather
 """
 
 from __future__ import annotations
@@ -34,7 +34,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import describe, header_line, run_header
+
+from bench.machine import describe, header_line, run_header, write_result
 
 ROOT = Path(__file__).resolve().parents[1]
 FRAMES, SIZE, REFUSAL_SIZE = 40, 512, 256
@@ -377,7 +378,6 @@ def report(args) -> None:
         "results": results,
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "hard_inputs.json").write_text(json.dumps(doc, indent=1))
     sheets = args.out / "hard_inputs"
     sheets.mkdir(exist_ok=True)
     for r in results:
@@ -462,11 +462,10 @@ def report(args) -> None:
         "Contact sheets (input | truth | render, held-out frames): `hard_inputs/<case>_s<seed>.jpg`.",
         "",
     ]
-    (args.out / "hard_inputs.md").write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_result(args.out, "hard_inputs", doc, lines, show=True)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--cases", nargs="+", default=None)
@@ -482,7 +481,7 @@ def main() -> None:
     )
     ap.add_argument("--previous", type=Path, default=None, help="--report: an earlier report's JSON")
     ap.add_argument("--budgets", type=int, nargs="*", help="train the clean datasets for these iterations")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if args.report:
         report(args)
     elif args.budgets:

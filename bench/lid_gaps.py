@@ -1,7 +1,7 @@
 """The lid gaps in pixels: how far the fitted face's lids are from the detected ones, on the
 clip's most closed frames and its median one, and how the gap moves with the blink.
 
-    .venv/bin/python bench/lid_gaps.py data/face_default/gesturing-nosmooth/dataset \
+    .venv/bin/python -m bench lid_gaps data/face_default/gesturing-nosmooth/dataset \
         --name lid_gaps --out bench/results/expressions/closeups
 
 For each picked frame: the detected vertical gap of each lid pair the fit's opening term uses
@@ -17,13 +17,14 @@ import dataclasses
 from pathlib import Path
 
 import torch
-from machine import header_line, run_header, write_result
+
+from bench.machine import header_line, run_header, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 BLINKS = (0.0, 0.25, 0.5, 0.6, 0.75, 1.0)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     from eva_engine.align.face_mesh import OPENING_PAIRS, load_correspondence
     from eva_engine.body import load_body_model
     from eva_engine.data import load_dataset
@@ -34,7 +35,7 @@ def main() -> None:
     ap.add_argument("--closed", type=int, default=3, help="how many of the most closed frames")
     ap.add_argument("--name", default="lid_gaps")
     ap.add_argument("--out", type=Path, default=RESULTS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     torch.set_num_threads(1)
     ds = load_dataset(args.dataset)
     model = load_body_model(ds.meta.body_model or "anny")
@@ -102,7 +103,7 @@ def main() -> None:
             label = "fitted − detected" if key == "fitted" else f"blink {key} − detected"
             lines.append(f"| {label} | " + " | ".join(f"{v:+.2f}" for v in vals) + " |")
         lines.append("")
-    write_result(args.out, args.name, doc, lines)
+    write_result(args.out, args.name, doc, lines, show=True)
 
 
 if __name__ == "__main__":

@@ -9,7 +9,12 @@ import platform
 import shlex
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
+
+# Version of the result files' layout: a header (``run_header``) beside the script's own body.
+# 2: the header carries ``schema`` and the command names the harness (``python -m bench``).
+SCHEMA_VERSION = 2
 
 
 def cpu_name() -> str:
@@ -67,18 +72,54 @@ def portable_path(path: str | Path) -> str:
     data = data_dir().resolve()
     if path.is_relative_to(data):
         return str(Path("$EVA_DATA_DIR") / path.relative_to(data))
+    scratch = Path(tempfile.gettempdir()).resolve()
+    if path.is_relative_to(scratch):
+        return str(Path("$TMPDIR") / path.relative_to(scratch))
     return str(path)
 
 
+def local_path(name: str) -> Path:
+    """The path on this machine that a ``portable_path`` names."""
+    from eva_engine.paths import data_dir
+
+    for var, base in (("$EVA_DATA_DIR", data_dir), ("$TMPDIR", lambda: Path(tempfile.gettempdir()))):
+        if name == var or name.startswith(var + "/"):
+            return base() / name[len(var) :].lstrip("/")
+    path = Path(name)
+    return path if path.is_absolute() else Path(__file__).resolve().parents[1] / path
+
+
+def portable(doc):
+    """``doc`` (JSON-like) with every absolute path, as a ``Path`` or a string, made a
+    ``portable_path``: a result file then names data the same way on every machine."""
+    if isinstance(doc, dict):
+        return {k: portable(v) for k, v in doc.items()}
+    if isinstance(doc, list | tuple):
+        return [portable(v) for v in doc]
+    if isinstance(doc, Path) or (isinstance(doc, str) and doc.startswith("/") and "\n" not in doc):
+        return portable_path(doc)
+    return doc
+
+
+def command_line(argv: list[str] | None = None) -> str:
+    """The command as typed from the repository: ``python -m bench <name> ...`` through the
+    harness, ``python -m bench.<name> ...`` for a module run alone (``argv``: ``sys.argv``)."""
+    argv = sys.argv if argv is None else argv
+    script = Path(argv[0])
+    if script.name == "__main__.py" and script.parent.name == "bench":
+        return shlex.join(["python", "-m", "bench", *argv[1:]])
+    if script.parent.name == "bench":
+        return shlex.join(["python", "-m", f"bench.{script.stem}", *argv[1:]])
+    return shlex.join(["python", str(script), *argv[1:]])
+
+
 def run_header() -> dict:
-    """The head of every result file: when (UTC), the command as typed from the repository
-    (``python bench/<script>.py ...``), the commit, and the machine (``describe``)."""
-    script = Path(sys.argv[0])
-    if script.is_absolute() or script.parent.name == "bench":
-        script = Path("bench") / script.name
+    """The head of every result file: the result schema's version, when (UTC), the command as
+    typed from the repository, the commit, and the machine (``describe``)."""
     return {
+        "schema": SCHEMA_VERSION,
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": shlex.join(["python", str(script), *sys.argv[1:]]),
+        "command": command_line(),
         "commit": commit(),
         "machine": describe(),
     }
@@ -90,9 +131,16 @@ def header_line(doc: dict) -> str:
     return f"- date: {doc['date']}; command: `{doc['command']}`; commit {doc.get('commit') or 'not recorded'}"
 
 
-def write_result(out: Path, name: str, doc: dict, lines: list[str]) -> None:
-    """``<out>/<name>.json`` (``doc``) and ``<out>/<name>.md`` (``lines``), printed too."""
+def write_result(out: Path, name: str, doc: dict, markdown: str | list[str], show: bool = False) -> None:
+    """The one writer of results: ``<out>/<name>.json`` (``doc``, which opens with a
+    ``run_header``; its paths made ``portable``) and ``<out>/<name>.md`` (``markdown``: text or
+    lines); ``show`` prints the Markdown too."""
+    if not isinstance(doc, dict):
+        raise TypeError(f"a result is a JSON object, not {type(doc).__name__}")
+    text = markdown if isinstance(markdown, str) else "\n".join(markdown)
+    text = text.rstrip("\n") + "\n"
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{name}.json").write_text(json.dumps(doc, indent=1))
-    (out / f"{name}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    (out / f"{name}.json").write_text(json.dumps(portable(doc), indent=1, default=str) + "\n")
+    (out / f"{name}.md").write_text(text)
+    if show:
+        print(text, end="")

@@ -2,7 +2,7 @@
 backward of ``LBSWeightOffsets.skinning_weights`` (EVA §3.1's f_w with the log prior and the
 softmax), at the avatar's default size (39 -> 128 -> 128 -> 104), timed per Gaussian count.
 
-    .venv/bin/python bench/mlp_precision.py --threads 2
+    .venv/bin/python -m bench mlp_precision --threads 2
 
 Also the bfloat16 step's largest weight difference and its gradients' relative error against
 float32 on the same inputs (random centres; the MLP at its trained scale, not its near-zero
@@ -12,25 +12,25 @@ init, so the difference is not flattered). Writes ``bench/results/mlp_precision.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import torch
-from machine import header_line, run_header
-from timing import time_call
+
+from bench.machine import header_line, run_header, write_result
+from bench.timing import time_call
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--sizes", default="10000,30000,50000", help="Gaussian counts")
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--name", default="mlp_precision")
     ap.add_argument("--out", type=Path, default=RESULTS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
 
     from eva_engine.avatar.networks import LBSWeightOffsets
@@ -46,8 +46,7 @@ def main() -> None:
         "rows": rows_out,
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1) + "\n")
-    (args.out / f"{args.name}.md").write_text(markdown(doc))
+    write_result(args.out, args.name, doc, markdown(doc))
     print(markdown(doc))
 
 

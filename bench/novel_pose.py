@@ -18,8 +18,8 @@ Rows (``ROWS``) are the product's default training (no ``--method``) with option
 main before this work (every option below off, ``OFF``) and ``thin`` is today's default. Seeds
 run one process each, side by side:
 
-    .venv/bin/python bench/novel_pose.py --seeds 0 --name novel_pose_seed0 --rows before scale_cap
-    .venv/bin/python bench/novel_pose.py --merge novel_pose_seed0 novel_pose_seed1 novel_pose_seed2
+    .venv/bin/python -m bench novel_pose --seeds 0 --name novel_pose_seed0 --rows before scale_cap
+    .venv/bin/python -m bench novel_pose --merge novel_pose_seed0 novel_pose_seed1 novel_pose_seed2
 
 Writes ``bench/results/<name>.json``, shaped ``{"config", "methods": {row: {"seeds", "summary",
 "overrides", "splits": {near|far|view|far_view: {full|hand|face|arm: {psnr|ssim|lpips_vgg:
@@ -40,9 +40,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import header_line, run_header
-from stats import compare_paired, fmt, mean_std
 
+from bench.machine import header_line, run_header, write_result
+from bench.stats import compare_paired, fmt, mean_std
 from eva_engine.recipes import PRESETS, describe_presets
 from eva_engine.synth_names import SYNTH_SIZES, describe_synth_sizes
 
@@ -546,7 +546,7 @@ def merge(docs: list[dict]) -> dict:
     }
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", default="bench", choices=list(SYNTH_SIZES), help=describe_synth_sizes())
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
@@ -575,7 +575,7 @@ def main() -> None:
         help="the row the others are paired against (default: `before`; kept in the result file)",
     )
     ap.add_argument("--out", type=Path, default=RESULTS, help="results folder")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     path = args.out / f"{args.name}.json"
     if args.replot or args.merge:
         doc = (
@@ -585,9 +585,7 @@ def main() -> None:
         )
         if args.baseline:
             doc["baseline"] = args.baseline
-        path.write_text(json.dumps(doc, indent=1, default=str))
-        (args.out / f"{args.name}.md").write_text(markdown(doc))
-        print(markdown(doc))
+        write_result(args.out, args.name, doc, markdown(doc), show=True)
         return
 
     from eva_engine.avatar.coverage import rest_root, view_angles
@@ -666,8 +664,7 @@ def main() -> None:
                 },
             }
             args.out.mkdir(parents=True, exist_ok=True)
-            path.write_text(json.dumps(doc, indent=1, default=str))
-            (args.out / f"{args.name}.md").write_text(markdown(doc))
+            write_result(args.out, args.name, doc, markdown(doc))
     print(markdown(doc) if doc else "nothing to run")
 
 

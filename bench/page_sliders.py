@@ -12,7 +12,7 @@ script sets a slider's value and fires its ``input`` event every 16 ms (60 Hz) f
 - settled: from the drag's last event to the last picture (the full-size image of the final
   slider values), and that picture's size.
 
-    .venv/bin/python bench/page_sliders.py --service-dir out/demo/service --name page_sliders \\
+    .venv/bin/python -m bench page_sliders --service-dir out/demo/service --name page_sliders \\
         --out bench/results/service_latency
 
 Writes ``<name>.json`` and ``<name>.md``. Skips with a message where Chromium, chromedriver or
@@ -30,8 +30,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from serving import base_report, ensure_service_dir, header, ready_avatar, serve_only
-
+from bench.machine import write_result
+from bench.serving import base_report, ensure_service_dir, header, ready_avatar, serve_only
 from service.headless_browser import missing, start_chromium
 
 DRAGS = (  # (label, CSS selector of the slider)
@@ -189,13 +189,11 @@ def write(report: dict, out: Path, name: str) -> None:
         f"while dragging, longest wait {s['longest_wait_ms']:.0f} ms, settled {s['settled_ms']:.0f} ms "
         f"after the last event; every drag ends on the full-size image: {s['all_settled_full_size']}.",
     ]
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"{name}.json").write_text(json.dumps(report, indent=2) + "\n")
-    (out / f"{name}.md").write_text("\n".join(lines) + "\n")
+    write_result(out, name, report, lines)
     print(f"wrote {out / name}.{{json,md}}")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--service-dir", type=Path, default=None)
     ap.add_argument("--drag-seconds", type=float, default=3.0)
@@ -203,7 +201,7 @@ def main() -> None:
     ap.add_argument("--note", default=None)
     ap.add_argument("--name", default="page_sliders")
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if reason := missing():
         raise SystemExit(f"skipped: {reason}")
     write(run(args), args.out, args.name)

@@ -3,14 +3,14 @@
 without both (``ROWS``), each row the mean ± std over several seeds, LPIPS-VGG (held out: no
 method trains on it) as the headline.
 
-    .venv/bin/python bench/paper_tables.py                  # the committed tables (3 seeds; hours on 2 cores)
-    .venv/bin/python bench/paper_tables.py --size tiny --preset tiny --seeds 0 1 --name smoke
+    .venv/bin/python -m bench paper_tables                  # the committed tables (3 seeds; hours on 2 cores)
+    .venv/bin/python -m bench paper_tables --size tiny --preset tiny --seeds 0 1 --name smoke
                                                             # a smoke run (minutes)
     # one process per seed (the seeds run side by side), then one table:
-    .venv/bin/python bench/paper_tables.py --seeds 1 --name paper_tables_seed1   # etc.
-    .venv/bin/python bench/paper_tables.py --merge paper_tables_seed0 paper_tables_seed1 paper_tables_seed2
+    .venv/bin/python -m bench paper_tables --seeds 1 --name paper_tables_seed1   # etc.
+    .venv/bin/python -m bench paper_tables --merge paper_tables_seed0 paper_tables_seed1 paper_tables_seed2
     # the paper's regime (UPB-like waist-up framing, alternate frames, the default preset):
-    .venv/bin/python bench/paper_tables.py --synth wild-gt --scale 0.5 --set loss.lpips_every=4 \
+    .venv/bin/python -m bench paper_tables --synth wild-gt --scale 0.5 --set loss.lpips_every=4 \
         --methods 3dgs+body eva eva-official eva-official-no-cadc --seeds 0 --name paper_regime_seed0
 
 Seed s is a subject and its motions (``eva synth --preset controlled --size bench --seed s``:
@@ -41,9 +41,9 @@ import time
 from pathlib import Path
 
 import torch
-from machine import header_line, run_header
-from stats import compare_paired, fmt, mean_std
 
+from bench.machine import header_line, run_header, write_result
+from bench.stats import compare_paired, fmt, mean_std
 from eva_engine.recipes import METHODS, PRESETS, describe_presets
 from eva_engine.synth_names import SYNTH_SIZES, describe_synth_sizes
 
@@ -386,7 +386,7 @@ def dataset_for(size: str, seed: int, synth: str = "controlled") -> Path:
     return path
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
         "--synth", default="controlled", choices=["controlled", "wild-gt"], help="synthetic preset"
@@ -416,7 +416,7 @@ def main() -> None:
         "--merge", nargs="+", metavar="NAME", help="only combine the runs of result files of one setting"
     )
     ap.add_argument("--out", type=Path, default=RESULTS, help="results folder")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     path = args.out / f"{args.name}.json"
     if args.replot:
         doc = json.loads(path.read_text())
@@ -424,9 +424,7 @@ def main() -> None:
         return
     if args.merge:
         doc = merge([json.loads((args.out / f"{n}.json").read_text()) for n in args.merge])
-        path.write_text(json.dumps(doc, indent=1, default=str))
-        (args.out / f"{args.name}.md").write_text(markdown(doc))
-        print(markdown(doc))
+        write_result(args.out, args.name, doc, markdown(doc), show=True)
         return
 
     from eva_engine.data import load_dataset
@@ -486,8 +484,7 @@ def main() -> None:
                 },
             }
             args.out.mkdir(parents=True, exist_ok=True)
-            path.write_text(json.dumps(doc, indent=1, default=str))
-            (args.out / f"{args.name}.md").write_text(markdown(doc))
+            write_result(args.out, args.name, doc, markdown(doc))
     print(markdown(doc))
 
 

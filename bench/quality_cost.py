@@ -4,31 +4,31 @@ train, the quality report (``eval.quality_report``: the held-out frames scored, 
 summary), and the training-frame metrics the job also measures. Writes
 ``bench/results/quality_cost.{json,md}``; skips with a message without the reference videos.
 
-    .venv/bin/python bench/quality_cost.py            # latentsync_demo3_gesturing.mp4
+    .venv/bin/python -m bench quality_cost            # latentsync_demo3_gesturing.mp4
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import torch
-from machine import header_line, run_header
+
+from bench.machine import header_line, run_header, write_result
 
 ROOT = Path(__file__).resolve().parents[1]
 VIDEOS = ROOT.parent / "shared" / "reference" / "videos"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--video", default="latentsync_demo3_gesturing.mp4")
     ap.add_argument("--videos", type=Path, default=VIDEOS)
     ap.add_argument("--work", type=Path, default=ROOT / "data" / "quality_cost")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     video = args.videos / args.video
     if not video.is_file():
         print(f"skipped: {video} is absent (the reference videos are not beside this checkout)")
@@ -72,8 +72,6 @@ def main() -> None:
         "quality": quality.model_dump(),
         "training_metrics": fit,
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "quality_cost.json").write_text(json.dumps(doc, indent=1))
     held = quality.held_out
     lines = [
         "# What the quality report costs a job",
@@ -98,8 +96,7 @@ def main() -> None:
         + ". The whole report is in the JSON.",
         "",
     ]
-    (args.out / "quality_cost.md").write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_result(args.out, "quality_cost", doc, lines, show=True)
 
 
 if __name__ == "__main__":

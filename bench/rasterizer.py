@@ -14,8 +14,8 @@ hits them alike; the report gives the medians over all rounds, their ratios, the
 the CPU time (less sensitive to load than wall time). ``--reference`` adds the plain-autograd
 reference backend.
 
-    .venv/bin/python bench/rasterizer.py            # full grid, writes bench/results/rasterizer.{json,md}
-    .venv/bin/python bench/rasterizer.py --quick    # fewer repeats and rounds, N <= 20k
+    .venv/bin/python -m bench rasterizer            # full grid, writes bench/results/rasterizer.{json,md}
+    .venv/bin/python -m bench rasterizer --quick    # fewer repeats and rounds, N <= 20k
 
 Targets (2 CPU cores): 20k @ 512^2 forward+backward <= 60 ms, forward >= 40 FPS; peak
 memory <= 0.5 GB.
@@ -37,7 +37,8 @@ import time
 from pathlib import Path
 
 import torch
-from machine import cpu_name, run_header
+
+from bench.machine import cpu_name, run_header, write_result
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -196,13 +197,22 @@ def measure(n: int, size: int, variant: str, mode: str, repeats: int, threads: i
 def _run_child(
     code_root: Path, n: int, size: int, variant: str, mode: str, repeats: int, threads: int, wait: str | None
 ) -> dict:
-    cmd = [sys.executable, __file__, "--child", f"{n},{size},{variant},{mode},{repeats},{threads}"]
-    # PYTHONPATH picks which eva_engine the child imports (this tree, or the extracted "before").
-    env = dict(os.environ, OMP_NUM_THREADS=str(threads), PYTHONPATH=str(code_root))
+    cmd = [
+        sys.executable,
+        "-m",
+        "bench.rasterizer",
+        "--child",
+        f"{n},{size},{variant},{mode},{repeats},{threads}",
+    ]
+    # The child runs in code_root, first on its path: its eva_engine is this tree's or the extracted
+    # "before"; ``bench`` comes from this tree, after it.
+    env = dict(
+        os.environ, OMP_NUM_THREADS=str(threads), PYTHONPATH=os.pathsep.join([str(code_root), str(ROOT)])
+    )
     env.pop("EVA_RASTER_KERNEL", None)
     if wait:
         env["OMP_WAIT_POLICY"] = wait
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=code_root)
     if proc.returncode != 0:
         return dict(n=n, size=size, variant=variant, mode=mode, error=proc.stderr.strip()[-2000:])
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -413,7 +423,7 @@ def _load_remark(load_at_start: float) -> str:
     return "Other work shared the machine: wall times are inflated and noisy, CPU times (all threads) less so"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -431,7 +441,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, help="interleaved rounds (default 3, quick 2)")
     parser.add_argument("--reference", action="store_true", help="also run the plain-autograd reference")
     parser.add_argument("--out", type=Path, default=RESULTS, help="results folder")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.child:
         n, size, variant, mode, repeats, threads = args.child.split(",")
         print(json.dumps(measure(int(n), int(size), variant, mode, int(repeats), int(threads))))
@@ -503,8 +513,7 @@ def main() -> None:
         results=results,
     )
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "rasterizer.json").write_text(json.dumps(report, indent=2) + "\n")
-    (args.out / "rasterizer.md").write_text(_markdown(report))
+    write_result(args.out, "rasterizer", report, _markdown(report))
     print(_markdown(report))
 
 

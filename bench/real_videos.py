@@ -1,9 +1,9 @@
 """The real-video table: the product (preprocess -> train -> eval) on every video of a folder,
 with the paper's UPB protocol, for 3dgs+body and EVA, and a contact sheet per video.
 
-    .venv/bin/python bench/real_videos.py                    # ../shared/reference/videos (skips if absent)
-    .venv/bin/python bench/real_videos.py --videos DIR --preset fast --name real_videos_fast
-    .venv/bin/python bench/real_videos.py --only latentsync_demo3_gesturing --max-size 960 ...
+    .venv/bin/python -m bench real_videos                    # ../shared/reference/videos (skips if absent)
+    .venv/bin/python -m bench real_videos --videos DIR --preset fast --name real_videos_fast
+    .venv/bin/python -m bench real_videos --only latentsync_demo3_gesturing --max-size 960 ...
 
 Protocol (the paper's UPB split): each video is sampled to about ``--frames`` frames (every k-th
 frame), scaled so its long side is ``--max-size`` px, and alternate frames train and test
@@ -24,7 +24,7 @@ test frame's pose for N steps against its image with the avatar frozen before sc
 (``eva_engine.eval.PoseRefinement``); with ``--reuse`` it scores the avatars an earlier run saved
 in ``--work`` instead of training them again:
 
-    .venv/bin/python bench/real_videos.py --preset fast --reuse --refine-poses 20 --name real_videos_refined
+    .venv/bin/python -m bench real_videos --preset fast --reuse --refine-poses 20 --name real_videos_refined
 
 A setting against the default: ``--set FIELD=VALUE ...`` (dotted train-config fields, as in
 ``bench/paper_tables.py``) trains every method with it; its avatars are kept apart
@@ -43,8 +43,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from machine import header_line, run_header
 
+from bench.machine import header_line, run_header, write_result
 from eva_engine.recipes import METHODS, PRESETS
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -343,7 +343,7 @@ def placement_lines(methods: dict) -> list[str]:
     return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--videos", type=Path, default=DEFAULT_VIDEOS, help="folder of videos")
     ap.add_argument("--only", nargs="+", metavar="STEM", help="only the videos of these file stems")
@@ -377,7 +377,7 @@ def main() -> None:
         help="train-config fields for every method, e.g. pose_correction.enabled=true "
         "(train.with_overrides); the avatars are saved under avatar-<method>-<name>",
     )
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     videos = videos_or_skip(args.videos)
     if args.only:
         missing = set(args.only) - {v.stem for v in videos}
@@ -469,8 +469,7 @@ def main() -> None:
         if args.sheet_only:
             continue
         doc["videos"][video.name] = entry
-        (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1, default=str))
-        (args.out / f"{args.name}.md").write_text(markdown(doc))
+        write_result(args.out, args.name, doc, markdown(doc))
     if doc["videos"]:
         print(markdown(doc))
 

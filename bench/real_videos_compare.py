@@ -2,7 +2,7 @@
 sets of runs (``--before`` against ``--after``, e.g. the same method before and after a change
 to the engine), paired by seed.
 
-    .venv/bin/python bench/real_videos_compare.py --method eva \\
+    .venv/bin/python -m bench real_videos_compare --method eva \\
         --before real_videos real_videos_eva_seed1 real_videos_eva_seed2 \\
         --after real_videos_expr_seed0 real_videos_expr_seed1 real_videos_expr_seed2 \\
         --name real_videos_expr
@@ -22,8 +22,8 @@ import argparse
 import json
 from pathlib import Path
 
-from machine import header_line, run_header
-from stats import compare_paired, fmt, mean_std
+from bench.machine import header_line, run_header, write_result
+from bench.stats import compare_paired, fmt, mean_std
 
 RESULTS = Path(__file__).resolve().parent / "results"
 REGIONS = ("full", "hand", "face")
@@ -107,7 +107,7 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--method", default="eva", help="the method of the after runs (and of the before runs)")
     ap.add_argument("--before-method", help="the method of the before runs, when it is another")
@@ -115,7 +115,7 @@ def main() -> None:
     ap.add_argument("--after", nargs="+", required=True, help="result stems, one per seed")
     ap.add_argument("--name", required=True, help="result file stem")
     ap.add_argument("--results", type=Path, default=RESULTS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     before_method = args.before_method or args.method
     seeds_b, before = load_runs(args.before, before_method, args.results)
     seeds_a, after = load_runs(args.after, args.method, args.results)
@@ -132,8 +132,7 @@ def main() -> None:
         "seeds": seeds_a,
         "comparison": compare_runs(before, after),
     }
-    (args.results / f"{args.name}.json").write_text(json.dumps(doc, indent=1))
-    (args.results / f"{args.name}.md").write_text(markdown(doc))
+    write_result(args.results, args.name, doc, markdown(doc))
     print(markdown(doc))
 
 

@@ -1,7 +1,7 @@
 """How much a hand or face score on real video is placement: each test frame's *target* scored
 against itself moved by a few pixels, or blurred, with the evaluation's own crops and metrics.
 
-    .venv/bin/python bench/region_sensitivity.py --work data/real_videos_bs --scores real_videos
+    .venv/bin/python -m bench region_sensitivity --work data/real_videos_bs --scores real_videos
 
 No avatar is involved: a shifted target is a perfect appearance placed ``r`` px off, a blurred
 one a perfect placement without detail. Where the real-video table's hand or face score equals
@@ -31,8 +31,9 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
-from machine import header_line, run_header
-from real_videos import DEFAULT_VIDEOS, RESULTS, preprocess, videos_or_skip
+
+from bench.machine import header_line, run_header, write_result
+from bench.real_videos import DEFAULT_VIDEOS, RESULTS, preprocess, videos_or_skip
 
 SHIFTS_PX = (1, 2, 3, 4)
 BLURS_PX = (0.5, 1.0, 1.5, 2.0)
@@ -152,7 +153,7 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--videos", type=Path, default=DEFAULT_VIDEOS, help="folder of videos")
     ap.add_argument("--work", type=Path, help="the real-video datasets (default: <data dir>/real_videos)")
@@ -163,7 +164,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--name", default="region_sensitivity")
     ap.add_argument("--out", type=Path, default=RESULTS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     videos = videos_or_skip(args.videos)
     if not videos:
         return
@@ -193,8 +194,7 @@ def main() -> None:
             "methods": method_scores(args.scores, video.name),
         }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1))
-    (args.out / f"{args.name}.md").write_text(markdown(doc))
+    write_result(args.out, args.name, doc, markdown(doc))
     print(markdown(doc))
 
 

@@ -3,7 +3,7 @@
 service runs them), the whole ``render_image`` call and the PNG encoding, at each ``--threads``.
 Medians over ``--repeats`` after a warm-up, in one process on an otherwise idle machine.
 
-    .venv/bin/python bench/render_stages.py --avatar AVATAR_DIR --name render_stages \\
+    .venv/bin/python -m bench render_stages --avatar AVATAR_DIR --name render_stages \\
         --out bench/results/service_latency
 
 Writes ``<name>.json`` and ``<name>.md``.
@@ -12,13 +12,13 @@ Writes ``<name>.json`` and ``<name>.md``.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
-from machine import header_line, run_header
-from timing import time_call
+
+from bench.machine import header_line, run_header, write_result
+from bench.timing import time_call
 
 
 def median_ms(fn, repeats: int) -> float:
@@ -105,7 +105,7 @@ def measure(avatar_dir: Path, size: int, threads: int, repeats: int) -> dict:
         }
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--avatar", type=Path, required=True)
     ap.add_argument("--size", type=int, default=512)
@@ -114,15 +114,13 @@ def main() -> None:
     ap.add_argument("--note", default=None)
     ap.add_argument("--name", default="render_stages")
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     rows = [measure(args.avatar, args.size, t, args.repeats) for t in args.threads]
     doc = {
         **run_header(),
         "note": args.note,
         "rows": rows,
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1))
     stages = list(rows[0]["ms"])
     lines = [
         "# One render's stages",
@@ -142,8 +140,7 @@ def main() -> None:
         "|---:|" + "---:|" * len(stages),
         *(f"| {r['threads']} | " + " | ".join(f"{r['ms'][s]:.1f}" for s in stages) + " |" for r in rows),
     ]
-    (args.out / f"{args.name}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_result(args.out, args.name, doc, lines, show=True)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,8 @@
 """The service under load and under crashes, against real ``eva serve`` / ``eva worker`` processes.
 
-    .venv/bin/python bench/serving.py latency --service-dir out/demo/service  # 1 and 16 clients
-    .venv/bin/python bench/serving.py load --service-dir out/demo/service     # 50 clients + uploads
-    .venv/bin/python bench/serving.py soak                                    # workers SIGKILLed
+    .venv/bin/python -m bench serving latency --service-dir out/demo/service  # 1 and 16 clients
+    .venv/bin/python -m bench serving load --service-dir out/demo/service     # 50 clients + uploads
+    .venv/bin/python -m bench serving soak                                    # workers SIGKILLed
 
 ``--service-dir``: a service data folder holding a finished avatar (``load`` and ``latency`` copy
 it to a temporary folder first; without it, ``eva demo --preset tiny`` makes one).
@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import dataclasses
-import json
 import multiprocessing
 import os
 import random
@@ -48,8 +47,7 @@ import threading
 import time
 from pathlib import Path
 
-from machine import run_header
-
+from bench.machine import run_header, write_result
 from jobs.options import MIN_FRAMES
 from jobs.runner import JobProcess, job_processes
 from service.local_stack import LocalStack, LocalStackError, eva_executable, free_port, launch, stop_process
@@ -144,10 +142,7 @@ def pose_body(k: int, size: int, fmt: str = "png", vary: str = "pose") -> dict:
 
 
 def write_report(name: str, report: dict, lines: list[str], out: Path) -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"{name}.json").write_text(json.dumps(report, indent=1))
-    (out / f"{name}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_result(out, name, report, lines, show=True)
 
 
 def header(title: str, report: dict, note: str | None) -> list[str]:
@@ -910,7 +905,7 @@ def run_soak(args) -> None:
         print(f"kept the soak's folder and logs: {run.work}")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--note", help="Recorded in the result, e.g. what else shared the machine.")
@@ -950,7 +945,7 @@ def main() -> None:
     soak.add_argument(
         "--hosts", action="store_true", help="hosts that share no disk: Redis records and an S3 bucket"
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     {"latency": run_latency, "load": run_load, "soak": run_soak}[args.command](args)
 
 

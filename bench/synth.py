@@ -1,7 +1,7 @@
 """Synthetic benchmark generator speed (``eva_engine.synth.generate``), and the contact
 sheet in docs/.
 
-    .venv/bin/python bench/synth.py [--sizes tiny bench] [--presets wild] [--seed 0]
+    .venv/bin/python -m bench synth [--sizes tiny bench] [--presets wild] [--seed 0]
                                     [--contact-sheet docs/synthetic_contact_sheet.png]
 
 Times one generation per (preset, size) on CPU, model load excluded, into a temporary folder.
@@ -12,13 +12,11 @@ the sheet (full frame, face, both hands for six frames) from the first ``bench``
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import time
 from pathlib import Path
 
-from machine import run_header
-
+from bench.machine import run_header, write_result
 from eva_engine.body import load_body_model
 from eva_engine.data import load_dataset
 from eva_engine.synth import PRESETS, SIZES, generate
@@ -26,13 +24,13 @@ from eva_engine.synth import PRESETS, SIZES, generate
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", nargs="+", default=["tiny", "bench"], choices=list(SIZES))
     ap.add_argument("--presets", nargs="+", default=["wild"], choices=list(PRESETS))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--contact-sheet", type=Path, default=None)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
 
     start = time.perf_counter()
     model = load_body_model("anny")
@@ -86,8 +84,6 @@ def main() -> None:
         "model_load_s": round(load_s, 2),
         "results": rows,
     }
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "synth.json").write_text(json.dumps(info, indent=1) + "\n")
     lines = [
         "# Synthetic benchmark generator",
         "",
@@ -110,7 +106,7 @@ def main() -> None:
         "motion, body-model forward, texture bake. Model load excluded "
         f"({info['model_load_s']} s).",
     ]
-    (RESULTS / "synth.md").write_text("\n".join(lines) + "\n")
+    write_result(RESULTS, "synth", info, lines)
 
 
 if __name__ == "__main__":

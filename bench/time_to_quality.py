@@ -2,9 +2,9 @@
 wall-seconds, for ``3dgs+body`` and ``eva``, on the paper tables' synthetic benchmark (the same
 subjects, seeds and preset), mean ± std over seeds.
 
-    .venv/bin/python bench/time_to_quality.py                       # 3 seeds, fast preset
-    .venv/bin/python bench/time_to_quality.py --seeds 1 --name time_to_quality_seed1   # one seed
-    .venv/bin/python bench/time_to_quality.py --merge time_to_quality_seed0 time_to_quality_seed1 ...
+    .venv/bin/python -m bench time_to_quality                       # 3 seeds, fast preset
+    .venv/bin/python -m bench time_to_quality --seeds 1 --name time_to_quality_seed1   # one seed
+    .venv/bin/python -m bench time_to_quality --merge time_to_quality_seed0 time_to_quality_seed1 ...
 
 Each run trains once and is evaluated at its checkpoints (``train_avatar(checkpoint=...)``: the
 avatar as it trains, before the end-of-training pruning, so the last point can differ slightly
@@ -22,10 +22,10 @@ import sys
 from pathlib import Path
 
 import torch
-from machine import header_line, run_header
-from paper_tables import dataset_for
-from stats import fmt, mean_std
 
+from bench.machine import header_line, run_header, write_result
+from bench.paper_tables import dataset_for
+from bench.stats import fmt, mean_std
 from eva_engine.recipes import METHODS, PRESETS
 from eva_engine.synth_names import SYNTH_SIZES
 
@@ -144,13 +144,11 @@ def plot(doc: dict, path: Path) -> None:
 def write(doc: dict, out: Path, name: str) -> None:
     doc["curves"] = curves(doc["runs"])
     doc["figure"] = f"{name}.png"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"{name}.json").write_text(json.dumps(doc, indent=1))
+    write_result(out, name, doc, markdown(doc))
     plot(doc, out / f"{name}.png")
-    (out / f"{name}.md").write_text(markdown(doc))
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
         "--size", default="bench", choices=list(SYNTH_SIZES), help="synthetic size (the paper tables': bench)"
@@ -166,7 +164,7 @@ def main() -> None:
     ap.add_argument("--merge", nargs="+", metavar="NAME", help="only combine the runs of result files")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--note", help="recorded with the results and printed under the settings")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     path = args.out / f"{args.name}.json"
     if args.merge:
         docs = [json.loads((args.out / f"{n}.json").read_text()) for n in args.merge]

@@ -2,9 +2,9 @@
 skinning, rasterize, losses, backward, optimizer, densify), total training time, Gaussian count,
 and the full / hand / face metrics on the novel-pose frames.
 
-    .venv/bin/python bench/train.py                               # synthetic bench (512 px), paper preset
-    .venv/bin/python bench/train.py --size tiny --preset tiny     # seconds, a smoke run
-    .venv/bin/python bench/train.py --dataset PATH --preset fast  # any eva-dataset
+    .venv/bin/python -m bench train                               # synthetic bench (512 px), paper preset
+    .venv/bin/python -m bench train --size tiny --preset tiny     # seconds, a smoke run
+    .venv/bin/python -m bench train --dataset PATH --preset fast  # any eva-dataset
 
 Speed against an earlier commit: run that commit's own bench/train.py from a worktree of it
 (``PYTHONPATH=<worktree>``, so its eva_engine is the one imported) and record its entry here with
@@ -26,8 +26,8 @@ import time
 from pathlib import Path
 
 import torch
-from machine import commit, header_line, run_header
 
+from bench.machine import commit, header_line, run_header, write_result
 from eva_engine.recipes import METHODS, PRESETS, describe_methods, describe_presets
 from eva_engine.synth_names import SYNTH_PRESETS, SYNTH_SIZES, describe_synth_sizes
 
@@ -35,7 +35,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 TARGET_SECONDS = 300.0
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
         "--dataset", type=Path, help="an existing eva-dataset (default: generate the synthetic one)"
@@ -75,7 +75,7 @@ def main() -> None:
         type=Path,
         help="copy the entries of another checkout's train.json here (with --label), then stop",
     )
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     from eva_engine.paths import data_dir
 
     path = args.dataset or data_dir() / "synthetic" / f"{args.synthetic}-{args.size}-seed{args.seed}"
@@ -219,8 +219,7 @@ def save_runs(new: dict) -> None:
     json_path = RESULTS / "train.json"
     runs = json.loads(json_path.read_text()) if json_path.is_file() else {}
     runs.update(new)
-    json_path.write_text(json.dumps(runs, indent=2))
-    (RESULTS / "train.md").write_text(markdown(runs))
+    write_result(RESULTS, "train", runs, markdown(runs))
 
 
 def speedups(runs: dict) -> list[str]:

@@ -2,7 +2,7 @@
 of short trainings, to compare between two checkouts of the repository.
 
     .venv/bin/eva synth --preset controlled --size small --seed 0 --out /tmp/ident-ds
-    .venv/bin/python bench/training_identity.py /tmp/ident-ds > after.json
+    .venv/bin/python -m bench training_identity /tmp/ident-ds > after.json
     cd ../other-checkout  # e.g. `git worktree add ../other-checkout <commit>`
     PYTHONPATH=. ../main/.venv/bin/python ../main/bench/training_identity.py /tmp/ident-ds > before.json
 
@@ -29,14 +29,14 @@ def fingerprint(state: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dataset")
     ap.add_argument("--iterations", type=int, default=170)
     ap.add_argument(
         "--methods", nargs="+", default=["default", "eva", "3dgs+body"], help="'default': the preset's"
     )
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     torch.set_num_threads(1)
 
     import eva_engine

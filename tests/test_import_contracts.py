@@ -1,8 +1,9 @@
-"""The import graph of ``eva_engine``, ``jobs`` and ``service``, read from the source (every import
+"""The import graph of ``eva_engine``, ``jobs``, ``service`` and ``bench``, read from the source (every import
 statement, those inside functions too), keeps the architecture's boundaries:
 
 - the engine is a library: it never imports ``jobs`` or ``service``, its consumers;
 - the worker runs without the web service: ``jobs`` never imports ``service``;
+- the product never imports its benchmarks: no package but ``bench`` imports ``bench``;
 - the rasterizer is the bottom layer: ``eva_engine.render`` imports nothing of ``eva_engine.body``,
   ``eva_engine.avatar`` or ``eva_engine.train``;
 - no cycles: between modules, nor between the parts of any package (``eva_engine.train`` and
@@ -26,10 +27,11 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("eva_engine", "jobs", "service")
+PACKAGES = ("eva_engine", "jobs", "service", "bench")
 FORBIDDEN = [
-    ("eva_engine", ("jobs", "service"), "the engine is a library; jobs and service use it"),
-    ("jobs", ("service",), "the worker runs without the web service"),
+    ("eva_engine", ("jobs", "service", "bench"), "the engine is a library; jobs and service use it"),
+    ("jobs", ("service", "bench"), "the worker runs without the web service"),
+    ("service", ("bench",), "the product never imports its benchmarks"),
     (
         "eva_engine.render",
         ("eva_engine.body", "eva_engine.avatar", "eva_engine.train"),

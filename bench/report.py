@@ -1,0 +1,209 @@
+"""``python -m bench report``: the tables the docs include, written from the result files.
+
+A doc includes a table between two markers; everything between them is this module's output:
+
+    <!-- bench report: paper_tables -->
+    | | full | hand | face | N-GS |
+    ...
+    <!-- /bench report -->
+
+``report --check`` fails when a doc's table is not what the committed results give (a test runs
+it), so a figure in those tables cannot drift from its file. Each section reads its result through
+a pydantic model of the fields it uses: a result whose shape changed fails loudly here, not as a
+wrong number in the docs.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
+DOCS = ("README.md", "docs/*.md")
+BLOCK = re.compile(r"(<!-- bench report: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /bench report -->)", re.S)
+
+
+# ----------------------------------------------------------------------------- result shapes
+
+
+class _Loose(BaseModel):
+    model_config = ConfigDict(extra="ignore")
+
+
+class Stat(_Loose):
+    """``bench.stats.mean_std``: a mean over seeds."""
+
+    mean: float
+    std: float
+    n: int
+
+
+class MethodSummary(_Loose):
+    """One method of ``paper_tables.json`` / ``paper_regime.json`` over its seeds."""
+
+    seeds: list[int]
+    n_gaussians: Stat
+    full: dict[str, Stat]
+    hand: dict[str, Stat]
+    face: dict[str, Stat]
+
+
+class PaperTables(_Loose):
+    """``bench.paper_tables``' merged result (``--merge``)."""
+
+    date: str
+    command: str
+    methods: dict[str, MethodSummary]
+
+
+class LatencyRow(_Loose):
+    size: int
+    format: str
+    varies: str
+    clients: int
+    requests: int
+    p50_ms: float
+    p95_ms: float
+    throughput_rps: float
+
+
+class ServiceLatency(_Loose):
+    """``bench.serving latency``'s result."""
+
+    date: str
+    machine: str
+    rows: list[LatencyRow]
+
+
+def load(model: type[BaseModel], name: str, results: Path) -> BaseModel:
+    return model.model_validate_json((results / f"{name}.json").read_text())
+
+
+# ----------------------------------------------------------------------------- sections
+
+
+def _mean_std(stat: Stat, scale: float = 1e3) -> str:
+    if stat.n < 2:
+        return f"{stat.mean * scale:.1f}"
+    return f"{stat.mean * scale:.1f} ± {stat.std * scale:.1f}"
+
+
+def _seeds(seeds: list[int]) -> str:
+    seeds = sorted(seeds)
+    contiguous = seeds == list(range(seeds[0], seeds[-1] + 1))
+    if len(seeds) > 1 and contiguous:
+        return f"{seeds[0]}-{seeds[-1]}"
+    return ", ".join(map(str, seeds))
+
+
+def _lpips_table(doc: PaperTables, rows: dict[str, str], seeds_column: bool) -> list[str]:
+    """LPIPS-VGG ×1000 (full, hand, face) and the Gaussian count, one row per method in ``rows``
+    (method -> its label), in that order."""
+    head = "| | full | hand | face | N-GS |" + (" seeds |" if seeds_column else "")
+    rule = "|---|---:|---:|---:|---:|" + ("---|" if seeds_column else "")
+    lines = [head, rule]
+    for method, label in rows.items():
+        m = doc.methods[method]
+        cells = [
+            _mean_std(m.full["lpips_vgg"]),
+            _mean_std(m.hand["lpips_vgg"]),
+            _mean_std(m.face["lpips_vgg"]),
+        ]
+        cells.append(f"{m.n_gaussians.mean:,.0f}")
+        if seeds_column:
+            cells.append(_seeds(m.seeds))
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def paper_tables(results: Path) -> list[str]:
+    """The paper's Tables 1-2 on the synthetic ``controlled`` benchmark (``paper_tables.json``)."""
+    doc = load(PaperTables, "paper_tables", results)
+    rows = {
+        "3dgs+body": "3dgs+body (3DGS density control, L1 + D-SSIM)",
+        "eva": "eva (CADC + CL + SSIM/LPIPS-Alex terms)",
+        "eva-no-cl": "eva-no-cl (CADC, no CL)",
+        "eva-no-cadc": "eva-no-cadc (CL, no CADC)",
+        "eva-no-cadc-no-cl": "eva-no-cadc-no-cl (the full objective alone)",
+        "gauhuman+body": "gauhuman+body (`docs/baselines.md`)",
+        "gart+body": "gart+body (`docs/baselines.md`)",
+    }
+    return _lpips_table(doc, rows, seeds_column=False)
+
+
+def paper_regime(results: Path) -> list[str]:
+    """The paper's own regime, with the authors' recipe (``paper_regime.json``)."""
+    doc = load(PaperTables, "paper_regime", results)
+    rows = {
+        "3dgs+body": "3dgs+body",
+        "eva": "eva (project)",
+        "eva-official-no-cadc": "eva-official-no-cadc (trained on LPIPS-VGG)",
+        "eva-official": "eva-official (trained on LPIPS-VGG)",
+    }
+    return _lpips_table(doc, rows, seeds_column=True)
+
+
+def service_latency(results: Path) -> list[str]:
+    """The render endpoint's latency and throughput (``service.json``)."""
+    doc = load(ServiceLatency, "service", results)
+    lines = [
+        f"`service.md`, {doc.date[:10]}, {doc.machine.split(',')[0]}: a new pose and camera per request "
+        "(`pose`) or a new camera only (`camera`, the page's view slider), PNG.",
+        "",
+        "| changes | image | clients | p50 ms | p95 ms | requests/s |",
+        "|---|---|---:|---:|---:|---:|",
+    ]
+    for r in doc.rows:
+        lines.append(
+            f"| {r.varies} | {r.size}² | {r.clients} | {r.p50_ms:.0f} | {r.p95_ms:.0f} "
+            f"| {r.throughput_rps:.1f} |"
+        )
+    return lines
+
+
+SECTIONS: dict[str, Callable[[Path], list[str]]] = {
+    "paper_tables": paper_tables,
+    "paper_regime": paper_regime,
+    "service_latency": service_latency,
+}
+
+
+# ----------------------------------------------------------------------------- the docs
+
+
+def doc_paths(root: Path = ROOT) -> list[Path]:
+    return sorted({p for pattern in DOCS for p in root.glob(pattern)})
+
+
+def render(text: str, results: Path, where: str = "") -> str:
+    """``text`` with every ``bench report`` block rewritten from ``results``."""
+
+    def fill(m: re.Match) -> str:
+        name = m["name"]
+        if name not in SECTIONS:
+            raise KeyError(f"{where}: unknown bench report section {name!r} (known: {', '.join(SECTIONS)})")
+        body = "\n".join(SECTIONS[name](results))
+        return f"{m[1]}{body}\n{m[4]}"
+
+    return BLOCK.sub(fill, text)
+
+
+def run(check: bool = False, root: Path = ROOT, results: Path = RESULTS) -> int:
+    """Rewrite (or with ``check`` compare) every doc's blocks; 0 when all were current."""
+    stale = []
+    for path in doc_paths(root):
+        text = path.read_text()
+        if "<!-- bench report:" not in text:
+            continue
+        new = render(text, results, where=str(path.relative_to(root)))
+        if new != text:
+            stale.append(path.relative_to(root))
+            if not check:
+                path.write_text(new)
+    for path in stale:
+        print(f"{path}: {'stale' if check else 'rewritten'} (python -m bench report)")
+    return 1 if (check and stale) else 0

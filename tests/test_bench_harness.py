@@ -1,0 +1,102 @@
+"""The benchmarks' harness (``python -m bench``): one app over every benchmark, one result header
+and writer, and the docs' generated tables current with the committed results."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bench import cli, report
+from bench.machine import SCHEMA_VERSION, command_line, local_path, portable_path, run_header, write_result
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def bench(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "bench", *args], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+
+
+def test_every_benchmark_module_is_a_command_of_the_app():
+    modules = {p.stem for p in (ROOT / "bench").glob("*.py")} - cli.LIBRARIES
+    assert set(cli.benchmarks()) == modules
+    listing = bench("--help")
+    assert listing.returncode == 0, listing.stderr
+    for name in ("align", "novel_pose", "report", "index"):
+        assert name in listing.stdout
+
+
+def test_a_benchmarks_own_options_pass_through():
+    run = bench("stats_not_a_benchmark")
+    assert run.returncode != 0
+    run = bench("eval_compare", "--help")
+    assert run.returncode == 0, run.stderr
+    assert "--before" in run.stdout
+
+
+def test_the_results_index_is_current():
+    run = bench("index", "--check")
+    assert run.returncode == 0, run.stderr or run.stdout
+
+
+def test_the_docs_generated_tables_are_current():
+    run = bench("report", "--check")
+    assert run.returncode == 0, run.stderr or run.stdout
+
+
+def test_the_header_names_the_harness_command():
+    assert (
+        command_line(["/x/bench/__main__.py", "align", "--no-videos"]) == "python -m bench align --no-videos"
+    )
+    assert command_line(["/x/bench/train.py", "--preset", "fast"]) == "python -m bench.train --preset fast"
+    head = run_header()
+    assert head["schema"] == SCHEMA_VERSION
+    assert {"date", "command", "commit", "machine"} <= set(head)
+
+
+def test_the_writer_writes_json_and_markdown_and_refuses_a_list(tmp_path):
+    doc = {**run_header(), "rows": [{"x": Path("a/b")}]}
+    write_result(tmp_path, "r", doc, ["# R", "", "| x |"])
+    assert json.loads((tmp_path / "r.json").read_text())["rows"] == [{"x": "a/b"}]
+    assert (tmp_path / "r.md").read_text() == "# R\n\n| x |\n"
+    with pytest.raises(TypeError):
+        write_result(tmp_path, "bad", [doc], "x")
+
+
+def test_a_report_block_is_rewritten_and_an_unknown_one_refused(tmp_path):
+    results = ROOT / "bench" / "results"
+    text = "before\n<!-- bench report: paper_regime -->\nold table\n<!-- /bench report -->\nafter\n"
+    new = report.render(text, results)
+    assert new.startswith(
+        "before\n<!-- bench report: paper_regime -->\n| | full | hand | face | N-GS | seeds |"
+    )
+    assert new.endswith("<!-- /bench report -->\nafter\n")
+    assert report.render(new, results) == new
+    with pytest.raises(KeyError, match="unknown bench report section"):
+        report.render("<!-- bench report: nope -->\n<!-- /bench report -->\n", results)
+
+
+def test_a_result_of_another_shape_fails_loudly(tmp_path):
+    (tmp_path / "service.json").write_text(json.dumps({"date": "d", "machine": "m", "rows": [{"size": 1}]}))
+    with pytest.raises(ValueError):
+        report.service_latency(tmp_path)
+
+
+def test_result_files_name_paths_the_same_on_every_machine(tmp_path, monkeypatch):
+    data = tmp_path / "elsewhere"
+    monkeypatch.setenv("EVA_DATA_DIR", str(data))
+    assert portable_path(ROOT / "bench" / "results") == "bench/results"
+    assert portable_path(data / "synthetic" / "wild") == "$EVA_DATA_DIR/synthetic/wild"
+    for name in ("bench/results", "$EVA_DATA_DIR/synthetic/wild"):
+        assert portable_path(local_path(name)) == name
+    doc = {**run_header(), "dataset": str(data / "ds"), "runs": [{"avatar": data / "a"}], "url": "/avatars/x"}
+    write_result(tmp_path / "out", "r", doc, "# r")
+    written = json.loads((tmp_path / "out" / "r.json").read_text())
+    assert written["dataset"] == "$EVA_DATA_DIR/ds"
+    assert written["runs"] == [{"avatar": "$EVA_DATA_DIR/a"}]
+    assert written["url"] == "/avatars/x"
