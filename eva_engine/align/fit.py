@@ -23,11 +23,12 @@ Objective over all frames at once (batched body model, shape shared by the clip)
   articulation_prior``: hinges stay hinges, knuckles do not twist, metacarpals barely move).
 - Face: the expression coefficients are fitted through the 16 face points and, where the body
   model has a face-mesh correspondence (``face_mesh``), through all of MediaPipe's face-mesh
-  landmarks, with a small sparsity prior and the model's valid range (``clip.fit_clip`` then
-  smooths it over time). The face mesh's relative depths (``face_z``, MediaPipe's z as the hands'
-  psi_z) turn the head: 2D landmarks leave its pitch and yaw loose. Frames where no face was
-  found keep the pose model's coarse face points (nose, eyes, ears) in the stages that move the
-  head.
+  landmarks, with a small sparsity prior and the model's valid range; the landmarks are compared
+  with what the detector would read of the model's face (``face_calibration``: the projected
+  points plus an offset linear in the expression). The face mesh's relative depths (``face_z``,
+  MediaPipe's z as the hands' psi_z) turn the head: 2D landmarks leave its pitch and yaw loose.
+  Frames where no face was found keep the pose model's coarse face points (nose, eyes, ears) in
+  the stages that move the head.
 - Outline (``align.silhouette``): a two-sided chamfer between the person mask's outline and the
   projected body, in the last, short stage (``outline``), where the targets carry masks.
 

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from eva_engine.align.body_prior import body_articulation_prior
+from eva_engine.align.face_calibration import EYE_CORNERS, load_calibration
 from eva_engine.align.face_mesh import OPENING_PAIRS, load_correspondence
 from eva_engine.align.hands import articulation_prior
 from eva_engine.align.robust import weighted_gm, z_only_gm
@@ -75,6 +76,7 @@ class FitProblem:
         self.body_articulation = None  # built per stage for the current shape (run_stage)
         self.face_mesh = None  # (regressor, landmark indices) of the dense face term
         self.opening_pairs = None  # [2, Q] positions in those landmark indices
+        self.calibration = None  # what the detector reads beyond those points (align.face_calibration)
         dense = config.dense_face and targets.face_mesh is not None
         if dense and any(s.w_face_mesh > 0 or s.w_openings > 0 or s.face_z > 0 for s in config.stages):
             corr = load_correspondence(model)
@@ -83,6 +85,8 @@ class FitProblem:
                 at = {int(k): i for i, k in enumerate(self.face_mesh[1])}
                 pairs = [(at[a], at[b]) for a, b in OPENING_PAIRS if a in at and b in at]
                 self.opening_pairs = torch.tensor(pairs, dtype=torch.long).reshape(-1, 2).T
+                if config.detector_calibration:
+                    self.calibration = load_calibration(model)
         self.silhouette = None  # (regressor of the outline's vertices, SilhouetteTargets, spacing m)
         if targets.person_masks is not None and any(s.w_silhouette > 0 for s in config.stages):
             self.silhouette = _silhouette_problem(model, targets.person_masks, config.silhouette_points)
@@ -136,16 +140,19 @@ class FitProblem:
         if (stage.w_face_mesh > 0 or stage.w_openings > 0 or use_depth) and self.face_mesh is not None:
             reg, landmarks = self.face_mesh
             det = t.face_mesh[:, landmarks]
+            read = 0.0  # [F, L, 2] what the detector reads beyond the model's points, in pixels
+            if self.calibration is not None:
+                read = self.calibration.offsets(params.expression, t.face_mesh[:, EYE_CORNERS], landmarks)
             if stage.w_face_mesh > 0:
                 face_cam = to_camera(self.model.posed_points(params, reg), self.viewmat)
-                res = (project_points(face_cam, self.K) - det[..., :2]) / self.scale[:, None, None]
+                res = (project_points(face_cam, self.K) + read - det[..., :2]) / self.scale[:, None, None]
                 total = total + stage.w_face_mesh * weighted_gm(res, det[..., 2], cfg.sigma_2d)
             if stage.w_openings > 0 and self.opening_pairs.numel() > 0:
                 # The openings move the face, not the head: a gap's length in the image also
                 # changes with the head's pitch (synthetic head rotation error +0.5 degrees).
                 face_only = dataclasses.replace(params.detach(), expression=params.expression)
                 cam = to_camera(self.model.posed_points(face_only, reg), self.viewmat)
-                uv = project_points(cam, self.K)
+                uv = project_points(cam, self.K) + read
                 a, b = self.opening_pairs
                 gap = ((uv[:, a] - uv[:, b]) - (det[:, a, :2] - det[:, b, :2])) / self.scale[:, None, None]
                 w = det[:, a, 2] * det[:, b, 2]

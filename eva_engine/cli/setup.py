@@ -20,9 +20,9 @@ def setup(
     ),
     cache_dir: Path = typer.Option(None, help="Anny cache folder (default: <data dir>/cache/anny)."),
 ) -> None:
-    """Build the Anny body-model cache (once, ~1 min) and its face-mesh correspondence (MediaPipe
-    on rendered faces, ~30 s), build the C++ kernels of the rasterizer and the skinning (~30 s),
-    and check the offline LPIPS weights."""
+    """Build the Anny body-model cache (once, ~1 min), its face-mesh correspondence (MediaPipe on
+    rendered faces, ~30 s) and the face mesh's calibration (~70 s), build the C++ kernels of the
+    rasterizer and the skinning (~30 s), and check the offline LPIPS weights."""
     from eva_engine.body import load_body_model, prepare_anny_cache
     from eva_engine.metrics import LPIPSWeightsError, prepare_lpips
 
@@ -49,6 +49,15 @@ def setup(
         console.print(
             f"[green]ok[/] face-mesh correspondence: {int(corr.valid.sum())} of {len(corr.valid)} landmarks "
             f"({time.perf_counter() - started:.0f} s)"
+        )
+        from eva_engine.align.face_calibration import load_calibration
+
+        started = time.perf_counter()
+        with console.status("face-mesh calibration (MediaPipe on faces with expressions)..."):
+            calibration = load_calibration(model, cache_dir=path)
+        console.print(
+            f"[green]ok[/] face-mesh calibration: {len(calibration.landmarks)} landmarks, "
+            f"{calibration.gain.shape[0]} facial actions ({time.perf_counter() - started:.0f} s)"
         )
     with console.status("C++ kernels (compiled once per machine)..."):
         built = kernels.result()

@@ -1,0 +1,213 @@
+"""What MediaPipe's face mesh reads on a face beyond the correspondence's surface points: a
+calibration of the detector, made by the project on the body model's own rendered faces.
+
+The correspondence (``align.face_mesh``) ties each landmark to one point of the neutral face.
+Under an expression MediaPipe's landmarks do not stay on those points: the lid and inner-lip
+landmarks follow the lids' and lips' edges, which slide over the skin as they open and close,
+and the detector's face prior pulls the rest. So the fit's optimum was not the true expression
+even on the body model's own face (``docs/alignment.md``, "Eye and mouth openings").
+
+:func:`build_calibration` renders the painted face with random facial actions from three views,
+runs the face mesh on each render and regresses what it reads beyond the projected
+correspondence points on the actions (ridge, with a constant): per landmark,
+``offset = bias + expression @ gain``, in the face's own frame in units of the eye-corner
+distance (x from landmark 33 to landmark 263, y that turned a quarter towards the image's down),
+so one calibration serves any face size, position and roll. The fit adds the offset, in pixels,
+to the projected points it compares with the detections (``FitConfig.detector_calibration``):
+the model predicts what the detector would read of its face, and the expression moves until
+that matches. Cached beside the correspondence and keyed by it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from eva_engine import paths
+from eva_engine.align.face_mesh import (
+    NUM_LANDMARKS,
+    FaceMeshCorrespondence,
+    head_camera,
+    load_correspondence,
+)
+from eva_engine.body.model import BodyModel
+from eva_engine.geometry import project_points, to_camera
+from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
+from eva_engine.synth.texture import Look, apply_look
+
+logger = logging.getLogger(__name__)
+
+VERSION = 2
+FILE_NAME = "face_mesh_calibration.json"
+EYE_CORNERS = (33, 263)
+"""The outer eye corners (the subject's right, then left): the face frame's axis and unit."""
+EYE_CONTOURS = frozenset(
+    (7, 33, 133, 144, 145, 153, 154, 155, 157, 158, 159, 160, 161, 163, 173, 246)
+    + (249, 263, 362, 373, 374, 380, 381, 382, 384, 385, 386, 387, 388, 390, 398, 466)
+)
+"""MediaPipe's eye outlines (``FACEMESH_LEFT_EYE`` and ``_RIGHT_EYE``), left uncalibrated: the lid
+landmarks do not answer a blink linearly (the detector holds the lid open until the blink is
+half done, then lets it go: ``docs/alignment.md``, "Where the gesturing clip's blink is lost"),
+and calibrated they cost the eyes on synthetic and real video alike (``docs/alignment.md``)."""
+VIEWS_DEG = ((0.0, 0.0), (-15.0, 5.0), (15.0, -5.0))
+SAMPLES = 150
+RIDGE = 1e-2
+
+
+@dataclass(frozen=True)
+class DetectorCalibration:
+    """Per landmark (MediaPipe index ``landmarks [L]``): ``bias [L, 2]`` and ``gain [E, L, 2]``
+    over the body model's ``E`` facial actions, in eye-corner units of the face frame."""
+
+    landmarks: Tensor
+    bias: Tensor
+    gain: Tensor
+
+    def offsets(self, expression: Tensor, corners: Tensor, landmarks: Tensor) -> Tensor:
+        """[F, K, 2] pixels to add to the projected points of ``landmarks [K]`` (those without a
+        calibration get 0). expression: [F, E]; corners: [F, 2, 3] the detected eye corners
+        (x px, y px, confidence); a frame without both gets 0."""
+        at = {int(k): i for i, k in enumerate(self.landmarks)}
+        rows = torch.tensor([at.get(int(k), -1) for k in landmarks], dtype=torch.long)
+        known = (rows >= 0).to(expression.dtype)[:, None]  # [K, 1]
+        rows = rows.clamp_min(0)
+        bias = self.bias.to(expression)[rows] * known  # [K, 2]
+        gain = self.gain.to(expression)[:, rows] * known  # [E, K, 2]
+        local = bias + torch.einsum("fe,ekd->fkd", expression, gain)  # [F, K, 2]
+        axis = (corners[:, 1, :2] - corners[:, 0, :2]).to(expression)  # [F, 2], length = the unit
+        found = ((corners[:, 0, 2] > 0) & (corners[:, 1, 2] > 0)).to(expression)[:, None]
+        normal = torch.stack([-axis[:, 1], axis[:, 0]], dim=-1)
+        return (local[..., :1] * axis[:, None] + local[..., 1:] * normal[:, None]) * found[:, None]
+
+    def to_json(self) -> dict:
+        return {
+            "version": VERSION,
+            "landmarks": self.landmarks.tolist(),
+            "bias": self.bias.tolist(),
+            "gain": self.gain.tolist(),
+        }
+
+    @classmethod
+    def from_json(cls, d: dict) -> DetectorCalibration:
+        return cls(
+            torch.tensor(d["landmarks"], dtype=torch.int64),
+            torch.tensor(d["bias"], dtype=torch.float32),
+            torch.tensor(d["gain"], dtype=torch.float32),
+        )
+
+
+def random_expressions(names: list[str], samples: int, rng: np.random.Generator) -> np.ndarray:
+    """[samples, E] sparse random expressions: one to four actions each, 0.2-1 (the first
+    sample neutral), and in a third of them both eyes blinking together."""
+    expr = np.zeros((samples, len(names)))
+    blinks = [names.index(n) for n in ("eyeBlinkLeft", "eyeBlinkRight") if n in names]
+    for i in range(1, samples):
+        for j in rng.choice(len(names), size=int(rng.integers(1, 5)), replace=False):
+            expr[i, j] = rng.uniform(0.2, 1.0)
+        if blinks and rng.random() < 0.3:
+            expr[i, blinks] = rng.uniform(0.3, 1.0)
+    return expr
+
+
+def build_calibration(
+    model: BodyModel,
+    corr: FaceMeshCorrespondence,
+    samples: int = SAMPLES,
+    views: tuple[tuple[float, float], ...] = VIEWS_DEG,
+    seed: int = 0,
+) -> DetectorCalibration:
+    """The calibration of MediaPipe on ``model``'s painted face (module docstring). Needs the mesh
+    renderer (EGL) and MediaPipe; about a minute on two cores."""
+    from mediapipe.python.solutions import face_mesh as mp_face_mesh
+
+    reg, landmarks = corr.regressor(model)
+    lm = landmarks.numpy()
+    names = list(model.expression_names)
+    expressions = random_expressions(names, samples, np.random.default_rng(seed))
+    look = Look.random(np.random.default_rng([0, 1]))  # the correspondence's painted face
+    config = MeshRenderConfig(width=512, height=512, supersample=2)
+    cameras = [head_camera(model, yaw, pitch, 512) for yaw, pitch in views]
+    features, targets = [], []
+    with (
+        MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer,
+        mp_face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=True) as detector,
+    ):
+        apply_look(renderer, model, model.default_params(1), look, 2048)
+        for expression in expressions:
+            params = model.default_params(1)
+            params.expression[0] = torch.from_numpy(expression).to(params.expression)
+            with torch.no_grad():
+                vertices = model(params).vertices[0]
+                points = model.posed_points(params, reg)[0].double()
+            for K, view in cameras:
+                rgb = (renderer.render(vertices, view, K).rgb.numpy() * 255 + 0.5).astype(np.uint8)
+                found = detector.process(np.ascontiguousarray(rgb)).multi_face_landmarks
+                if not found or len(found[0].landmark) != NUM_LANDMARKS:
+                    continue
+                detected = np.array([(p.x * 512, p.y * 512) for p in found[0].landmark])
+                uv = project_points(to_camera(points[None], view[None].double()), K[None].double())[0]
+                features.append(expression)
+                targets.append(in_face_frame(detected[lm] - uv.numpy(), detected))
+    if len(features) < 2 * len(names):
+        raise RuntimeError(f"the face mesh found only {len(features)} of the calibration's renders")
+    x = np.concatenate([np.ones((len(features), 1)), np.array(features)], axis=1)  # [S, 1 + E]
+    y = np.array(targets).reshape(len(features), -1)  # [S, L * 2]
+    w = np.linalg.solve(x.T @ x + RIDGE * np.eye(x.shape[1]), x.T @ y)  # [1 + E, L * 2]
+    fit = np.sqrt(((y - x @ w) ** 2).mean())
+    logger.info(
+        "face-mesh calibration: %d renders, residual %.4f -> %.4f eye-corner units",
+        len(features),
+        np.sqrt((y**2).mean()),
+        fit,
+    )
+    w = torch.from_numpy(w).float().reshape(1 + len(names), len(lm), 2)
+    kept = torch.tensor([int(k) not in EYE_CONTOURS for k in lm], dtype=torch.float32)[None, :, None]
+    w = w * kept
+    return DetectorCalibration(landmarks, w[0], w[1:])
+
+
+def in_face_frame(offsets: np.ndarray, detected: np.ndarray) -> np.ndarray:
+    """[K, 2] pixel ``offsets`` in eye-corner units of the frame of ``detected [478, 2]``."""
+    right, left = detected[EYE_CORNERS[0]], detected[EYE_CORNERS[1]]
+    axis = left - right
+    scale = float(np.linalg.norm(axis))
+    ex = axis / scale
+    ey = np.array([-ex[1], ex[0]])
+    return np.stack([offsets @ ex, offsets @ ey], axis=-1) / scale
+
+
+def _cache_key(corr: FaceMeshCorrespondence) -> str:
+    h = hashlib.sha256(json.dumps(corr.to_json()).encode())
+    h.update(f"{VERSION}/{SAMPLES}/{VIEWS_DEG}/{RIDGE}/{sorted(EYE_CONTOURS)}".encode())
+    return h.hexdigest()[:16]
+
+
+def load_calibration(model: BodyModel, cache_dir: Path | None = None) -> DetectorCalibration | None:
+    """The cached calibration of ``model``'s face-mesh correspondence (built on first use), or
+    None where there is no correspondence."""
+    corr = load_correspondence(model, cache_dir=cache_dir)
+    if corr is None:
+        return None
+    own = getattr(getattr(model, "config", None), "cache_dir", None)
+    path = Path(cache_dir or own or paths.cache_dir("anny")) / FILE_NAME
+    key = _cache_key(corr)
+    if path.is_file():
+        try:
+            doc = json.loads(path.read_text())
+            if doc.get("key") == key:
+                return DetectorCalibration.from_json(doc)
+        except (OSError, ValueError, KeyError) as err:
+            logger.warning("unreadable face-mesh calibration %s (%s); rebuilding it", path, err)
+    calibration = build_calibration(model, corr)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".partial")
+    tmp.write_text(json.dumps({"key": key, **calibration.to_json()}))
+    tmp.replace(path)
+    return calibration
