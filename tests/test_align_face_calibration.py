@@ -27,32 +27,34 @@ def _corners(right, left, conf=(1.0, 1.0)) -> torch.Tensor:
 def test_offsets_scale_with_the_eye_corner_distance_and_turn_with_the_face():
     cal = _calibration()
     expression = torch.tensor([[0.5, 0.0, 0.0]])
-    upright = cal.offsets(expression, _corners((100.0, 100.0), (200.0, 100.0)), torch.tensor([13, 14]))
+    upright = cal.offsets(expression, _corners((100.0, 100.0), (200.0, 100.0)))
     # 0.1 of a 100 px eye line along it; 0.5 * 0.2 - 0.05 = 0.05 of it towards the chin (image down).
     assert torch.allclose(upright, torch.tensor([[[10.0, 0.0], [0.0, 5.0]]]), atol=1e-5)
-    half = cal.offsets(expression, _corners((100.0, 100.0), (150.0, 100.0)), torch.tensor([13, 14]))
+    half = cal.offsets(expression, _corners((100.0, 100.0), (150.0, 100.0)))
     assert torch.allclose(half, upright / 2, atol=1e-5)
     # The head rolled a quarter turn (the eye line points down the image): the offsets turn with it.
-    rolled = cal.offsets(expression, _corners((100.0, 100.0), (100.0, 200.0)), torch.tensor([13, 14]))
+    rolled = cal.offsets(expression, _corners((100.0, 100.0), (100.0, 200.0)))
     assert torch.allclose(rolled, torch.tensor([[[0.0, 10.0], [-5.0, 0.0]]]), atol=1e-5)
 
 
 def test_no_offset_without_both_eye_corners_or_for_an_uncalibrated_landmark():
     cal = _calibration()
     expression = torch.ones(1, E)
-    missing = cal.offsets(
-        expression, _corners((100.0, 100.0), (200.0, 100.0), conf=(1.0, 0.0)), torch.tensor([13])
-    )
-    assert torch.equal(missing, torch.zeros(1, 1, 2))
-    other = cal.offsets(expression, _corners((100.0, 100.0), (200.0, 100.0)), torch.tensor([13, 7]))
-    assert torch.equal(other[0, 1], torch.zeros(2)) and bool(other[0, 0].abs().sum() > 0)
+    missing = cal.offsets(expression, _corners((100.0, 100.0), (200.0, 100.0), conf=(1.0, 0.0)))
+    assert torch.equal(missing, torch.zeros(1, 2, 2))
+    other = cal.aligned(torch.tensor([14, 7, 13]))  # the points' order; 7 has no calibration
+    assert torch.equal(other.landmarks, torch.tensor([14, 7, 13]))
+    read = other.offsets(expression, _corners((100.0, 100.0), (200.0, 100.0)))
+    full = cal.offsets(expression, _corners((100.0, 100.0), (200.0, 100.0)))
+    assert torch.equal(read[0, 1], torch.zeros(2))
+    assert torch.equal(read[0, 0], full[0, 1]) and torch.equal(read[0, 2], full[0, 0])
 
 
 def test_offsets_are_finite_and_differentiable_in_the_expression_even_with_corners_on_one_pixel():
     cal = _calibration()
     expression = torch.full((2, E), 0.3, requires_grad=True)
     corners = torch.cat([_corners((100.0, 100.0), (200.0, 100.0)), _corners((50.0, 50.0), (50.0, 50.0))])
-    out = cal.offsets(expression, corners, torch.tensor([13, 14]))
+    out = cal.offsets(expression, corners)
     out.sum().backward()
     assert torch.isfinite(out).all() and torch.isfinite(expression.grad).all()
     assert torch.equal(out[1], torch.zeros(2, 2))  # a zero-length eye line reads as no offset
@@ -70,7 +72,7 @@ def test_the_face_frame_is_the_inverse_of_the_offsets():
     local = in_face_frame(pixels, detected)
     cal = DetectorCalibration(torch.tensor([13, 14]), torch.from_numpy(local).float(), torch.zeros(E, 2, 2))
     corners = torch.from_numpy(np.stack([np.append(detected[33], 1.0), np.append(detected[263], 1.0)]))[None]
-    back = cal.offsets(torch.zeros(1, E), corners.float(), torch.tensor([13, 14]))[0]
+    back = cal.offsets(torch.zeros(1, E), corners.float())[0]
     assert np.allclose(back.numpy(), pixels, atol=1e-4)
 
 

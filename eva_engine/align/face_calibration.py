@@ -70,17 +70,22 @@ class DetectorCalibration:
     bias: Tensor
     gain: Tensor
 
-    def offsets(self, expression: Tensor, corners: Tensor, landmarks: Tensor) -> Tensor:
-        """[F, K, 2] pixels to add to the projected points of ``landmarks [K]`` (those without a
-        calibration get 0). expression: [F, E]; corners: [F, 2, 3] the detected eye corners
-        (x px, y px, confidence); a frame without both gets 0."""
+    def aligned(self, landmarks: Tensor) -> DetectorCalibration:
+        """The calibration of ``landmarks [K]`` in that order (zero for those it does not have)."""
         at = {int(k): i for i, k in enumerate(self.landmarks)}
         rows = torch.tensor([at.get(int(k), -1) for k in landmarks], dtype=torch.long)
-        known = (rows >= 0).to(expression.dtype)[:, None]  # [K, 1]
+        known = (rows >= 0).to(self.bias.dtype)[:, None]  # [K, 1]
         rows = rows.clamp_min(0)
-        bias = self.bias.to(expression)[rows] * known  # [K, 2]
-        gain = self.gain.to(expression)[:, rows] * known  # [E, K, 2]
-        local = bias + torch.einsum("fe,ekd->fkd", expression, gain)  # [F, K, 2]
+        return DetectorCalibration(
+            landmarks.clone(), self.bias[rows] * known, self.gain[:, rows] * known[None]
+        )
+
+    def offsets(self, expression: Tensor, corners: Tensor) -> Tensor:
+        """[F, L, 2] pixels to add to the projected points of ``landmarks`` (``aligned`` to the
+        points' order first). expression: [F, E]; corners: [F, 2, 3] the detected eye corners
+        (x px, y px, confidence); a frame without both gets 0."""
+        bias, gain = self.bias.to(expression), self.gain.to(expression)
+        local = bias + torch.einsum("fe,eld->fld", expression, gain)  # [F, L, 2]
         axis = (corners[:, 1, :2] - corners[:, 0, :2]).to(expression)  # [F, 2], length = the unit
         found = ((corners[:, 0, 2] > 0) & (corners[:, 1, 2] > 0)).to(expression)[:, None]
         normal = torch.stack([-axis[:, 1], axis[:, 0]], dim=-1)
@@ -191,7 +196,7 @@ def _cache_key(corr: FaceMeshCorrespondence) -> str:
 
 def load_calibration(model: BodyModel, cache_dir: Path | None = None) -> DetectorCalibration | None:
     """The cached calibration of ``model``'s face-mesh correspondence (built on first use), or
-    None where there is no correspondence."""
+    None where there is no correspondence or it cannot be built."""
     corr = load_correspondence(model, cache_dir=cache_dir)
     if corr is None:
         return None
@@ -205,7 +210,11 @@ def load_calibration(model: BodyModel, cache_dir: Path | None = None) -> Detecto
                 return DetectorCalibration.from_json(doc)
         except (OSError, ValueError, KeyError) as err:
             logger.warning("unreadable face-mesh calibration %s (%s); rebuilding it", path, err)
-    calibration = build_calibration(model, corr)
+    try:
+        calibration = build_calibration(model, corr)
+    except (ImportError, RuntimeError) as err:  # no renderer or MediaPipe, or it found no faces
+        logger.warning("no face-mesh calibration (%s): the fit compares the correspondence's points", err)
+        return None
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".partial")
     tmp.write_text(json.dumps({"key": key, **calibration.to_json()}))

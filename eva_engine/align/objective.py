@@ -76,7 +76,7 @@ class FitProblem:
         self.body_articulation = None  # built per stage for the current shape (run_stage)
         self.face_mesh = None  # (regressor, landmark indices) of the dense face term
         self.opening_pairs = None  # [2, Q] positions in those landmark indices
-        self.calibration = None  # what the detector reads beyond those points (align.face_calibration)
+        self.calibration = None  # what the detector reads beyond those points, in their order
         dense = config.dense_face and targets.face_mesh is not None
         if dense and any(s.w_face_mesh > 0 or s.w_openings > 0 or s.face_z > 0 for s in config.stages):
             corr = load_correspondence(model)
@@ -85,8 +85,9 @@ class FitProblem:
                 at = {int(k): i for i, k in enumerate(self.face_mesh[1])}
                 pairs = [(at[a], at[b]) for a, b in OPENING_PAIRS if a in at and b in at]
                 self.opening_pairs = torch.tensor(pairs, dtype=torch.long).reshape(-1, 2).T
-                if config.detector_calibration:
-                    self.calibration = load_calibration(model)
+                calibration = load_calibration(model) if config.detector_calibration else None
+                if calibration is not None:
+                    self.calibration = calibration.aligned(self.face_mesh[1])
         self.silhouette = None  # (regressor of the outline's vertices, SilhouetteTargets, spacing m)
         if targets.person_masks is not None and any(s.w_silhouette > 0 for s in config.stages):
             self.silhouette = _silhouette_problem(model, targets.person_masks, config.silhouette_points)
@@ -142,7 +143,7 @@ class FitProblem:
             det = t.face_mesh[:, landmarks]
             read = 0.0  # [F, L, 2] what the detector reads beyond the model's points, in pixels
             if self.calibration is not None:
-                read = self.calibration.offsets(params.expression, t.face_mesh[:, EYE_CORNERS], landmarks)
+                read = self.calibration.offsets(params.expression, t.face_mesh[:, EYE_CORNERS])
             if stage.w_face_mesh > 0:
                 face_cam = to_camera(self.model.posed_points(params, reg), self.viewmat)
                 res = (project_points(face_cam, self.K) + read - det[..., :2]) / self.scale[:, None, None]
