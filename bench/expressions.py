@@ -59,14 +59,13 @@ def to_uint8(img: torch.Tensor) -> np.ndarray:
     return (img.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
 
 
-def refit(model, ds):
-    """The clip fitted again by this checkout's ``fit_clip`` from the detections the dataset stored
-    (its keypoints, hand and face-mesh depths, world pose, person masks): ``BodyParams`` [F]."""
+def stored_targets(ds):
+    """The ``FitTargets`` of the detections a dataset stored (its keypoints, hand and face-mesh
+    depths, world pose, person masks)."""
     from eva_engine.align import FitTargets
-    from eva_engine.align.clip import fit_clip
 
     x = ds.keypoint_extras
-    targets = FitTargets(
+    return FitTargets(
         ds.keypoints,
         ds.K,
         ds.viewmat,
@@ -76,7 +75,14 @@ def refit(model, ds):
         person_masks=ds.masks(),
         face_depth=x.get("face_depth"),
     )
-    return fit_clip(model, targets, ds.timestamps).params
+
+
+def refit(model, ds):
+    """The clip fitted again by this checkout's ``fit_clip`` from the detections the dataset stored
+    (``stored_targets``): ``BodyParams`` [F]."""
+    from eva_engine.align.clip import fit_clip
+
+    return fit_clip(model, stored_targets(ds), ds.timestamps).params
 
 
 def run_case(

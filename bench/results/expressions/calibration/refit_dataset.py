@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from eva_engine.align import FitTargets
+from bench.expressions import stored_targets
 from eva_engine.align.clip import fit_clip
 from eva_engine.align.stages import FitConfig
 from eva_engine.body import load_body_model
@@ -22,17 +22,7 @@ torch.set_num_threads(1)
 src, dst = Path(sys.argv[1]), Path(sys.argv[2])
 model = load_body_model("anny")
 ds = load_dataset(src)
-x = ds.keypoint_extras
-targets = FitTargets(
-    ds.keypoints,
-    ds.K,
-    ds.viewmat,
-    hand_depth=x.get("hand_depth"),
-    pose_world=x.get("pose_world"),
-    face_mesh=x.get("face_mesh"),
-    person_masks=ds.masks(),
-    face_depth=x.get("face_depth"),
-)
+targets = stored_targets(ds)
 cfg = FitConfig(detector_calibration=os.environ.get("CALIB", "1") == "1")
 over = {"w_openings": float(os.environ["W_OPEN"])} if "W_OPEN" in os.environ else {}
 st = tuple(
