@@ -165,10 +165,63 @@ def service_latency(results: Path) -> list[str]:
     return lines
 
 
+class AlignFit(_Loose):
+    """One estimate of ``bench.align``'s synthetic section."""
+
+    mpjpe_mm: dict[str, float]
+    expression_mm: float
+    expression_mm_by_group: dict[str, float]
+    head_deg: float
+
+
+class Agreement(_Loose):
+    r: float
+    range_ratio: float
+
+
+class AlignSynthetic(_Loose):
+    fitted: AlignFit
+    openings: dict[str, dict[str, Agreement]]
+
+
+class AlignResult(_Loose):
+    """``bench.align``'s result (the synthetic section)."""
+
+    synthetic: AlignSynthetic
+
+
+def calibration_wild(results: Path) -> list[str]:
+    """The face mesh's calibration on synthetic ``wild``: the fit before, with the calibration at
+    the face stage's old and new iterations, and this tree (``expressions/calibration/``)."""
+    rows = {
+        "align_before": "before (face stage 40, no calibration)",
+        "align_calibration_face40": "calibration, face stage 40 (`align_calibration_face40.md`)",
+        "align_all_landmarks": "calibration of every landmark, 200 (`align_all_landmarks.md`)",
+        "align": "**this tree**: eye outlines uncalibrated, 200",
+    }
+    lines = [
+        "| fit | expression, mm | jaw / lips / lids / brows, mm | fitted mouth: r, range "
+        "| fitted eyes: r, range | body in view / hands, mm; head, ° |",
+        "|---|---:|---|---|---|---|",
+    ]
+    for name, label in rows.items():
+        doc = load(AlignResult, f"expressions/calibration/{name}", results).synthetic
+        fit, o = doc.fitted, doc.openings["fitted"]
+        groups = " / ".join(f"{fit.expression_mm_by_group[g]:.2f}" for g in ("jaw", "lips", "lids", "brows"))
+        mouth, eyes = o["mouth"], o["eyes"]
+        lines.append(
+            f"| {label} | {fit.expression_mm:.2f} | {groups} | {mouth.r:.2f}, {mouth.range_ratio:.2f} "
+            f"| {eyes.r:.2f}, {eyes.range_ratio:.2f} | {fit.mpjpe_mm['body_in_view']:.1f} / "
+            f"{fit.mpjpe_mm['hands']:.1f}; {fit.head_deg:.1f} |"
+        )
+    return lines
+
+
 SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "paper_tables": paper_tables,
     "paper_regime": paper_regime,
     "service_latency": service_latency,
+    "calibration_wild": calibration_wild,
 }
 
 
