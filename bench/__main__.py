@@ -1,3 +1,3 @@
-from bench.cli import app
+from bench.cli import HARNESS, app
 
-app(prog_name="python -m bench")
+app(prog_name=HARNESS)

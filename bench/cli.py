@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import ast
 import importlib
+import sys
 from pathlib import Path
 
 import typer
 
 BENCH = Path(__file__).resolve().parent
+HARNESS = "python -m bench"
 # Modules that are libraries of the benchmarks, not benchmarks.
 LIBRARIES = frozenset(
     {"__init__", "__main__", "cli", "machine", "report", "results_index", "stats", "timing"}
@@ -39,6 +41,9 @@ def benchmarks() -> dict[str, str]:
 
 def _forward(module: str):
     def run(ctx: typer.Context) -> None:
+        # The benchmark's parser names itself after argv[0] ("python -m bench <name>" in its usage
+        # line) and the result header reads the command from argv (``machine.command_line``).
+        sys.argv = [f"{HARNESS} {module}", *ctx.args]
         importlib.import_module(f"bench.{module}").main(list(ctx.args))
 
     return run

@@ -105,6 +105,8 @@ def command_line(argv: list[str] | None = None) -> str:
     """The command as typed from the repository: ``python -m bench <name> ...`` through the
     harness, ``python -m bench.<name> ...`` for a module run alone (``argv``: ``sys.argv``)."""
     argv = sys.argv if argv is None else argv
+    if argv[0].startswith("python -m bench "):  # set by the harness (``bench.cli``)
+        return shlex.join(["python", "-m", "bench", *argv[0].split()[3:], *argv[1:]])
     script = Path(argv[0])
     if script.name == "__main__.py" and script.parent.name == "bench":
         return shlex.join(["python", "-m", "bench", *argv[1:]])

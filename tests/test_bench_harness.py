@@ -36,7 +36,7 @@ def test_a_benchmarks_own_options_pass_through():
     assert run.returncode != 0
     run = bench("eval_compare", "--help")
     assert run.returncode == 0, run.stderr
-    assert "--before" in run.stdout
+    assert "--before" in run.stdout and run.stdout.startswith("usage: python -m bench eval_compare")
 
 
 def test_the_results_index_is_current():
@@ -54,6 +54,8 @@ def test_the_header_names_the_harness_command():
         command_line(["/x/bench/__main__.py", "align", "--no-videos"]) == "python -m bench align --no-videos"
     )
     assert command_line(["/x/bench/train.py", "--preset", "fast"]) == "python -m bench.train --preset fast"
+    forwarded = command_line(["python -m bench align", "--no-videos", "--out", "a b"])
+    assert forwarded == "python -m bench align --no-videos --out 'a b'"
     head = run_header()
     assert head["schema"] == SCHEMA_VERSION
     assert {"date", "command", "commit", "machine"} <= set(head)
