@@ -88,8 +88,9 @@ def test_the_calibration_of_anny_reads_the_jaw_in_the_inner_lips_and_leaves_the_
     """Built by ``eva setup`` (else here, once, about a minute): the inner lips' readings answer the
     jaw, beyond the surface points' own motion; the eye outlines are left uncalibrated."""
     from eva_engine.align.face_calibration import EYE_CONTOURS, load_calibration
+    from eva_engine.align.face_mesh import load_correspondence
 
-    cal = load_calibration(anny_model)
+    cal = load_calibration(anny_model, load_correspondence(anny_model))
     assert cal is not None
     rows = {int(k): i for i, k in enumerate(cal.landmarks)}
     jaw = list(anny_model.expression_names).index("jawOpen")

@@ -30,17 +30,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eva_engine import paths
 from eva_engine.align.face_mesh import (
-    NUM_LANDMARKS,
     FaceMeshCorrespondence,
+    cache_folder,
+    cached_json,
+    face_mesh_pixels,
     head_camera,
-    load_correspondence,
+    painted_face_renderer,
 )
 from eva_engine.body.model import BodyModel
 from eva_engine.geometry import project_points, to_camera
-from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
-from eva_engine.synth.texture import Look, apply_look
 
 logger = logging.getLogger(__name__)
 
@@ -136,15 +135,12 @@ def build_calibration(
     lm = landmarks.numpy()
     names = list(model.expression_names)
     expressions = random_expressions(names, samples, np.random.default_rng(seed))
-    look = Look.random(np.random.default_rng([0, 1]))  # the correspondence's painted face
-    config = MeshRenderConfig(width=512, height=512, supersample=2)
     cameras = [head_camera(model, yaw, pitch, 512) for yaw, pitch in views]
     features, targets = [], []
     with (
-        MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer,
+        painted_face_renderer(model, 512) as renderer,
         mp_face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=True) as detector,
     ):
-        apply_look(renderer, model, model.default_params(1), look, 2048)
         for expression in expressions:
             params = model.default_params(1)
             params.expression[0] = torch.from_numpy(expression).to(params.expression)
@@ -153,10 +149,9 @@ def build_calibration(
                 points = model.posed_points(params, reg)[0].double()
             for K, view in cameras:
                 rgb = (renderer.render(vertices, view, K).rgb.numpy() * 255 + 0.5).astype(np.uint8)
-                found = detector.process(np.ascontiguousarray(rgb)).multi_face_landmarks
-                if not found or len(found[0].landmark) != NUM_LANDMARKS:
+                detected = face_mesh_pixels(detector, rgb)
+                if detected is None:
                     continue
-                detected = np.array([(p.x * 512, p.y * 512) for p in found[0].landmark])
                 uv = project_points(to_camera(points[None], view[None].double()), K[None].double())[0]
                 features.append(expression)
                 targets.append(in_face_frame(detected[lm] - uv.numpy(), detected))
@@ -194,29 +189,17 @@ def _cache_key(corr: FaceMeshCorrespondence) -> str:
     return h.hexdigest()[:16]
 
 
-def load_calibration(model: BodyModel, cache_dir: Path | None = None) -> DetectorCalibration | None:
-    """The cached calibration of ``model``'s face-mesh correspondence (built on first use), or
-    None where there is no correspondence or it cannot be built."""
-    corr = load_correspondence(model, cache_dir=cache_dir)
-    if corr is None:
-        return None
-    own = getattr(getattr(model, "config", None), "cache_dir", None)
-    path = Path(cache_dir or own or paths.cache_dir("anny")) / FILE_NAME
-    key = _cache_key(corr)
-    if path.is_file():
-        try:
-            doc = json.loads(path.read_text())
-            if doc.get("key") == key:
-                return DetectorCalibration.from_json(doc)
-        except (OSError, ValueError, KeyError) as err:
-            logger.warning("unreadable face-mesh calibration %s (%s); rebuilding it", path, err)
-    try:
-        calibration = build_calibration(model, corr)
-    except (ImportError, RuntimeError) as err:  # no renderer or MediaPipe, or it found no faces
-        logger.warning("no face-mesh calibration (%s): the fit compares the correspondence's points", err)
-        return None
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".partial")
-    tmp.write_text(json.dumps({"key": key, **calibration.to_json()}))
-    tmp.replace(path)
-    return calibration
+def load_calibration(
+    model: BodyModel, corr: FaceMeshCorrespondence, cache_dir: Path | None = None
+) -> DetectorCalibration | None:
+    """The cached calibration of ``model``'s face-mesh correspondence ``corr`` (built on first
+    use), or None where it cannot be built (no renderer or MediaPipe, or no face found): the fit
+    then compares the correspondence's points alone."""
+    return cached_json(
+        cache_folder(model, cache_dir) / FILE_NAME,
+        _cache_key(corr),
+        "face-mesh calibration",
+        lambda: build_calibration(model, corr),
+        DetectorCalibration.from_json,
+        missing=(ImportError, RuntimeError),  # no renderer or MediaPipe, or no face found
+    )

@@ -32,8 +32,11 @@ import hashlib
 import json
 import logging
 import math
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -48,6 +51,7 @@ from eva_engine.render.mesh import MeshRenderConfig, MeshRenderer
 from eva_engine.synth.texture import Look, apply_look
 
 logger = logging.getLogger(__name__)
+T = TypeVar("T")
 
 NUM_LANDMARKS = 478
 IRIS_START = 468  # the refined iris points: gaze, which the painted eyes do not pin down
@@ -143,6 +147,16 @@ def head_camera(model: BodyModel, yaw_deg: float, pitch_deg: float, size: int) -
     return intrinsics(size, size, 28.0), look_at(eye.tolist(), centre.tolist())
 
 
+@contextmanager
+def painted_face_renderer(model: BodyModel, size: int = 512) -> Iterator[MeshRenderer]:
+    """A ``size``-pixel square mesh renderer of ``model`` wearing the synthetic benchmark's painted
+    face (one fixed look: every render the correspondence and its calibration are made from)."""
+    config = MeshRenderConfig(width=size, height=size, supersample=2)
+    with MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer:
+        apply_look(renderer, model, model.default_params(1), Look.random(np.random.default_rng([0, 1])), 2048)
+        yield renderer
+
+
 def render_face(
     model: BodyModel,
     views: tuple[tuple[float, float], ...],
@@ -156,11 +170,8 @@ def render_face(
     with torch.no_grad():
         rest = model(model.default_params(1)).vertices[0]
         vertices = model(params).vertices[0] if expression else rest
-    look = Look.random(np.random.default_rng([0, 1]))
-    config = MeshRenderConfig(width=size, height=size, supersample=2)
     out = []
-    with MeshRenderer(model.faces, config, num_vertices=model.num_vertices) as renderer:
-        apply_look(renderer, model, params, look, 2048)
+    with painted_face_renderer(model, size) as renderer:
         for yaw, pitch in views:
             K, view = head_camera(model, yaw, pitch, size)
             r = renderer.render(vertices, view, K)
@@ -222,7 +233,13 @@ def detect_face_mesh(rgb: np.ndarray) -> np.ndarray | None:
     from mediapipe.python.solutions import face_mesh
 
     with face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=True) as fm:
-        result = fm.process(np.ascontiguousarray(rgb))
+        return face_mesh_pixels(fm, rgb)
+
+
+def face_mesh_pixels(detector, rgb: np.ndarray) -> np.ndarray | None:
+    """An open MediaPipe ``FaceMesh`` (static images, refined irises) on one RGB uint8 image:
+    [478, 2] pixel coordinates, or None."""
+    result = detector.process(np.ascontiguousarray(rgb))
     if not result.multi_face_landmarks:
         return None
     h, w = rgb.shape[:2]
@@ -316,29 +333,48 @@ def _cache_key(model: BodyModel) -> str:
     return h.hexdigest()[:16]
 
 
-def load_correspondence(model: BodyModel, cache_dir: Path | None = None) -> FaceMeshCorrespondence | None:
-    """The cached correspondence of ``model`` (built and cached on first use), or None where it
-    cannot be made (a model without the painted-face renderer, i.e. not Anny; no MediaPipe)."""
-    if model.name != "anny":
-        return None
+def cache_folder(model: BodyModel, cache_dir: Path | None = None) -> Path:
+    """Where ``model``'s own derived files live: ``cache_dir``, else its cache's folder."""
     own = getattr(getattr(model, "config", None), "cache_dir", None)  # where this model's cache is
-    folder = Path(cache_dir or own or paths.cache_dir("anny"))
-    path = folder / FILE_NAME
-    key = _cache_key(model)
+    return Path(cache_dir or own or paths.cache_dir("anny"))
+
+
+def cached_json(
+    path: Path, key: str, what: str, build: Callable[[], T], parse: Callable[[dict], T], missing: tuple = ()
+) -> T | None:
+    """The object that ``parse`` reads from ``path`` if it was written there for ``key``, else
+    ``build()``'s, written there (``to_json``, atomically) for the next time; None, with a
+    warning, if building raised one of ``missing``. An unreadable file is built again."""
     if path.is_file():
         try:
             doc = json.loads(path.read_text())
             if doc.get("key") == key:
-                return FaceMeshCorrespondence.from_json(doc)
+                return parse(doc)
         except (OSError, ValueError, KeyError) as err:
-            logger.warning("unreadable face-mesh correspondence %s (%s); rebuilding it", path, err)
+            logger.warning("unreadable %s %s (%s); rebuilding it", what, path, err)
     try:
-        corr = build_correspondence(model)
-    except ImportError as err:  # pragma: no cover - install problem
-        logger.warning("no face-mesh correspondence (%s): dense face fitting is off", err)
+        built = build()
+    except missing as err:
+        logger.warning("no %s (%s)", what, err)
         return None
-    folder.mkdir(parents=True, exist_ok=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".partial")
-    tmp.write_text(json.dumps({"key": key, **corr.to_json()}))
+    tmp.write_text(json.dumps({"key": key, **built.to_json()}))
     tmp.replace(path)
-    return corr
+    return built
+
+
+def load_correspondence(model: BodyModel, cache_dir: Path | None = None) -> FaceMeshCorrespondence | None:
+    """The cached correspondence of ``model`` (built and cached on first use), or None where it
+    cannot be made (a model without the painted-face renderer, i.e. not Anny; no MediaPipe: dense
+    face fitting is then off)."""
+    if model.name != "anny":
+        return None
+    return cached_json(
+        cache_folder(model, cache_dir) / FILE_NAME,
+        _cache_key(model),
+        "face-mesh correspondence",
+        lambda: build_correspondence(model),
+        FaceMeshCorrespondence.from_json,
+        missing=(ImportError,),
+    )

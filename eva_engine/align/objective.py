@@ -85,7 +85,7 @@ class FitProblem:
                 at = {int(k): i for i, k in enumerate(self.face_mesh[1])}
                 pairs = [(at[a], at[b]) for a, b in OPENING_PAIRS if a in at and b in at]
                 self.opening_pairs = torch.tensor(pairs, dtype=torch.long).reshape(-1, 2).T
-                calibration = load_calibration(model) if config.detector_calibration else None
+                calibration = load_calibration(model, corr) if config.detector_calibration else None
                 if calibration is not None:
                     self.calibration = calibration.aligned(self.face_mesh[1])
         self.silhouette = None  # (regressor of the outline's vertices, SilhouetteTargets, spacing m)

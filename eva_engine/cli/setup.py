@@ -54,11 +54,16 @@ def setup(
 
         started = time.perf_counter()
         with console.status("face-mesh calibration (MediaPipe on faces with expressions)..."):
-            calibration = load_calibration(model, cache_dir=path)
-        console.print(
-            f"[green]ok[/] face-mesh calibration: {len(calibration.landmarks)} landmarks, "
-            f"{calibration.gain.shape[0]} facial actions ({time.perf_counter() - started:.0f} s)"
-        )
+            calibration = load_calibration(model, corr, cache_dir=path)
+        if calibration is None:
+            console.print(
+                "[yellow]warning[/] no face-mesh calibration: the fit compares the correspondence alone"
+            )
+        else:
+            console.print(
+                f"[green]ok[/] face-mesh calibration: {len(calibration.landmarks)} landmarks, "
+                f"{calibration.gain.shape[0]} facial actions ({time.perf_counter() - started:.0f} s)"
+            )
     with console.status("C++ kernels (compiled once per machine)..."):
         built = kernels.result()
     for library, ops, seconds in built:
