@@ -8,7 +8,7 @@ import torch
 
 from eva_engine.body import KEYPOINT_NAMES, PART_NAMES, AnnyCacheError, ensure_anny_cache, load_body_model
 from eva_engine.body.anny_backend import ANNY_TO_WORLD, SEGMENT_LABELS
-from eva_engine.body.anny_cache import cache_is_valid, default_cache_dir, expected_cache_file
+from eva_engine.body.anny_cache import _stale_entries, cache_is_valid, default_cache_dir, expected_cache_file
 
 
 def kp_index(name: str) -> int:
@@ -125,6 +125,23 @@ def test_cache_is_the_compact_file_only():
     assert path.parent.parent == default_cache_dir()
     assert cache_is_valid(), "run `eva setup` to build the Anny cache"
     assert path.stat().st_size < 120e6
+
+
+def test_cleaning_the_cache_keeps_the_files_derived_beside_it(tmp_path):
+    """`eva setup` removes anny's other data versions and intermediates, not the face-mesh
+    correspondence and calibration that live beside the cache (it used to delete both, and every
+    `eva setup` rebuilt them)."""
+    keep = tmp_path / "v14" / "build_compact_model_data_abc.safetensors"
+    keep.parent.mkdir()
+    keep.write_bytes(b"x")
+    (tmp_path / "v14" / "load_data_abc.safetensors").write_bytes(b"x")
+    (tmp_path / "v13").mkdir()
+    (tmp_path / "build_model_data_old.safetensors").write_bytes(b"x")
+    for name in ("face_mesh_correspondence.json", "face_mesh_calibration.json"):
+        (tmp_path / name).write_text("{}")
+    (tmp_path / ".build-123").mkdir()
+    stale = sorted(p.relative_to(tmp_path).as_posix() for p in _stale_entries(tmp_path, keep))
+    assert stale == ["build_model_data_old.safetensors", "v13", "v14/load_data_abc.safetensors"]
 
 
 def test_missing_or_corrupt_cache_gives_a_clear_message(tmp_path):

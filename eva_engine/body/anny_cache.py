@@ -112,7 +112,14 @@ def cache_is_valid(cache_dir: Path | None = None) -> bool:
         return False
 
 
+ANNY_FILE_PREFIXES = ("load_data_", "build_model_data_", "build_compact_model_data_")
+"""What anny itself writes: its data-version folders hold these; a loose one is stale too."""
+
+
 def _stale_entries(cache_dir: Path, keep: Path) -> list[Path]:
+    """Anny's own entries under ``cache_dir`` other than ``keep``: other data versions'
+    folders, intermediates beside ``keep``. The project's files derived from the model and kept
+    beside it (the face-mesh correspondence and calibration) are not anny's and stay."""
     if not cache_dir.is_dir():
         return []
     stale = []
@@ -121,7 +128,7 @@ def _stale_entries(cache_dir: Path, keep: Path) -> list[Path]:
             continue
         if entry.is_dir() and entry == keep.parent:
             stale += [f for f in entry.iterdir() if f != keep]
-        else:
+        elif entry.is_dir() or entry.name.startswith(ANNY_FILE_PREFIXES):
             stale.append(entry)
     return stale
 
