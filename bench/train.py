@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from bench.machine import commit, header_line, run_header, write_result
+from bench.machine import commit, header_line, portable, run_header, write_result
 from eva_engine.recipes import METHODS, PRESETS, describe_methods, describe_presets
 from eva_engine.synth_names import SYNTH_PRESETS, SYNTH_SIZES, describe_synth_sizes
 
@@ -218,7 +218,7 @@ def save_runs(new: dict) -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     json_path = RESULTS / "train.json"
     runs = json.loads(json_path.read_text()) if json_path.is_file() else {}
-    runs.update(new)
+    runs = portable({**runs, **new})  # the new entries' paths too, in the Markdown as in the JSON
     write_result(RESULTS, "train", runs, markdown(runs))
 
 

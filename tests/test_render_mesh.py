@@ -54,6 +54,26 @@ def test_projection_depth_and_ids(renderer):
     assert torch.all(cover <= out.alpha + 1e-6)
 
 
+def test_pixels_are_the_float64_mean_of_their_samples_to_the_bit(renderer):
+    """The box filter (summed slice by slice, uncovered samples as the background) gives what
+    the plain float64 mean over each pixel's samples gives, bit for bit."""
+    c, s = renderer.config, renderer.config.supersample
+    rng = np.random.default_rng(0)
+    color = rng.random((c.height * s, c.width * s, 3), dtype=np.float32) * 1.5
+    ids = rng.integers(-1, 3, (c.height * s, c.width * s))
+    ids[: 2 * s] = -1  # two rows of pixels with no sample covered
+    color[ids < 0] = 0.0  # the clear colour of uncovered samples
+    out = renderer._resolve(color, ids, rng.random(ids.shape, dtype=np.float32))
+    bg = np.asarray(c.background, np.float32)
+    covered = ids >= 0
+    filled = np.where(covered[..., None], color, bg).reshape(c.height, s, c.width, s, 3)
+    alpha = covered.reshape(c.height, s, c.width, s).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+    rgb = filled.mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+    rgb = np.where(alpha[..., None] > 0, np.clip(rgb, 0.0, 1.0), bg)
+    assert np.array_equal(out.alpha.numpy(), alpha) and np.array_equal(out.rgb.numpy(), rgb)
+    assert alpha[:2].max() == 0.0 and 0.0 < alpha[2:].min() < 1.0 and alpha.max() == 1.0
+
+
 def test_look_at_and_intrinsics():
     view = look_at((0.0, 1.0, 3.0), (0.0, 1.0, 0.0)).double()
     p = view[:3, :3] @ torch.tensor([0.1, 1.0, 0.0]).double() + view[:3, 3]
