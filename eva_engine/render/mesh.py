@@ -355,9 +355,10 @@ class MeshRenderer:
         bg = np.asarray(c.background, np.float32)
         covered = ids >= 0
         # Each pixel's s x s samples summed slice by slice in float64, an uncovered sample as the
-        # background: float32 values add exactly there, so this is the float64 mean of each block
-        # to the bit, without numpy's slow reduction over a strided 5-D view (a third of a render
-        # before). Uncovered samples hold the clear colour 0 (``render``), so they add nothing.
+        # background: float32 samples add there without rounding (unless they differ by over
+        # 2^25), so this is numpy's float64 mean of each block, to the bit on every scene tried,
+        # without its slow reduction over a strided 5-D view (a third of a render before).
+        # Uncovered samples hold the clear colour 0 (``render``), so they add nothing.
         count = np.zeros((h, w), np.int64)
         total = np.zeros((h, w, 3), np.float64)
         for a in range(s):
