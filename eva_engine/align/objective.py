@@ -142,7 +142,7 @@ class FitProblem:
             reg, landmarks = self.face_mesh
             det = t.face_mesh[:, landmarks]
             read = 0.0  # [F, L, 2] what the detector reads beyond the model's points, in pixels
-            if self.calibration is not None:
+            if self.calibration is not None and (stage.w_face_mesh > 0 or stage.w_openings > 0):
                 read = self.calibration.offsets(params.expression, t.face_mesh[:, EYE_CORNERS])
             if stage.w_face_mesh > 0:
                 face_cam = to_camera(self.model.posed_points(params, reg), self.viewmat)
