@@ -21,7 +21,7 @@ def setup(
     cache_dir: Path = typer.Option(None, help="Anny cache folder (default: <data dir>/cache/anny)."),
 ) -> None:
     """Build the Anny body-model cache (once, ~1 min), its face-mesh correspondence (MediaPipe on
-    rendered faces, ~30 s) and the face mesh's calibration (~70 s), build the C++ kernels of the
+    rendered faces, ~10 s) and the face mesh's calibration (~35 s), build the C++ kernels of the
     rasterizer and the skinning (~30 s), and check the offline LPIPS weights."""
     from eva_engine.body import load_body_model, prepare_anny_cache
     from eva_engine.metrics import LPIPSWeightsError, prepare_lpips
