@@ -141,6 +141,17 @@ def test_training_with_face_views(scene, crops, anny_model):
     cfg = preset("tiny", iterations=12, face_view=FaceViewConfig(weight=1.0, every=2))
     result = train_avatar(with_crops, cfg, body=anny_model)
     assert all(np.isfinite(result.losses)) and result.timings["face_view"] > 0
+    # With ``densify`` the close-ups' gradients reach density control: the first refinement
+    # (step 4, the window moved up) sees more candidates than the frames' alone.
+    window = {"refine_start_iter": 4, "refine_every": 4}
+    early = dataclasses.replace(cfg, strategy=dataclasses.replace(cfg.strategy, **window))
+    counts = []
+    for densify in (False, True):
+        face = FaceViewConfig(weight=1.0, densify=densify)
+        run = train_avatar(with_crops, dataclasses.replace(early, face_view=face), body=anny_model)
+        first = run.refinements[0]
+        counts.append(first["cloned"] + first["split"])
+    assert counts[1] > counts[0], counts
     # Off (the default) or without close-ups, the step has no second view.
     plain = train_avatar(ds, dataclasses.replace(cfg, face_view=FaceViewConfig(weight=1.0)), body=anny_model)
     assert plain.timings["face_view"] == 0

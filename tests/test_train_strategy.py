@@ -8,7 +8,7 @@ import torch
 
 from eva_engine.avatar import CanonicalGaussians
 from eva_engine.render import RenderOutput
-from eva_engine.train.strategy import DefaultStrategy, ops
+from eva_engine.train.strategy import ContextAwareStrategy, DefaultStrategy, ops
 
 N = 12
 
@@ -156,6 +156,34 @@ def test_default_strategy_densifies_and_prunes():
     assert (
         strategy.step_post_backward(gs, opts, state, 10, fake_render(len(gs), torch.ones(len(gs), 2))) == {}
     )
+
+
+@pytest.mark.parametrize("cls", [DefaultStrategy, ContextAwareStrategy])
+def test_a_second_view_counts_toward_densification(cls):
+    """``observe_view`` (a face close-up of the step's frame): its NDC gradients join the window
+    and each Gaussian it shows counts one more visible step; Gaussians it culls keep the frame's
+    mean. After ``refine_stop_iter`` it adds nothing."""
+    gs = make_gaussians()
+    opts = optimizers_after_a_step(gs)
+    strategy = cls(refine_start_iter=100, refine_stop_iter=10)
+    state = strategy.initialize_state()
+    frame = torch.zeros(N, 2)
+    frame[:, 0] = 2e-6  # 1e-4 NDC at W = 100: below 2e-4
+    close = torch.zeros(N, 2)
+    close[:, 0] = 1e-5  # 5e-4 NDC at W = 100
+    view = off_screen(fake_render(N, close), torch.arange(N) >= 6)
+    strategy.observe_view(gs, state, 1, view)
+    strategy.step_post_backward(gs, opts, state, 1, fake_render(N, frame))
+    mean = state["grad2d"] / state["count"].clamp_min(1)
+    assert state["count"].tolist() == [2.0] * 6 + [1.0] * 6
+    assert torch.allclose(mean, torch.tensor([3e-4] * 6 + [1e-4] * 6))
+    assert (mean > strategy.grow_grad2d).tolist() == [True] * 6 + [False] * 6
+    if cls is ContextAwareStrategy:  # its window sums see both views too
+        assert torch.allclose(state["win_sum"], state["grad2d"])
+        assert torch.equal(state["win_count"], state["count"])
+    before = state["grad2d"].clone()
+    strategy.observe_view(gs, state, 10, fake_render(N, close))
+    assert torch.equal(state["grad2d"], before)
 
 
 def test_pruning_never_empties_the_avatar():

@@ -4,7 +4,9 @@ A 512 px frame of a 1080p talking-head video leaves the eyes a few pixels tall: 
 a change of about 3 px for the image terms. A dataset made from a larger video stores close-ups of
 the face at the video's resolution (``data.face_crops``). Each step whose frame has one also
 renders the close-up's camera from the same posed Gaussians and adds the frame's own objective
-(``AvatarLoss``) on it, times ``weight``. Density control still reads the frame's render only.
+(``AvatarLoss``) on it, times ``weight``. Its screen-space gradients also count toward density
+control, as a second view of the step (``densify``): the face gets the Gaussians its detail at the
+video's resolution asks for, not only those the frame's few pixels do.
 """
 
 from __future__ import annotations
@@ -21,10 +23,13 @@ from eva_engine.train.losses import composite_target
 @dataclass(frozen=True)
 class FaceViewConfig:
     """weight: the close-up's objective relative to the frame's (0: off); every: on every k-th
-    step only, weighted k x weight there (the same expected gradient for less time)."""
+    step only, weighted k x weight there (the same expected gradient for less time); densify:
+    the close-up's gradients (as weighted) join the frame's in density control (False: the
+    frame's render alone decides, as before)."""
 
     weight: float = 0.0
     every: int = 1
+    densify: bool = True
 
     def __post_init__(self) -> None:
         if self.weight < 0.0:

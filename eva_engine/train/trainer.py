@@ -343,6 +343,7 @@ class TrainingRun:
         t = tick("losses", t)
         face = config.face_view
         view = self.face_views.view(i, bg) if self.face_views is not None and step % face.every == 0 else None
+        face_render = None
         if view is not None:
             face_cam, face_target, face_mask = view
             face_render = avatar.rasterize_posed(posed, face_cam, bg)
@@ -364,6 +365,8 @@ class TrainingRun:
         if "sh0_expression" in avatar.gaussians.splats:
             clamp_offsets(avatar.gaussians.splats["sh0_expression"])
         t = tick("optimizer", t)
+        if face_render is not None and face.densify:
+            self.strategy.observe_view(avatar.gaussians, self.state, step, face_render)
         stats = self.strategy.step_post_backward(avatar.gaussians, self.optimizers, self.state, step, render)
         if stats:
             self.refinements.append({"step": step, **stats})

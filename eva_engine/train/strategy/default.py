@@ -148,6 +148,14 @@ class DefaultStrategy(Strategy):
         state["grad2d"][visible] += grad[visible].norm(dim=-1)
         state["count"][visible] += 1
 
+    def observe_view(
+        self, gaussians: CanonicalGaussians, state: dict, step: int, render: RenderOutput
+    ) -> None:
+        """A second view's gradients join the window's, each Gaussian visible in it counted once
+        more (as 3DGS averages over the views of a scene)."""
+        if step < self.refine_stop_iter:
+            self.update_state(gaussians, state, render)
+
     def step_post_backward(
         self,
         gaussians: CanonicalGaussians,
