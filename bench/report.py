@@ -21,6 +21,8 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict
 
+from bench.stats import fmt, mean_std
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 DOCS = ("README.md", "docs/*.md")
@@ -217,11 +219,102 @@ def calibration_wild(results: Path) -> list[str]:
     return lines
 
 
+class RegionScores(_Loose):
+    lpips_vgg: float
+
+
+class EvalResult(_Loose):
+    """``eva eval --json``: the fields a table reads."""
+
+    num_gaussians: int
+    train_seconds: float | None
+    regions: dict[str, RegionScores]
+
+
+class StageAgreement(_Loose):
+    r: float
+    range_ratio: float
+
+
+class CloseupImages(_Loose):
+    lpips_vgg: float
+
+
+class ExpressionCase(_Loose):
+    """One case of ``bench.expressions``' result."""
+
+    stages: dict[str, dict[str, StageAgreement | int]]
+    closeup_images: CloseupImages | None = None
+
+
+class ExpressionsResult(_Loose):
+    cases: dict[str, ExpressionCase]
+
+
+def _stat(values: list[float], digits: int, scale: float = 1.0) -> str:
+    return fmt(mean_std(values), scale, digits)
+
+
+def closeup_densify(results: Path) -> list[str]:
+    """The face close-ups with and without densifying from them, against the frames alone, on
+    the two upper-body clips (``expressions/closeup_densify/``, its README)."""
+    here, base = "expressions/closeup_densify", "expressions/calibration"
+    variants = {"noeyes": "frames only (the default)", "f": "close-ups", "fd": "close-ups, densified"}
+    clips, seeds = ("gesturing", "seated"), (0, 1, 2)
+
+    def evals(clip: str, v: str) -> list[EvalResult]:
+        folder = f"{base}/eval" if v == "noeyes" else f"{here}/eval"
+        return [load(EvalResult, f"{folder}/eval-{clip}-{v}-s{s}", results) for s in seeds]
+
+    closeup = load(ExpressionsResult, f"{here}/expressions_closeups_closeup", results).cases
+    frames = {
+        **load(ExpressionsResult, f"{base}/expressions_noeyes", results).cases,
+        **load(ExpressionsResult, f"{here}/expressions_closeups_frames", results).cases,
+    }
+
+    def row(label: str, cell: Callable[[str, str], str]) -> str:
+        return f"| {label} | " + " | ".join(" / ".join(cell(c, v) for c in clips) for v in variants) + " |"
+
+    def openings(measure: str) -> Callable[[str, str], str]:
+        def cell(clip: str, v: str) -> str:
+            render = [frames[f"{clip}_{v}_s{s}"].stages["render"][measure] for s in seeds]
+            r = sum(a.r for a in render) / len(render)
+            ratio = sum(a.range_ratio for a in render) / len(render)
+            return f"{r:.2f}, {ratio:.2f}"
+
+        return cell
+
+    def region(name: str) -> Callable[[str, str], str]:
+        return lambda c, v: _stat([e.regions[name].lpips_vgg for e in evals(c, v)], 1, 1e3)
+
+    def closeup_lpips(c: str, v: str) -> str:
+        return _stat([closeup[f"{c}_{v}_s{s}"].closeup_images.lpips_vgg for s in seeds], 1, 1e3)
+
+    def gaussians(c: str, v: str) -> str:
+        return f"{sum(e.num_gaussians for e in evals(c, v)) / len(seeds):,.0f}"
+
+    def seconds(c: str, v: str) -> str:
+        return f"{sum(e.train_seconds for e in evals(c, v)) / len(seeds):.1f}"
+
+    return [
+        "| mean ± std, 3 seeds (gesturing / seated) | " + " | ".join(variants.values()) + " |",
+        "|---|---|---|---|",
+        row("Gaussians", gaussians),
+        row("training, s (two runs sharing the cores; the default's trained that morning)", seconds),
+        row("close-up LPIPS-VGG ×1000", closeup_lpips),
+        row("face LPIPS-VGG ×1000, 512 px", region("face")),
+        row("full LPIPS-VGG ×1000", region("full")),
+        row("render at 512 px: eyes r, range over the target's", openings("eyes")),
+        row("render at 512 px: mouth r, range", openings("mouth")),
+    ]
+
+
 SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "paper_tables": paper_tables,
     "paper_regime": paper_regime,
     "service_latency": service_latency,
     "calibration_wild": calibration_wild,
+    "closeup_densify": closeup_densify,
 }
 
 
