@@ -291,8 +291,16 @@ def test_lpips_every_k_steps_keeps_its_expected_weight(lpips):
     lam = LossConfig().lambda_lpips
     torch.testing.assert_close(on["total"] - off["total"], 3 * lam * reference["lpips"])
     torch.testing.assert_close(every(render, target, mask)["total"], reference["total"])  # no step: always
+    # Thinned from step 300 on only: every step before it at its own weight.
+    late = AvatarLoss(LossConfig(lpips_every=3, lpips_every_from=300), lpips=lpips)
+    for step in (7, 299):
+        torch.testing.assert_close(late(render, target, mask, step=step)["total"], reference["total"])
+    assert "lpips" not in late(render, target, mask, step=301)
+    torch.testing.assert_close(late(render, target, mask, step=300)["total"], on["total"])
     with pytest.raises(ValueError, match="lpips_every"):
         LossConfig(lpips_every=0)
+    with pytest.raises(ValueError, match="lpips_every_from"):
+        LossConfig(lpips_every_from=-1)
 
 
 def test_the_lpips_loss_network_is_chosen_by_config(lpips):

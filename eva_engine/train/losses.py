@@ -56,6 +56,9 @@ class LossConfig:
     lpips_every: int = 1
     """The LPIPS term on every k-th step only, weighted k λ_l there (the same expected gradient):
     its network's forward and backward are the costliest part of the loss on CPU."""
+    lpips_every_from: int = 0
+    """The step from which ``lpips_every`` applies; before it the LPIPS term runs on every step
+    (e.g. thinned only after densification stops)."""
     lpips_net: str = "alex"
     """The LPIPS term's network. "alex" keeps LPIPS-VGG, the paper's metric, one no method trains
     on; "vgg" is the official code's loss (``loss_fn_vgg``): a row trained on it is trained on
@@ -66,6 +69,8 @@ class LossConfig:
             raise ValueError(f"pixel_norm must be one of {PIXEL_NORMS}, got {self.pixel_norm!r}")
         if self.lpips_every < 1:
             raise ValueError(f"lpips_every must be >= 1, got {self.lpips_every}")
+        if self.lpips_every_from < 0:
+            raise ValueError(f"lpips_every_from must be >= 0, got {self.lpips_every_from}")
         if self.lpips_net not in LPIPS_NETS:
             raise ValueError(f"lpips_net must be one of {LPIPS_NETS}, got {self.lpips_net!r}")
 
@@ -145,8 +150,8 @@ class AvatarLoss(nn.Module):
         """render: the rasterizer output; target: [H, W, 3] composited on the render background;
         mask: [H, W] person coverage in [0, 1]; key: the target's identity (e.g. its frame
         index) when the same target comes back, so its LPIPS features are reused; step: the
-        training step (with ``lpips_every`` > 1 the LPIPS term runs on multiples of it; None:
-        always, weighted λ_l). Returns the terms and ``"total"``."""
+        training step (with ``lpips_every`` > 1 the LPIPS term runs on multiples of it from
+        ``lpips_every_from`` on; None: always, weighted λ_l). Returns the terms and ``"total"``."""
         cfg = self.config
         image = render.image
         h, w = mask.shape
@@ -159,7 +164,7 @@ class AvatarLoss(nn.Module):
         if cfg.lambda_mask:
             terms["mask"] = scale * ((render.alpha[..., 0] - mask) ** 2).mean()
             total = total + cfg.lambda_mask * terms["mask"]
-        every = cfg.lpips_every if step is not None else 1
+        every = cfg.lpips_every if step is not None and step >= cfg.lpips_every_from else 1
         lpips_now = cfg.lambda_lpips > 0 and (step is None or step % every == 0)
         if cfg.lambda_ssim or lpips_now:
             img = image.clamp(0.0, 1.0).permute(2, 0, 1)[None, :, y0:y1, x0:x1]
