@@ -75,7 +75,8 @@ PRESETS: dict[str, Preset] = {
     "default": Preset(
         "the paper's",
         pose_correction_start=400,
-        avatar={"expression_frames": True, "expression_colours": True},
+        # The MLPs 64 wide, not 128: 15% less training time, quality no worse (docs/speed.md).
+        avatar={"mlp_width": 64, "expression_frames": True, "expression_colours": True},
     ),
 }
 """Preset name -> its schedule and model size: the one table of them."""
