@@ -262,9 +262,14 @@ def closeup_densify(results: Path) -> list[str]:
     variants = {"noeyes": "frames only (the default)", "f": "close-ups", "fd": "close-ups, densified"}
     clips, seeds = ("gesturing", "seated"), (0, 1, 2)
 
-    def evals(clip: str, v: str) -> list[EvalResult]:
-        folder = f"{base}/eval" if v == "noeyes" else f"{here}/eval"
-        return [load(EvalResult, f"{folder}/eval-{clip}-{v}-s{s}", results) for s in seeds]
+    evals = {  # (clip, variant) -> its seeds' eval results, each file read once
+        (c, v): [
+            load(EvalResult, f"{base if v == 'noeyes' else here}/eval/eval-{c}-{v}-s{s}", results)
+            for s in seeds
+        ]
+        for c in clips
+        for v in variants
+    }
 
     closeup = load(ExpressionsResult, f"{here}/expressions_closeups_closeup", results).cases
     frames = {
@@ -285,16 +290,16 @@ def closeup_densify(results: Path) -> list[str]:
         return cell
 
     def region(name: str) -> Callable[[str, str], str]:
-        return lambda c, v: _stat([e.regions[name].lpips_vgg for e in evals(c, v)], 1, 1e3)
+        return lambda c, v: _stat([e.regions[name].lpips_vgg for e in evals[c, v]], 1, 1e3)
 
     def closeup_lpips(c: str, v: str) -> str:
         return _stat([closeup[f"{c}_{v}_s{s}"].closeup_images.lpips_vgg for s in seeds], 1, 1e3)
 
     def gaussians(c: str, v: str) -> str:
-        return f"{sum(e.num_gaussians for e in evals(c, v)) / len(seeds):,.0f}"
+        return f"{sum(e.num_gaussians for e in evals[c, v]) / len(seeds):,.0f}"
 
     def seconds(c: str, v: str) -> str:
-        return f"{sum(e.train_seconds for e in evals(c, v)) / len(seeds):.1f}"
+        return f"{sum(e.train_seconds for e in evals[c, v]) / len(seeds):.1f}"
 
     return [
         "| mean ± std, 3 seeds (gesturing / seated) | " + " | ".join(variants.values()) + " |",
