@@ -61,8 +61,9 @@ def commit(root: Path = Path(__file__).resolve().parents[1]) -> str | None:
 
 def portable_path(path: str | Path) -> str:
     """``path`` as a result file should name it: relative to the repository when inside it, as
-    ``$EVA_DATA_DIR/...`` when inside the data dir, else unchanged (another machine has neither
-    this checkout's absolute path nor its data dir's)."""
+    ``$EVA_DATA_DIR/...`` when inside the data dir, ``$TMPDIR/...`` in the scratch folder,
+    ``../...`` beside the checkout (the reference videos in ``../shared``), else unchanged
+    (another machine has neither this checkout's absolute path nor its data dir's)."""
     from eva_engine.paths import data_dir  # torch-free, but first_contact.py runs before install
 
     path = Path(path).resolve()
@@ -75,7 +76,21 @@ def portable_path(path: str | Path) -> str:
     scratch = Path(tempfile.gettempdir()).resolve()
     if path.is_relative_to(scratch):
         return str(Path("$TMPDIR") / path.relative_to(scratch))
+    beside = repo.parent
+    if beside != Path(beside.anchor) and path.is_relative_to(beside):
+        return str(Path("..") / path.relative_to(beside))
     return str(path)
+
+
+def portable_argument(arg: str) -> str:
+    """A command-line argument with the path it names (``/abs/path`` or ``--opt=/abs/path``)
+    made a ``portable_path``; anything else unchanged."""
+    if arg.startswith("/"):
+        return portable_path(arg)
+    option, eq, value = arg.partition("=")
+    if eq and option.startswith("-") and value.startswith("/"):
+        return f"{option}={portable_path(value)}"
+    return arg
 
 
 def local_path(name: str) -> Path:
@@ -103,16 +118,18 @@ def portable(doc):
 
 def command_line(argv: list[str] | None = None) -> str:
     """The command as typed from the repository: ``python -m bench <name> ...`` through the
-    harness, ``python -m bench.<name> ...`` for a module run alone (``argv``: ``sys.argv``)."""
+    harness, ``python -m bench.<name> ...`` for a module run alone (``argv``: ``sys.argv``); the
+    paths in it as ``portable_path`` names them."""
     argv = sys.argv if argv is None else argv
+    args = [portable_argument(a) for a in argv[1:]]  # paths as the result files name them
     if argv[0].startswith("python -m bench "):  # set by the harness (``bench.cli``)
-        return shlex.join(["python", "-m", "bench", *argv[0].split()[3:], *argv[1:]])
+        return shlex.join(["python", "-m", "bench", *argv[0].split()[3:], *args])
     script = Path(argv[0])
     if script.name == "__main__.py" and script.parent.name == "bench":
-        return shlex.join(["python", "-m", "bench", *argv[1:]])
+        return shlex.join(["python", "-m", "bench", *args])
     if script.parent.name == "bench":
-        return shlex.join(["python", "-m", f"bench.{script.stem}", *argv[1:]])
-    return shlex.join(["python", str(script), *argv[1:]])
+        return shlex.join(["python", "-m", f"bench.{script.stem}", *args])
+    return shlex.join(["python", portable_path(script), *args])
 
 
 def run_header() -> dict:

@@ -4,6 +4,7 @@ and writer, and the docs' generated tables current with the committed results.""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -11,7 +12,14 @@ from pathlib import Path
 import pytest
 
 from bench import cli, report
-from bench.machine import SCHEMA_VERSION, command_line, local_path, portable_path, run_header, write_result
+from bench.machine import (
+    SCHEMA_VERSION,
+    command_line,
+    local_path,
+    portable_path,
+    run_header,
+    write_result,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -102,3 +110,40 @@ def test_result_files_name_paths_the_same_on_every_machine(tmp_path, monkeypatch
     assert written["dataset"] == "$EVA_DATA_DIR/ds"
     assert written["runs"] == [{"avatar": "$EVA_DATA_DIR/a"}]
     assert written["url"] == "/avatars/x"
+
+
+def test_a_results_command_names_paths_as_its_files_do(tmp_path, monkeypatch):
+    data = tmp_path / "elsewhere"
+    monkeypatch.setenv("EVA_DATA_DIR", str(data))
+    beside = ROOT.parent / "shared" / "reference" / "videos" / "clip.mp4"
+    line = command_line(
+        ["python -m bench real_videos", str(beside), f"--dataset={data / 'ds'}", "--out", str(ROOT / "out")]
+    )
+    assert line == (  # shlex quotes the "$"
+        "python -m bench real_videos ../shared/reference/videos/clip.mp4 "
+        "'--dataset=$EVA_DATA_DIR/ds' --out out"
+    )
+    assert local_path("../shared/reference") == ROOT / "../shared/reference"
+
+
+# A committed result names no folder of the machine that ran it (``portable_path``); the logs
+# kept beside some results are the verbatim output of a run and keep its paths.
+MACHINE_PATH = re.compile(r"(?<![\w$.~-])/(?:work|tmp|root|home|Users|private|var/folders)/")
+
+
+def test_committed_results_name_no_folder_of_the_machine_that_ran_them():
+    try:
+        listed = subprocess.run(
+            ["git", "ls-files", "bench/results"], cwd=ROOT, capture_output=True, text=True
+        )
+    except OSError:
+        listed = None
+    if listed is None or listed.returncode != 0:
+        pytest.skip("not a git checkout: the committed results are not known")
+    offenders = []
+    for name in listed.stdout.split():
+        if Path(name).suffix not in {".json", ".md", ".txt", ".csv", ".py", ".patch"}:
+            continue
+        text = (ROOT / name).read_text(errors="replace")
+        offenders += [f"{name}: {m.group(0)}" for m in MACHINE_PATH.finditer(text)][:1]
+    assert not offenders, offenders[:10]
