@@ -19,6 +19,7 @@ from eva_engine.train import (
     ConfidenceLoss,
     LossConfig,
     TrainConfig,
+    with_overrides,
 )
 from eva_engine.train.confidence import OfficialConfidenceLoss
 from eva_engine.train.trainer import make_extra_optimizers
@@ -61,18 +62,21 @@ def test_the_fit_term_pushes_confidence_up_where_the_residual_is_small_and_down_
         assert best == pytest.approx(a / r, rel=0.01)
 
 
-def test_the_network_learns_where_to_trust_and_does_not_collapse():
+@pytest.mark.parametrize("downscale", [1, 2])
+def test_the_network_learns_where_to_trust_and_does_not_collapse(downscale):
     """Left half: the render matches the frame; right half: a large residual (a misaligned
-    region). The image differs between halves, so E can tell them apart."""
+    region). The image differs between halves, so E can tell them apart (at half resolution
+    too: the halves' boundary falls between pooled cells)."""
     torch.manual_seed(0)
-    loss = ConfidenceLoss(ConfidenceConfig(hidden=8))
+    loss = ConfidenceLoss(ConfidenceConfig(hidden=8, downscale=downscale))
     image = torch.zeros(H, W, 3)
     image[:, W // 2 :, 0] = 1.0
     target = image.clone()
     target[:, W // 2 :] += 0.6
     alpha, depth, mask = torch.ones(H, W, 1), torch.full((H, W, 1), 3.0), torch.ones(H, W)
     opt = torch.optim.Adam(loss.parameters(), lr=1e-2)
-    for _ in range(300):
+    # Coarser, E learns slower: the cells on the halves' boundary blend both answers.
+    for _ in range(300 if downscale == 1 else 1000):
         opt.zero_grad()
         loss(image, target, alpha, depth, mask).backward()
         opt.step()
@@ -113,11 +117,12 @@ def test_the_avatar_cannot_steer_the_confidence():
     assert torch.allclose(image.grad, expected, atol=1e-7)
 
 
+@pytest.mark.parametrize("downscale", [1, 2])
 @pytest.mark.parametrize(
     "case", ["zero_residual", "huge_residual", "empty_region", "zero_depth", "huge_depth", "saturated"]
 )
-def test_degenerate_inputs_give_finite_values_and_gradients(case):
-    loss = ConfidenceLoss()
+def test_degenerate_inputs_give_finite_values_and_gradients(case, downscale):
+    loss = ConfidenceLoss(ConfidenceConfig(downscale=downscale))
     image, target, alpha, depth, mask = inputs()
     if case == "zero_residual":
         target = image.detach().clone()
@@ -142,12 +147,14 @@ def test_degenerate_inputs_give_finite_values_and_gradients(case):
     assert loss.last_confidence.max() <= loss.config.max_confidence + 1e-4
 
 
-def test_confidence_on_the_region_box_equals_the_whole_frame():
+@pytest.mark.parametrize("downscale", [1, 2, 3])
+def test_confidence_on_the_region_box_equals_the_whole_frame(downscale):
     """E runs only on the person region's box (grown by its reach): the loss, the avatar's
-    gradient and E's gradients are those of running it on the whole frame."""
+    gradient and E's gradients are those of running it on the whole frame, also with E at a
+    reduced resolution (the box snapped to the pooling grid; 40 px is no multiple of 3)."""
     size = 40
     g = torch.Generator().manual_seed(3)
-    loss = ConfidenceLoss()
+    loss = ConfidenceLoss(ConfidenceConfig(downscale=downscale))
     with torch.no_grad():
         for p in loss.parameters():
             p.copy_(torch.randn(p.shape, generator=g) * 0.5)
@@ -157,7 +164,7 @@ def test_confidence_on_the_region_box_equals_the_whole_frame():
     alpha[10:25, 12:30] = 0.9
     mask[8:20, 15:33] = 1.0
     depth = alpha * 2.5
-    full = ConfidenceLoss()
+    full = ConfidenceLoss(loss.config)
     full.load_state_dict(loss.state_dict())
     full.confidence_on_region = lambda image, depth, alpha, region: full.confidence(image, depth, alpha)
     values, grads = [], []
@@ -177,6 +184,39 @@ def test_confidence_on_the_region_box_equals_the_whole_frame():
 def test_invalid_config_is_refused():
     with pytest.raises(ValueError, match="mu"):
         ConfidenceLoss(ConfidenceConfig(mu=2.0, max_confidence=1.5))
+    with pytest.raises(ValueError, match="downscale"):
+        ConfidenceLoss(ConfidenceConfig(downscale=0))
+
+
+def test_the_loss_config_carries_the_networks_settings():
+    config = with_overrides(
+        TrainConfig(loss=LossConfig(photometric="confidence", lambda_lpips=0.0)),
+        ["loss.confidence.downscale=2", "loss.confidence.hidden=8"],
+    )
+    loss = AvatarLoss(config.loss)
+    assert loss.photometric.config == ConfidenceConfig(hidden=8, downscale=2)
+    assert loss.photometric.net.head.in_channels == 8
+
+
+@pytest.mark.parametrize("shape", [(15, 17), (1, 1), (2, 33)])
+def test_reduced_resolution_confidence_keeps_the_frames_shape_and_bounds(shape):
+    """E at half resolution on frames of odd sizes (edge-padded to the pooling grid, cut back
+    after the upsampling): C has the frame's shape and stays within [μ, C_max]."""
+    h, w = shape
+    g = torch.Generator().manual_seed(5)
+    loss = ConfidenceLoss(ConfidenceConfig(downscale=2))
+    with torch.no_grad():
+        for p in loss.parameters():
+            p.copy_(torch.randn(p.shape, generator=g))
+    image = torch.rand(h, w, 3, generator=g, requires_grad=True)
+    alpha = torch.ones(h, w, 1)
+    conf = loss.confidence(image, alpha * 3.0, alpha)
+    assert conf.shape == (h, w)
+    assert conf.min() >= loss.config.mu and conf.max() <= loss.config.max_confidence + 1e-4
+    value = loss(image, torch.rand(h, w, 3, generator=g), alpha, alpha * 3.0, torch.ones(h, w))
+    value.backward()
+    assert torch.isfinite(image.grad).all()
+    assert all(torch.isfinite(p.grad).all() for p in loss.parameters())
 
 
 def test_trainer_optimises_the_network():

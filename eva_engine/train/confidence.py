@@ -34,7 +34,6 @@ plain L1 at half weight); the official runs train it anyway, and so does this fo
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -42,19 +41,7 @@ from torch import Tensor, nn
 
 from eva_engine.layers import seeded_layer
 from eva_engine.metrics import crop_box
-from eva_engine.train.losses import PHOTOMETRIC_LOSSES, PhotometricLoss
-
-
-@dataclass(frozen=True)
-class ConfidenceConfig:
-    """mu: the floor μ of C; residual_scale: a, pixels with |r| < a/μ get C > μ;
-    max_confidence: C_max; hidden: E's channels; region_threshold: mask/alpha level of R."""
-
-    mu: float = 1.0
-    residual_scale: float = 0.1
-    max_confidence: float = 10.0
-    hidden: int = 16
-    region_threshold: float = 0.5
+from eva_engine.train.losses import PHOTOMETRIC_LOSSES, ConfidenceConfig, LossConfig, PhotometricLoss
 
 
 class ConfidenceNet(nn.Module):
@@ -108,14 +95,28 @@ class ConfidenceLoss(PhotometricLoss):
         super().__init__()
         self.config = config or ConfidenceConfig()
         c = self.config
-        if not 0.0 < c.mu < c.max_confidence:
-            raise ValueError(f"need 0 < mu < max_confidence, got {c.mu}, {c.max_confidence}")
         self.net = ConfidenceNet(c.hidden, math.log(c.max_confidence - c.mu), generator)
         self.last_confidence: Tensor | None = None  # [H, W] of the latest call, for inspection
 
+    @classmethod
+    def from_loss_config(cls, config: LossConfig, generator: torch.Generator | None = None) -> ConfidenceLoss:
+        return cls(config.confidence, generator)
+
     def confidence(self, image: Tensor, depth: Tensor, alpha: Tensor) -> Tensor:
-        """[H, W] C = μ + exp(E(I_r, D_r)) on detached inputs."""
-        return self.config.mu + torch.exp(self.net(image.detach(), depth.detach(), alpha.detach()))
+        """[H, W] C = μ + exp(E(I_r, D_r)) on detached inputs; with ``downscale`` s > 1, E sees
+        the inputs pooled s×s (the frame edge-padded to a multiple of s) and its output is
+        upsampled bilinearly before the exp."""
+        image, depth, alpha = image.detach(), depth.detach(), alpha.detach()
+        s = self.config.downscale
+        if s == 1:
+            return self.config.mu + torch.exp(self.net(image, depth, alpha))
+        h, w = image.shape[:2]
+        x = torch.cat([image, depth, alpha], dim=-1).permute(2, 0, 1)[None]  # [1, 5, H, W]
+        x = F.pad(x, (0, -w % s, 0, -h % s), mode="replicate")
+        x = F.avg_pool2d(x, s)[0].permute(1, 2, 0)  # [H/s, W/s, 5]
+        e = self.net(x[..., :3], x[..., 3:4], x[..., 4:5])
+        e = F.interpolate(e[None, None], scale_factor=s, mode="bilinear", align_corners=False)
+        return self.config.mu + torch.exp(e[0, 0, :h, :w])
 
     def region(self, alpha: Tensor, mask: Tensor) -> Tensor:
         """[H, W] bool: the person region R (mask or rendered coverage)."""
@@ -139,11 +140,17 @@ class ConfidenceLoss(PhotometricLoss):
     def confidence_on_region(self, image: Tensor, depth: Tensor, alpha: Tensor, region: Tensor) -> Tensor:
         """[H, W] C, computed only on R's box grown by E's reach (μ outside it): C is used only
         on R, where this equals ``confidence`` on the whole frame (R holds every covered pixel,
-        so E's depth reference is the same too) at a fraction of the cost."""
+        so E's depth reference is the same too) at a fraction of the cost. With ``downscale`` s
+        the box is grown by the reach at E's scale plus the upsampling's pixel and snapped to
+        the s-grid, so the pooled cells are the whole frame's."""
         if not bool(region.any()):
             return self.confidence(image, depth, alpha)
         h, w = region.shape
-        x0, y0, x1, y1 = crop_box(region[None, None], pad=self.net.reach)
+        s = self.config.downscale
+        pad = (self.net.reach + 1) * s if s > 1 else self.net.reach
+        x0, y0, x1, y1 = crop_box(region[None, None], pad=pad)
+        x0, y0 = x0 - x0 % s, y0 - y0 % s
+        x1, y1 = min(w, x1 + -x1 % s), min(h, y1 + -y1 % s)
         crop = self.confidence(image[y0:y1, x0:x1], depth[y0:y1, x0:x1], alpha[y0:y1, x0:x1])
         return F.pad(crop, (x0, w - x1, y0, h - y1), value=self.config.mu)
 

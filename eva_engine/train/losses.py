@@ -24,8 +24,8 @@ in every region, synthetic and real (``bench/results/ssim_weight/summary.md``,
 
 from __future__ import annotations
 
-from collections.abc import Callable, Hashable
-from dataclasses import dataclass
+from collections.abc import Hashable
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor, nn
@@ -35,6 +35,28 @@ from eva_engine.render import RenderOutput
 
 PIXEL_NORMS = ("person_box", "frame")
 LPIPS_NETS = ("alex", "vgg")
+
+
+@dataclass(frozen=True)
+class ConfidenceConfig:
+    """The confidence-aware term's settings (``train/confidence.py``). mu: the floor μ of C;
+    residual_scale: a, pixels with |r| < a/μ get C > μ; max_confidence: C_max; hidden: E's
+    channels; region_threshold: mask/alpha level of R; downscale: E runs on its inputs
+    average-pooled by this factor and its output is upsampled bilinearly (2: a quarter of the
+    pixels, the same trained layers; the residual and the weights stay at full resolution)."""
+
+    mu: float = 1.0
+    residual_scale: float = 0.1
+    max_confidence: float = 10.0
+    hidden: int = 16
+    region_threshold: float = 0.5
+    downscale: int = 1
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.mu < self.max_confidence:
+            raise ValueError(f"need 0 < mu < max_confidence, got {self.mu}, {self.max_confidence}")
+        if self.hidden < 1 or self.downscale < 1:
+            raise ValueError(f"hidden and downscale must be >= 1, got {self.hidden}, {self.downscale}")
 
 
 @dataclass(frozen=True)
@@ -63,6 +85,8 @@ class LossConfig:
     """The LPIPS term's network. "alex" keeps LPIPS-VGG, the paper's metric, one no method trains
     on; "vgg" is the official code's loss (``loss_fn_vgg``): a row trained on it is trained on
     the metric it is scored with, and the tables mark it so."""
+    confidence: ConfidenceConfig = field(default_factory=ConfidenceConfig)
+    """``photometric="confidence"`` only: its network and constants."""
 
     def __post_init__(self) -> None:
         if self.pixel_norm not in PIXEL_NORMS:
@@ -83,6 +107,13 @@ class PhotometricLoss(nn.Module):
     def __init__(self, generator: torch.Generator | None = None) -> None:
         super().__init__()
 
+    @classmethod
+    def from_loss_config(
+        cls, config: LossConfig, generator: torch.Generator | None = None
+    ) -> PhotometricLoss:
+        """The term as ``config`` asks for it (a term with settings of its own reads them here)."""
+        return cls(generator=generator)
+
     def forward(self, image: Tensor, target: Tensor, alpha: Tensor, depth: Tensor, mask: Tensor) -> Tensor:
         raise NotImplementedError
 
@@ -94,7 +125,7 @@ class L1Loss(PhotometricLoss):
         return (image - target).abs().mean()
 
 
-PHOTOMETRIC_LOSSES: dict[str, Callable[..., PhotometricLoss]] = {"l1": L1Loss}
+PHOTOMETRIC_LOSSES: dict[str, type[PhotometricLoss]] = {"l1": L1Loss}
 
 
 class AvatarLoss(nn.Module):
@@ -110,7 +141,7 @@ class AvatarLoss(nn.Module):
                 f"unknown photometric loss {config.photometric!r}; choose one of {sorted(PHOTOMETRIC_LOSSES)}"
             )
         self.config = config
-        self.photometric = PHOTOMETRIC_LOSSES[config.photometric](generator=generator)
+        self.photometric = PHOTOMETRIC_LOSSES[config.photometric].from_loss_config(config, generator)
         if lpips is not None and getattr(lpips, "net", config.lpips_net) != config.lpips_net:
             raise ValueError(f"the loss asks for LPIPS-{config.lpips_net}, got an LPIPS-{lpips.net} network")
         self.lpips = lpips if lpips is not None or config.lambda_lpips == 0 else LPIPS(config.lpips_net)
