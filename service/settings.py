@@ -95,8 +95,10 @@ class ServiceSettings(BaseSettings):
     max_queued_jobs: int = Field(32, ge=1)
     max_render_side: int = Field(4096, ge=16, le=4096)
     max_render_pixels: int = Field(2048 * 2048, ge=16 * 16)
-    max_renders: int = Field(2, ge=1)
-    render_queue: int = Field(8, ge=0)
+    # One render at a time: a render's torch ops already use every core, and two at once made 16
+    # clients' throughput 0.72-0.99x one client's, against 0.87-1.11x (docs/speed.md).
+    max_renders: int = Field(1, ge=1)
+    render_queue: int = Field(16, ge=0)
     render_wait_s: float = Field(10.0, gt=0)
     avatar_cache: int = Field(4, ge=1)
     preload_body_models: Annotated[tuple[str, ...], NoDecode] = ("anny",)

@@ -78,15 +78,15 @@ def test_service_settings_read_lists_nested_fields_and_the_keys_file(clean_env, 
     clean_env.setenv("EVA_PRELOAD_BODY_MODELS", "")
     clean_env.setenv("EVA_CONNECTIONS__HEADER_TIMEOUT_S", "3.5")
     clean_env.setenv("EVA_API_KEYS_FILE", str(keys))
-    clean_env.setenv("EVA_MAX_RENDERS", "1")
+    clean_env.setenv("EVA_MAX_RENDERS", "3")
     settings = ServiceSettings()
     assert settings.jobs.data_dir == tmp_path
     assert settings.allowed_hosts == ("eva.example", "api.example")
     assert settings.preload_body_models == ("anny",)  # empty: ignored
     assert settings.connections.header_timeout_s == 3.5
-    assert [a.owner for a in settings.accounts] == ["a"] and settings.max_renders == 1
+    assert [a.owner for a in settings.accounts] == ["a"] and settings.max_renders == 3
     # None overrides keep the environment's value; the others win.
-    assert ServiceSettings.from_env(max_renders=None, port=9000).max_renders == 1
+    assert ServiceSettings.from_env(max_renders=None, port=9000).max_renders == 3
     assert ServiceSettings.from_env(port=9000).port == 9000
     clean_env.setenv("EVA_API_KEY", KEY)  # a key and a keys file: refused, saying which variables
     with pytest.raises(ValidationError, match="EVA_API_KEY"):
