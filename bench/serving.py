@@ -66,6 +66,18 @@ TINY = {
 
 
 # -- shared ---------------------------------------------------------------------------------------
+
+
+def render_limits() -> str:
+    """The render gate's limits as the server started here reads them (the same environment:
+    ``EVA_MAX_RENDERS`` and the like, else the defaults)."""
+    from service.settings import ServiceSettings
+
+    s = ServiceSettings()
+    at_once = "1 render at a time" if s.max_renders == 1 else f"{s.max_renders} renders at once"
+    return f"{at_once}, {s.render_queue} waiting at most {s.render_wait_s:.0f} s"
+
+
 def quantile(values: list[float], q: float) -> float:
     if not values:
         return float("nan")
@@ -251,8 +263,7 @@ def run_latency(args) -> None:
     lines = header("Service render latency", report, args.note) + [
         f"- avatar: {avatar.get('num_gaussians')} Gaussians ({avatar.get('preset')} preset); round trip over "
         "loopback HTTP incl. pose JSON validation, skinning, rasterization and the image's encoding; 16 "
-        "clients share "
-        "the render gate (2 renders at once by default; clients wait out 503s as Retry-After says)",
+        f"clients share the render gate ({render_limits()}; clients wait out 503s as Retry-After says)",
         "",
         "Each request changes the pose and the camera (`pose`), or the camera only (`camera`: the "
         "page's view slider).",
@@ -479,8 +490,8 @@ def load_markdown(report: dict) -> list[str]:
     lines = header("Service under load", report, report["note"]) + [
         f"- load: {c['render']} render clients ({c['size']}², a new pose each time) and "
         f"{c['upload']} upload clients (a {CLIP_FRAMES}-frame signer video, then cancel the queued job) for "
-        f"{c['seconds']:.0f} s against `eva serve` with an API key and its default limits (2 renders "
-        "at once, 8 waiting at most 10 s, 2 uploads at once); "
+        f"{c['seconds']:.0f} s against `eva serve` with an API key and its limits ({render_limits()}, "
+        "2 uploads at once); "
         "clients wait out 503s as `Retry-After` says; `/healthz` polled every 100 ms from another process",
         f"- avatar: {avatar['num_gaussians']} Gaussians ({avatar['preset']} preset)",
         "",
