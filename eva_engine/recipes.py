@@ -34,11 +34,12 @@ class Preset:
     progress_every: int | None = None
     pose_correction_start: int | None = None
     pose_correction_lr: float | None = None
-    avatar: dict[str, int | bool] = field(default_factory=dict)
+    avatar: dict[str, int | float | bool] = field(default_factory=dict)
 
 
 # Every preset carries the Gaussians an expression moves by the skin's frame, and recolours the
-# lids with the blinks (closed lids cover the eye: docs/alignment.md).
+# lids with the blinks, and the eyeball the lids cover (closed lids cover the eye:
+# docs/alignment.md).
 PRESETS: dict[str, Preset] = {
     "tiny": Preset(
         "seconds, a test",
@@ -55,6 +56,7 @@ PRESETS: dict[str, Preset] = {
             "field_resolution": 32,
             "expression_frames": True,
             "expression_colours": True,
+            "expression_colour_spread": 0.006,
         },
     ),
     "fast": Preset(
@@ -70,13 +72,19 @@ PRESETS: dict[str, Preset] = {
             "mlp_width": 64,
             "expression_frames": True,
             "expression_colours": True,
+            "expression_colour_spread": 0.006,
         },
     ),
     "default": Preset(
         "the paper's",
         pose_correction_start=400,
         # The MLPs 64 wide, not 128: 15% less training time, quality no worse (docs/speed.md).
-        avatar={"mlp_width": 64, "expression_frames": True, "expression_colours": True},
+        avatar={
+            "mlp_width": 64,
+            "expression_frames": True,
+            "expression_colours": True,
+            "expression_colour_spread": 0.006,
+        },
     ),
 }
 """Preset name -> its schedule and model size: the one table of them."""

@@ -85,6 +85,7 @@ def test_the_products_presets_carry_gaussians_by_the_skin_and_the_papers_methods
         avatar = preset(name).avatar
         assert avatar.expression_frames and avatar.expression_colours
         assert avatar.expression_colour_actions == BLINK_ACTIONS
+        assert avatar.expression_colour_spread == 0.006  # the eyeball a closing lid covers
     for method in METHODS:
         avatar = with_method(preset("fast"), method).avatar
         assert not avatar.expression_frames and not avatar.expression_colours

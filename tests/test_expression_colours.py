@@ -11,7 +11,7 @@ import torch
 from helpers.scenes import dark_eye_pixels, dark_eyes_avatar, face_camera, teacher_scene
 
 from eva_engine.avatar import Avatar
-from eva_engine.avatar.config import REVEALING_ACTIONS
+from eva_engine.avatar.config import REVEALING_ACTIONS, AvatarConfig
 from eva_engine.avatar.expression_colours import (
     MAX_OFFSET,
     action_reach,
@@ -69,6 +69,34 @@ def test_an_action_recolours_only_the_skin_it_moves(anny_model):
     scale[3] = 0.25
     out = expression_sh0(sh0, offsets, coefficients, rows, scale)
     assert torch.allclose(out[:2, 0], sh0[:2, 0] + offsets[:2, 3])
+
+
+def test_a_spread_also_recolours_what_the_moved_skin_covers(anny_model):
+    """With ``spread`` a blink also reaches the vertices within that distance of the lid it moves
+    (the eyeball's front, which it covers but does not move), and no longer what Anny's blink
+    moves far from the eye (the mouth's cavity, the other eye's socket)."""
+    from eva_engine.body.anny_backend import SEGMENT_LABELS
+
+    actions = revealing_actions(list(anny_model.expression_names), ("eyeBlinkLeft",))
+    shape = anny_model.shape_defaults
+    moved = action_reach(anny_model, shape, actions)[:, 0]
+    spread = action_reach(anny_model, shape, actions, spread=0.006)[:, 0]
+    assert torch.equal(action_reach(anny_model, shape, actions, spread=0.0)[:, 0], moved)
+    labels = torch.as_tensor(anny_model.segment_labels)
+    eye = labels == SEGMENT_LABELS.index("eye_front.L")
+    mouth = labels == SEGMENT_LABELS.index("mouth_cavity")
+    other_eye = labels == SEGMENT_LABELS.index("eye_cavity.R")
+    assert not bool(moved[eye].any()) and int(spread[eye].sum()) > 0.5 * int(eye.sum())
+    assert bool(moved[mouth].any()) and not bool(spread[mouth].any())
+    assert bool(moved[other_eye].any()) and not bool(spread[other_eye].any())
+    with torch.no_grad():
+        rest = anny_model.canonical(anny_model.default_params(1))[0]
+    kept = moved & spread
+    assert int(kept.sum()) > 0.8 * int((moved & ~mouth & ~other_eye).sum())
+    gap = torch.cdist(rest[spread & ~moved], rest[kept]).amin(dim=1)
+    assert float(gap.max()) < 0.006
+    with pytest.raises(ValueError, match="expression_colour_spread"):
+        AvatarConfig(expression_colour_spread=-0.001)
 
 
 def test_rest_colours_exactly_at_zero_expression_and_saved_offsets_render_the_same(anny_model, tmp_path):

@@ -51,6 +51,10 @@ class AvatarConfig:
     expression_colour_actions: those actions by name, the body model's that it has (None: all
         its actions; a model with none of the names, such as SMPL-X: none). The blinks by
         default; ``REVEALING_ACTIONS`` adds the jaw.
+    expression_colour_spread: metres: an action also recolours the Gaussians whose vertex lies
+        within this distance of a vertex it moves (at rest), such as the eyeball behind a closing
+        lid, which the blink covers but does not move, and no longer what it moves far away
+        (``expression_colours.action_reach``); 0: everything it moves, nothing else.
     weight_mlp_bf16: while training, the weight-offset MLP multiplies in bfloat16 (its output,
         softmax and parameter gradients stay float32; ``networks.relu_mlp``). Rendering a trained
         avatar is float32 either way. Worth it where the CPU has native bfloat16 (AVX512-BF16).
@@ -75,6 +79,7 @@ class AvatarConfig:
     expression_frames: bool = False
     expression_colours: bool = False
     expression_colour_actions: tuple[str, ...] | None = BLINK_ACTIONS
+    expression_colour_spread: float = 0.0
     weight_mlp_bf16: bool = False
 
     def __post_init__(self) -> None:
@@ -94,6 +99,10 @@ class AvatarConfig:
             raise ValueError("latent_bones must be >= 0, and > 0 only with field skinning")
         if self.max_scale is not None and (len(self.max_scale) != 3 or min(self.max_scale) <= 0):
             raise ValueError("max_scale must be three positive lengths (body, hand, face) or None")
+        if not 0.0 <= self.expression_colour_spread < 0.05:
+            raise ValueError(
+                f"expression_colour_spread must be in [0, 0.05) m, got {self.expression_colour_spread}"
+            )
         if not 0.0 < self.init_normal_ratio <= 1.0:
             raise ValueError(f"init_normal_ratio must be in (0, 1], got {self.init_normal_ratio}")
 

@@ -42,6 +42,7 @@ from eva_engine.body.model import BodyModel
 from eva_engine.render.sh import SH_C0
 
 REACH = 0.1  # the share of an action's largest displacement a vertex must move to be recoloured
+LOCAL_RADIUS = 0.035  # metres around an action's most moved vertex: a lid and its brow, not the mouth
 MIN_RANGE = 0.05  # an action (nearly) absent from training: its offsets learn nothing anyway
 MAX_OFFSET = 1.0 / SH_C0  # an offset of at most the whole colour range per unit coefficient
 
@@ -57,17 +58,30 @@ def revealing_actions(names: list[str], wanted: tuple[str, ...] | None) -> list[
 
 
 @torch.no_grad()
-def action_reach(body: BodyModel, shape: Tensor, actions: list[int], reach: float = REACH) -> Tensor:
+def action_reach(
+    body: BodyModel, shape: Tensor, actions: list[int], reach: float = REACH, spread: float = 0.0
+) -> Tensor:
     """[V, K] bool: the template vertices each of the K ``actions`` (expression indices) moves, at
     coefficient 1, by more than ``reach`` times the action's largest displacement (``body``'s
-    rest pose with ``shape [S]``)."""
+    rest pose with ``shape [S]``). With ``spread`` > 0 the reach is local and covers what the
+    action covers: only the moved vertices within ``LOCAL_RADIUS`` of the most moved one (Anny's
+    eyeBlinkLeft also moves the mouth's cavity by up to two thirds of the lid's travel, and the
+    other eye's socket), and every vertex within ``spread`` metres of those on the neutral face
+    (the eyeball behind a closing lid)."""
     k = len(actions)
     params = body.default_params(k + 1)
     params.shape = shape.to(params.shape).reshape(1, -1).expand(k + 1, -1).clone()
     params.expression[torch.arange(1, k + 1), torch.tensor(actions, dtype=torch.long)] = 1.0
     rest = body.canonical(params)  # [K + 1, V, 3]; row 0 is the neutral face
     moved = (rest[1:] - rest[:1]).norm(dim=-1)  # [K, V]
-    return (moved > reach * moved.amax(dim=1, keepdim=True)).T.contiguous()
+    hit = moved > reach * moved.amax(dim=1, keepdim=True)  # [K, V]
+    if spread > 0:
+        for a in range(k):
+            centre = rest[0][moved[a].argmax()]
+            seeds = hit[a] & ((rest[0] - centre).norm(dim=-1) < LOCAL_RADIUS)
+            if bool(seeds.any()):
+                hit[a] = seeds | (torch.cdist(rest[0], rest[0][seeds]).amin(dim=1) < spread)
+    return hit.T.contiguous()
 
 
 def expression_range(expression: Tensor, actions: list[int] | Tensor) -> Tensor:

@@ -139,7 +139,7 @@ class Avatar(nn.Module):
             self.register_buffer(
                 "expression_actions", torch.tensor(actions, dtype=torch.long), persistent=False
             )
-            reach = action_reach(body, self.shape, actions)
+            reach = action_reach(body, self.shape, actions, spread=config.expression_colour_spread)
             self.register_buffer("expression_reach", reach, persistent=False)
             # [K] r_k, set from the training frames (``set_expression_range``) and saved.
             self.register_buffer("expression_range", torch.ones(len(actions), dtype=body.dtype))
