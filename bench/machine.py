@@ -74,11 +74,16 @@ def portable_path(path: str | Path) -> str:
     if path.is_relative_to(data):
         return str(Path("$EVA_DATA_DIR") / path.relative_to(data))
     scratch = Path(tempfile.gettempdir()).resolve()
+    beside = repo.parent
+    # Beside the checkout before the scratch folder only for a checkout inside it (CI's clone).
+    if (
+        beside != Path(beside.anchor)
+        and path.is_relative_to(beside)
+        and (repo.is_relative_to(scratch) or not path.is_relative_to(scratch))
+    ):
+        return str(Path("..") / path.relative_to(beside))
     if path.is_relative_to(scratch):
         return str(Path("$TMPDIR") / path.relative_to(scratch))
-    beside = repo.parent
-    if beside != Path(beside.anchor) and path.is_relative_to(beside):
-        return str(Path("..") / path.relative_to(beside))
     return str(path)
 
 
