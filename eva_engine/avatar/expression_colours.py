@@ -65,7 +65,7 @@ def action_reach(
     coefficient 1, by more than ``reach`` times the action's largest displacement (``body``'s
     rest pose with ``shape [S]``). With ``spread`` > 0 the reach is local and covers what the
     action covers: only the moved vertices within ``LOCAL_RADIUS`` of the most moved one (Anny's
-    eyeBlinkLeft also moves the mouth's cavity by up to two thirds of the lid's travel, and the
+    blinks also move the mouth's cavity by up to two thirds of the lid's travel, and the
     other eye's socket), and every vertex within ``spread`` metres of those on the neutral face
     (the eyeball behind a closing lid)."""
     k = len(actions)

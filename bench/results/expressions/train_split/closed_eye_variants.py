@@ -2,6 +2,8 @@
 colour offsets, and with both blinks set to 1 and to 0 (``README.md``).
 
     python bench/results/expressions/train_split/closed_eye_variants.py AVATAR FRAME OUT.png
+
+Prints the frame's fitted blink coefficients (``closed_eye_variants_*.txt``).
 """
 
 from __future__ import annotations
@@ -43,6 +45,10 @@ def render(avatar_dir: str, frame: int, variant: str) -> np.ndarray:
 
 def main(avatar_dir: str, frame: str, out: str) -> None:
     torch.set_num_threads(2)
+    saved = load_saved_avatar(avatar_dir)
+    fitted = frame_params(saved.frames, int(frame)).expression[0]
+    names = list(saved.avatar.body.expression_names)
+    print(f"frame {frame}, fitted: " + ", ".join(f"{n} {float(fitted[names.index(n)]):.2f}" for n in BLINKS))
     sheet = np.concatenate([render(avatar_dir, int(frame), v) for v in VARIANTS], axis=0)
     cv2.imwrite(out, cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 
