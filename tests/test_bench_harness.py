@@ -147,3 +147,12 @@ def test_committed_results_name_no_folder_of_the_machine_that_ran_them():
         text = (ROOT / name).read_text(errors="replace")
         offenders += [f"{name}: {m.group(0)}" for m in MACHINE_PATH.finditer(text)][:1]
     assert not offenders, offenders[:10]
+
+
+def test_the_test_suite_benchmark_reads_pytests_summary_line():
+    from bench.test_suite import pytest_summary
+
+    out = "ruff ok\n.....\n===== 867 passed, 1 skipped, 2 warnings in 231.61s (0:03:51) =====\n"
+    assert pytest_summary(out) == ({"passed": 867, "skipped": 1, "warnings": 2}, 231.61)
+    assert pytest_summary("3 passed in 0.5s") == ({"passed": 3}, 0.5)
+    assert pytest_summary("make: *** [Makefile:44: test] Error 1") == ({}, None)

@@ -1,0 +1,85 @@
+"""The test suite's wall time: ``make test`` (ruff and pytest as CI runs them), timed.
+
+    python -m bench test_suite [--target test] [--name test_suite]
+
+Runs ``make <target>`` from this checkout (its venv and caches as they are: a fresh clone adds
+the install, which ``first_contact`` times) and reads pytest's summary line for the counts and
+pytest's own time. Writes bench/results/<name>.{json,md}; issue 38's goal is 5 minutes of wall
+time on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import time
+from pathlib import Path
+
+from bench import machine
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
+TARGET_SECONDS = 5 * 60
+SUMMARY = re.compile(r"^=*\s*(?P<counts>\d+ passed.*?) in (?P<seconds>[\d.]+)s")
+
+
+def pytest_summary(output: str) -> tuple[dict[str, int], float | None]:
+    """({"passed": n, "skipped": m, ...}, pytest's seconds) from the last summary line of
+    ``output`` (({}, None) without one)."""
+    found = [m for m in map(SUMMARY.match, output.splitlines()) if m]
+    if not found:
+        return {}, None
+    last = found[-1]
+    counts = {kind: int(n) for n, kind in re.findall(r"(\d+) (\w+)", last["counts"])}
+    return counts, float(last["seconds"])
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m bench test_suite", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--target", default="test", help="the make target to time (default: test)")
+    parser.add_argument("--name", default="test_suite")
+    args = parser.parse_args(argv)
+    load_before = list(os.getloadavg())
+    started = time.perf_counter()
+    done = subprocess.run(["make", args.target], cwd=ROOT, capture_output=True, text=True)
+    wall = time.perf_counter() - started
+    output = done.stdout + done.stderr
+    counts, pytest_seconds = pytest_summary(output)
+    doc = {
+        **machine.run_header(),
+        "target": f"make {args.target}",
+        "exit_code": done.returncode,
+        "wall_seconds": round(wall, 1),
+        "pytest_seconds": pytest_seconds,
+        "counts": counts,
+        "load_average_at_start": [round(x, 2) for x in load_before],
+        "target_seconds": TARGET_SECONDS,
+        "target_met": done.returncode == 0 and wall <= TARGET_SECONDS,
+    }
+    slowest = [line for line in output.splitlines() if re.match(r"^\d+\.\d+s (call|setup|teardown) ", line)]
+    verdict = "met" if doc["target_met"] else "NOT met"
+    lines = [
+        "# The test suite's wall time",
+        "",
+        machine.header_line(doc),
+        f"- machine: {doc['machine']}",
+        f"- `make {args.target}` from the checkout (venv and caches present), exit code {done.returncode}; "
+        f"load average at start {', '.join(map(str, doc['load_average_at_start']))}",
+        f"- wall {wall:.1f} s ({int(wall // 60)} min {wall % 60:.1f} s), ruff included; pytest's own "
+        f"time {pytest_seconds} s; {', '.join(f'{n} {k}' for k, n in counts.items()) or 'no pytest summary'}",
+        f"- target {TARGET_SECONDS} s of wall time: {verdict}",
+        "",
+        "The slowest steps (pytest's `--durations`):",
+        "",
+        *[f"    {line}" for line in slowest[:20]],
+    ]
+    machine.write_result(RESULTS, args.name, doc, lines, show=True)
+    if done.returncode != 0:
+        print(output[-4000:])
+        raise SystemExit(done.returncode)
+
+
+if __name__ == "__main__":
+    main()
