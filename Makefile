@@ -38,7 +38,7 @@ lint: install
 # The suite in TEST_WORKERS processes (pytest-xdist; a test file's tests stay in one, so its
 # fixtures are built once), each torch on one thread (OMP_NUM_THREADS, inherited by the processes
 # the tests start): on 2 cores 1.6x faster than one process on two threads, whose torch ops leave
-# the second core mostly idle (bench/results/test_suite.md).
+# the second core mostly idle (bench/results/test_suite_workers.md).
 # --durations: the slowest tests, in CI's output too (where the suite's time goes).
 TEST_WORKERS ?= 2
 PYTEST := OMP_NUM_THREADS=1 $(BIN)/pytest -q -n $(TEST_WORKERS) --dist loadfile

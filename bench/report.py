@@ -15,6 +15,7 @@ wrong number in the docs.
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -77,6 +78,7 @@ class ServiceLatency(_Loose):
     """``bench.serving latency``'s result."""
 
     date: str
+    commit: str | None = None
     machine: str
     rows: list[LatencyRow]
 
@@ -314,12 +316,145 @@ def closeup_densify(results: Path) -> list[str]:
     ]
 
 
+class TrainRun(_Loose):
+    """One labelled section of ``train.json`` (``bench.train``; older sections hold strings)."""
+
+    date: str
+    commit: str | None = None
+    train_seconds: float
+    num_gaussians: int
+
+
+class RealVideoMethod(_Loose):
+    train_seconds: float
+    n_gaussians: int
+
+
+class RealVideo(_Loose):
+    methods: dict[str, RealVideoMethod]
+
+
+class RealVideos(_Loose):
+    """``bench.real_videos``' result (the training times)."""
+
+    date: str
+    commit: str | None = None
+    videos: dict[str, RealVideo]
+
+
+class TestSuite(_Loose):
+    """``bench.test_suite``'s result."""
+
+    date: str
+    commit: str | None = None
+    exit_code: int
+    wall_seconds: float
+    pytest_seconds: float | None
+    counts: dict[str, int]
+
+
+class FirstContact(_Loose):
+    """``bench.first_contact``'s result."""
+
+    date: str
+    commit: str | None = None
+    exit_code: int
+    total_seconds: float
+    steps_seconds: dict[str, float]
+
+
+class Rasterizer(_Loose):
+    """``bench.rasterizer``'s result (its own verdicts on its targets)."""
+
+    date: str
+    commit: str | None = None
+    targets: list[str]
+
+
+SPEED_TRAIN_RUNS = {
+    "default": "controlled-bench-seed0/default@default_2000_1620",
+    "eva": "controlled-bench-seed0/default/eva@conf_full_2000",
+}
+"""The ``train.json`` sections the targets table quotes: the latest 2,000-iteration runs of each."""
+SPEED_REAL_VIDEO = ("speed_fast/real_videos_fast_mmpose", "mmpose_body3d_demo.mp4")
+
+
+def _when(doc) -> str:
+    commit = (doc.commit or "").replace("+dirty", "")[:7]
+    return f"{doc.date[:16].replace('T', ' ')}Z" + (f" at {commit}" if commit else "")
+
+
+def _verdict(met: bool) -> str:
+    return "met" if met else "**not met**"
+
+
+def speed_targets(results: Path) -> list[str]:
+    """Issue 38's goals against the latest run of each (``docs/speed.md``, "Targets")."""
+    train = {
+        name: TrainRun.model_validate(_json(results / "train.json")[label])
+        for name, label in SPEED_TRAIN_RUNS.items()
+    }
+    trained = ", ".join(
+        f"`{n}` {r.train_seconds:.1f} s ({r.num_gaussians:,} Gaussians)" for n, r in train.items()
+    )
+    labels = ", ".join(f"`{label.split('@')[1]}`" for label in SPEED_TRAIN_RUNS.values())
+    real_name, video = SPEED_REAL_VIDEO
+    real = load(RealVideos, real_name, results)
+    fast = real.videos[video].methods
+    fast_text = ", ".join(f"`{m}` {r.train_seconds:.0f} s" for m, r in fast.items())
+    service = load(ServiceLatency, "service", results)
+    rows = {(r.varies, r.size, r.clients): r for r in service.rows}
+    p50 = rows["pose", 512, 1].p50_ms
+    ratios = {
+        (varies, size): rows[varies, size, 16].throughput_rps / rows[varies, size, 1].throughput_rps
+        for varies, size, clients in rows
+        if clients == 1 and (varies, size, 16) in rows
+    }
+    ratio_text = "; ".join(
+        f"a new {varies}: "
+        + ", ".join(f"{r:.2f}x at {size}²" for (v, size), r in ratios.items() if v == varies)
+        for varies in dict.fromkeys(v for v, _ in ratios)
+    )
+    suite = load(TestSuite, "test_suite", results)
+    counts = ", ".join(f"{n} {k}" for k, n in suite.counts.items() if k != "warnings")
+    demo = load(FirstContact, "first_contact", results)
+    steps = ", ".join(f"{k} {v:.0f} s" for k, v in demo.steps_seconds.items() if v >= 1)
+    raster = load(Rasterizer, "rasterizer", results)
+    raster_2t = next(t for t in raster.targets if t.startswith("2 threads: forward+backward"))
+    return [
+        "| target | measured | file |",
+        "|---|---|---|",
+        f"| training, `--preset default` (2,000 iterations at 512 px), 2 threads, ≤ 300 s for both "
+        f"`default` and `eva` | {trained}; {_when(train['default'])}: "
+        f"{_verdict(all(r.train_seconds <= 300 for r in train.values()))} | `train.md` ({labels}) |",
+        f"| `--preset fast` on `{video}`, the real-video protocol, ≤ 60 s | {fast_text}; {_when(real)}: "
+        f"{_verdict(all(r.train_seconds <= 60 for r in fast.values()))} | `{real_name}.md` |",
+        f"| render endpoint p50, a new pose at 512², one client, ≤ 30 ms | {p50:.0f} ms; {_when(service)}: "
+        f"{_verdict(p50 <= 30)} | `service.md` |",
+        f"| 16 clients' throughput at least one client's | {ratio_text}; {_when(service)}: "
+        f"{_verdict(min(ratios.values()) >= 1.0)} | `service.md` |",
+        f"| `make test` ≤ 5 min of wall time | {suite.wall_seconds:.0f} s ({counts or 'no pytest summary'}; "
+        f"exit code {suite.exit_code}); {_when(suite)}: "
+        f"{_verdict(suite.exit_code == 0 and suite.wall_seconds <= 300)} | `test_suite.md` |",
+        f"| a fresh clone's `make demo` ≤ 3 min, system packages included | {demo.total_seconds:.0f} s "
+        f"({steps}); {_when(demo)}: {_verdict(demo.exit_code == 0 and demo.total_seconds <= 180)} "
+        "| `first_contact.md` |",
+        f"| rasterizer, 20k Gaussians at 512², forward and backward ≤ 60 ms | {raster_2t}; {_when(raster)} "
+        "| `rasterizer.md` |",
+    ]
+
+
+def _json(path: Path) -> dict:
+    return json.loads(path.read_text())
+
+
 SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "paper_tables": paper_tables,
     "paper_regime": paper_regime,
     "service_latency": service_latency,
     "calibration_wild": calibration_wild,
     "closeup_densify": closeup_densify,
+    "speed_targets": speed_targets,
 }
 
 

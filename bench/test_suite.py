@@ -22,7 +22,8 @@ from bench import machine
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 TARGET_SECONDS = 5 * 60
-SUMMARY = re.compile(r"^=*\s*(?P<counts>\d+ passed.*?) in (?P<seconds>[\d.]+)s")
+OUTCOMES = r"(?:passed|failed|errors?|skipped|deselected|xfailed|xpassed|warnings?)"
+SUMMARY = re.compile(rf"^=*\s*(?P<counts>\d+ {OUTCOMES}\b.*?) in (?P<seconds>[\d.]+)s")
 
 
 def pytest_summary(output: str) -> tuple[dict[str, int], float | None]:

@@ -155,4 +155,6 @@ def test_the_test_suite_benchmark_reads_pytests_summary_line():
     out = "ruff ok\n.....\n===== 867 passed, 1 skipped, 2 warnings in 231.61s (0:03:51) =====\n"
     assert pytest_summary(out) == ({"passed": 867, "skipped": 1, "warnings": 2}, 231.61)
     assert pytest_summary("3 passed in 0.5s") == ({"passed": 3}, 0.5)
+    failed = "28.04s call     tests/test_demo.py::test_x\n== 1 failed, 875 passed in 220.10s (0:03:40) ==\n"
+    assert pytest_summary(failed) == ({"failed": 1, "passed": 875}, 220.1)
     assert pytest_summary("make: *** [Makefile:44: test] Error 1") == ({}, None)
