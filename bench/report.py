@@ -429,7 +429,7 @@ def speed_targets(results: Path) -> list[str]:
         f"{_verdict(all(r.train_seconds <= 300 for r in train.values()))} | `train.md` ({labels}) |",
         f"| `--preset fast` on `{video}`, the real-video protocol, ≤ 60 s | {fast_text}; {_when(real)}: "
         f"{_verdict(all(r.train_seconds <= 60 for r in fast.values()))} | `{real_name}.md` |",
-        f"| render endpoint p50, a new pose at 512², one client, ≤ 30 ms | {p50:.0f} ms; {_when(service)}: "
+        f"| render endpoint p50, a new pose at 512², one client, ≤ 30 ms | {p50:.1f} ms; {_when(service)}: "
         f"{_verdict(p50 <= 30)} | `service.md` |",
         f"| 16 clients' throughput at least one client's | {ratio_text}; {_when(service)}: "
         f"{_verdict(min(ratios.values()) >= 1.0)} | `service.md` |",
