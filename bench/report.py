@@ -221,6 +221,62 @@ def calibration_wild(results: Path) -> list[str]:
     return lines
 
 
+class AlignEstimate(AlignFit):
+    """An estimate of ``bench.align``'s synthetic section with its image-space errors."""
+
+    px_vs_ground_truth: dict[str, float]
+    face_mesh_px_per_frame: dict[str, float]
+
+
+class AlignSeconds(_Loose):
+    fit_total: float
+
+
+class AlignMeasured(_Loose):
+    """``bench.align``'s synthetic section, the fields ``align_measurements`` reads."""
+
+    frames: int
+    image_size: list[int]
+    detection_px_vs_ground_truth: dict[str, float]
+    initial: AlignEstimate
+    fitted: AlignEstimate
+    ground_truth_params: AlignEstimate
+    seconds: AlignSeconds
+
+
+class AlignRun(_Loose):
+    date: str
+    commit: str | None = None
+    machine: str
+    synthetic: AlignMeasured
+
+
+def align_measurements(results: Path) -> list[str]:
+    """``docs/alignment.md``, "Measurements": the fit on synthetic ``wild`` (``align.json``)."""
+    doc = load(AlignRun, "align", results)
+    s = doc.synthetic
+    first, fit, truth = s.initial, s.fitted, s.ground_truth_params
+    groups = ", ".join(f"{g} {fit.expression_mm_by_group[g]:.2f}" for g in ("jaw", "lips", "lids", "brows"))
+    threads = doc.machine.split(" with ")[1].split(",")[0] if " with " in doc.machine else "?"
+    return [
+        f"`python -m bench align` → `bench/results/align.md` (synthetic `wild`, {s.frames} frames at "
+        f"{s.image_size[0]} px, MediaPipe on the renders, ground truth known; {_when(doc)}, {threads}):",
+        f"- fitted hand MPJPE {fit.mpjpe_mm['hands']:.1f} mm "
+        f"(initial estimate {first.mpjpe_mm['hands']:.1f});",
+        f"- body MPJPE {fit.mpjpe_mm['body_in_view']:.1f} mm over the joints in view "
+        f"({fit.mpjpe_mm['body']:.1f} mm over all joints: the legs of a waist-up frame are guesses);",
+        f"- hand 2D error {fit.px_vs_ground_truth['hands']:.2f} px (detector "
+        f"{s.detection_px_vs_ground_truth['hands']:.1f} px);",
+        f"- face-mesh re-projection {fit.face_mesh_px_per_frame['median']:.2f} px per frame (median; "
+        f"{truth.face_mesh_px_per_frame['median']:.2f} px for the true parameters, the correspondence's own "
+        "error);",
+        f"- expression error {fit.expression_mm:.2f} mm against {first.expression_mm:.2f} mm for the initial "
+        f"neutral face ({groups} mm);",
+        f"- head rotation error {fit.head_deg:.1f} degrees (initial {first.head_deg:.1f});",
+        f"- fitting {s.frames} frames took {s.seconds.fit_total:.1f} s (goal 60 s).",
+    ]
+
+
 class RegionScores(_Loose):
     lpips_vgg: float
 
@@ -455,6 +511,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "calibration_wild": calibration_wild,
     "closeup_densify": closeup_densify,
     "speed_targets": speed_targets,
+    "align_measurements": align_measurements,
 }
 
 
