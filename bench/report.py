@@ -277,6 +277,45 @@ def align_measurements(results: Path) -> list[str]:
     ]
 
 
+class CurvePoint(_Loose):
+    step: int
+    seeds: int
+    train_seconds: Stat
+    full: Stat
+    hand: Stat
+    face: Stat
+
+
+class TimeToQuality(_Loose):
+    """``bench.time_to_quality``'s merged result."""
+
+    date: str
+    commit: str | None = None
+    note: str | None = None
+    curves: dict[str, list[CurvePoint]]
+
+
+def time_to_quality(results: Path) -> list[str]:
+    """Each method's held-out LPIPS-VGG at each checkpoint against its training seconds
+    (``time_to_quality.json``; ``docs/baselines.md``, ``docs/eva-contributions.md``)."""
+    doc = load(TimeToQuality, "time_to_quality", results)
+    lines = [
+        f"`time_to_quality.md`, {_when(doc)}" + (f" ({doc.note})" if doc.note else "") + ": LPIPS-VGG "
+        "×1000 on every 4th novel-pose frame, mean ± std over the seeds; training seconds without "
+        "the evaluation.",
+        "",
+        "| method | iteration | train (s) | full | hand | face |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for method, points in doc.curves.items():
+        for p in points:
+            lines.append(
+                f"| {method} | {p.step} | {p.train_seconds.mean:.0f} ± {p.train_seconds.std:.0f} "
+                f"| {_mean_std(p.full)} | {_mean_std(p.hand)} | {_mean_std(p.face)} |"
+            )
+    return lines
+
+
 class RegionScores(_Loose):
     lpips_vgg: float
 
@@ -512,6 +551,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "closeup_densify": closeup_densify,
     "speed_targets": speed_targets,
     "align_measurements": align_measurements,
+    "time_to_quality": time_to_quality,
 }
 
 
