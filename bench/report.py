@@ -37,6 +37,13 @@ class _Loose(BaseModel):
     model_config = ConfigDict(extra="ignore")
 
 
+class _Run(_Loose):
+    """A result file's run header: when and at which commit (older results recorded none)."""
+
+    date: str
+    commit: str | None = None
+
+
 class Stat(_Loose):
     """``bench.stats.mean_std``: a mean over seeds."""
 
@@ -74,11 +81,9 @@ class LatencyRow(_Loose):
     throughput_rps: float
 
 
-class ServiceLatency(_Loose):
+class ServiceLatency(_Run):
     """``bench.serving latency``'s result."""
 
-    date: str
-    commit: str | None = None
     machine: str
     rows: list[LatencyRow]
 
@@ -244,9 +249,7 @@ class AlignMeasured(_Loose):
     seconds: AlignSeconds
 
 
-class AlignRun(_Loose):
-    date: str
-    commit: str | None = None
+class AlignRun(_Run):
     machine: str
     synthetic: AlignMeasured
 
@@ -286,11 +289,9 @@ class CurvePoint(_Loose):
     face: Stat
 
 
-class TimeToQuality(_Loose):
+class TimeToQuality(_Run):
     """``bench.time_to_quality``'s merged result."""
 
-    date: str
-    commit: str | None = None
     note: str | None = None
     curves: dict[str, list[CurvePoint]]
 
@@ -411,11 +412,9 @@ def closeup_densify(results: Path) -> list[str]:
     ]
 
 
-class TrainRun(_Loose):
+class TrainRun(_Run):
     """One labelled section of ``train.json`` (``bench.train``; older sections hold strings)."""
 
-    date: str
-    commit: str | None = None
     train_seconds: float
     num_gaussians: int
 
@@ -429,40 +428,32 @@ class RealVideo(_Loose):
     methods: dict[str, RealVideoMethod]
 
 
-class RealVideos(_Loose):
+class RealVideos(_Run):
     """``bench.real_videos``' result (the training times)."""
 
-    date: str
-    commit: str | None = None
     videos: dict[str, RealVideo]
 
 
-class TestSuite(_Loose):
+class TestSuite(_Run):
     """``bench.test_suite``'s result."""
 
-    date: str
-    commit: str | None = None
     exit_code: int
     wall_seconds: float
     pytest_seconds: float | None
     counts: dict[str, int]
 
 
-class FirstContact(_Loose):
+class FirstContact(_Run):
     """``bench.first_contact``'s result."""
 
-    date: str
-    commit: str | None = None
     exit_code: int
     total_seconds: float
     steps_seconds: dict[str, float]
 
 
-class Rasterizer(_Loose):
+class Rasterizer(_Run):
     """``bench.rasterizer``'s result (its own verdicts on its targets)."""
 
-    date: str
-    commit: str | None = None
     targets: list[str]
 
 
