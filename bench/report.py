@@ -483,7 +483,7 @@ def speed_targets(results: Path) -> list[str]:
     trained = ", ".join(
         f"`{n}` {r.train_seconds:.1f} s ({r.num_gaussians:,} Gaussians)" for n, r in train.items()
     )
-    labels = ", ".join(f"`{label.split('@')[1]}`" for label in SPEED_TRAIN_RUNS.values())
+    labels = ", ".join(dict.fromkeys(f"`{label.split('@')[1]}`" for label in SPEED_TRAIN_RUNS.values()))
     real_name, video = SPEED_REAL_VIDEO
     real = load(RealVideos, real_name, results)
     fast = real.videos[video].methods
