@@ -28,12 +28,14 @@ def setup(
 
     console = Console(stderr=True)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
-    # The kernels compile meanwhile: the Anny build keeps about one core busy, the compiler the other.
-    kernels = ThreadPoolExecutor(max_workers=1).submit(_build_kernels, force)
     started = time.perf_counter()
     with console.status("Anny body-model cache (first build takes about 10 s)..."):
         path = prepare_anny_cache(cache_dir, force=force)
         model = load_body_model("anny", cache_dir=path, build_cache=False)
+    # The kernels compile beside the face mesh's correspondence and calibration, whose detection
+    # and image reductions leave a core idle; beside the Anny build they halved its pace
+    # (bench/results/first_contact_setup/kernels_after_anny.md).
+    kernels = ThreadPoolExecutor(max_workers=1).submit(_build_kernels, force)
     console.print(
         f"[green]ok[/] Anny cache {path}: {model.num_vertices} vertices, {model.num_joints} joints, "
         f"{len(model.expression_names)} expressions ({time.perf_counter() - started:.0f} s)"
