@@ -476,10 +476,8 @@ def _verdict(met: bool) -> str:
 
 def speed_targets(results: Path) -> list[str]:
     """Issue 38's goals against the latest run of each (``docs/speed.md``, "Targets")."""
-    train = {
-        name: TrainRun.model_validate(_json(results / "train.json")[label])
-        for name, label in SPEED_TRAIN_RUNS.items()
-    }
+    sections = json.loads((results / "train.json").read_text())  # label -> one run
+    train = {name: TrainRun.model_validate(sections[label]) for name, label in SPEED_TRAIN_RUNS.items()}
     trained = ", ".join(
         f"`{n}` {r.train_seconds:.1f} s ({r.num_gaussians:,} Gaussians)" for n, r in train.items()
     )
@@ -529,10 +527,6 @@ def speed_targets(results: Path) -> list[str]:
         f"| rasterizer, 20k Gaussians at 512², forward and backward ≤ 60 ms | {raster_2t}; {_when(raster)} "
         "| `rasterizer.md` |",
     ]
-
-
-def _json(path: Path) -> dict:
-    return json.loads(path.read_text())
 
 
 SECTIONS: dict[str, Callable[[Path], list[str]]] = {
