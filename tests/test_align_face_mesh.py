@@ -9,7 +9,14 @@ import numpy as np
 import pytest
 import torch
 
-from eva_engine.align.face_mesh import NUM_LANDMARKS, detect_face_mesh, load_correspondence, render_face
+from eva_engine.align import face_mesh
+from eva_engine.align.face_mesh import (
+    NUM_LANDMARKS,
+    detect_face_mesh,
+    load_correspondence,
+    render_face,
+    shared_painted_face,
+)
 from eva_engine.body import SIDED_PART_NAMES
 from eva_engine.geometry import project_points, to_camera
 
@@ -38,8 +45,15 @@ def test_landmarks_land_on_the_face(anny_model, correspondence):
 
 def test_reprojection_on_a_rendered_face(anny_model, correspondence):
     """A view the correspondence was not built from (5 deg right, 5 deg up), 512 px: MediaPipe's
-    landmarks and the projected correspondence points agree to under 1.5 px (median)."""
-    r = render_face(anny_model, ((5.0, 5.0),))[0]
+    landmarks and the projected correspondence points agree to under 1.5 px (median). The render
+    comes from a shared renderer, which renders the same after it has rendered something else
+    (the correspondence and the calibration build from one)."""
+    with shared_painted_face(anny_model) as renderer:
+        assert renderer() is renderer()
+        render_face(anny_model, ((0.0, 0.0),), expression={"jawOpen": 1.0}, renderer=renderer())
+        r = render_face(anny_model, ((5.0, 5.0),), renderer=renderer())[0]
+        again = render_face(anny_model, ((5.0, 5.0),), renderer=renderer())[0]
+    assert np.array_equal(r["rgb"], again["rgb"]) and torch.equal(r["face_id"], again["face_id"])
     pts = detect_face_mesh(r["rgb"])
     assert pts is not None
     c = correspondence
@@ -49,6 +63,15 @@ def test_reprojection_on_a_rendered_face(anny_model, correspondence):
     err = np.linalg.norm(uv - pts, axis=1)[c.valid.numpy()]
     assert np.median(err) < 1.5, np.median(err)
     assert np.percentile(err, 90) < 4.0, np.percentile(err, 90)
+
+
+def test_the_shared_renderer_opens_only_when_asked_for(anny_model, correspondence, monkeypatch):
+    """With the cache present (the fixture), loading never pays a renderer's texture bake."""
+    opened = []
+    monkeypatch.setattr(face_mesh, "painted_face_renderer", lambda *a: opened.append(a))
+    with shared_painted_face(anny_model) as renderer:
+        assert load_correspondence(anny_model, renderer=renderer) is not None
+    assert opened == []
 
 
 def test_posed_points_fast_path_matches_posing_the_mesh(anny_model, correspondence):

@@ -23,6 +23,8 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,6 +42,7 @@ from eva_engine.align.face_mesh import (
 )
 from eva_engine.body.model import BodyModel
 from eva_engine.geometry import project_points, to_camera
+from eva_engine.render.mesh import MeshRenderer
 
 logger = logging.getLogger(__name__)
 
@@ -126,9 +129,11 @@ def build_calibration(
     samples: int = SAMPLES,
     views: tuple[tuple[float, float], ...] = VIEWS_DEG,
     seed: int = 0,
+    renderer: MeshRenderer | None = None,
 ) -> DetectorCalibration:
     """The calibration of MediaPipe on ``model``'s painted face (module docstring). Needs the mesh
-    renderer (EGL) and MediaPipe; about a minute on two cores."""
+    renderer (EGL) and MediaPipe; about half a minute on two cores. ``renderer``: an open 512-pixel
+    ``painted_face_renderer`` (else one is opened)."""
     from mediapipe.python.solutions import face_mesh as mp_face_mesh
 
     reg, landmarks = corr.regressor(model)
@@ -138,9 +143,11 @@ def build_calibration(
     cameras = [head_camera(model, yaw, pitch, 512) for yaw, pitch in views]
     features, targets = [], []
     with (
-        painted_face_renderer(model, 512) as renderer,
+        ExitStack() as stack,
         mp_face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=True) as detector,
     ):
+        if renderer is None:
+            renderer = stack.enter_context(painted_face_renderer(model, 512))
         for expression in expressions:
             params = model.default_params(1)
             params.expression[0] = torch.from_numpy(expression).to(params.expression)
@@ -190,16 +197,20 @@ def _cache_key(corr: FaceMeshCorrespondence) -> str:
 
 
 def load_calibration(
-    model: BodyModel, corr: FaceMeshCorrespondence, cache_dir: Path | None = None
+    model: BodyModel,
+    corr: FaceMeshCorrespondence,
+    cache_dir: Path | None = None,
+    renderer: Callable[[], MeshRenderer] | None = None,
 ) -> DetectorCalibration | None:
     """The cached calibration of ``model``'s face-mesh correspondence ``corr`` (built on first
     use), or None where it cannot be built (no renderer or MediaPipe, or no face found): the fit
-    then compares the correspondence's points alone."""
+    then compares the correspondence's points alone. ``renderer``: called for the renderer to
+    build with, if it must (``face_mesh.shared_painted_face``)."""
     return cached_json(
         cache_folder(model, cache_dir) / FILE_NAME,
         _cache_key(corr),
         "face-mesh calibration",
-        lambda: build_calibration(model, corr),
+        lambda: build_calibration(model, corr, renderer=renderer() if renderer else None),
         DetectorCalibration.from_json,
         missing=(ImportError, RuntimeError),  # no renderer or MediaPipe, or no face found
     )

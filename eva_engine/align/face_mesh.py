@@ -33,8 +33,9 @@ import json
 import logging
 import math
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 from typing import TypeVar
 
@@ -157,21 +158,34 @@ def painted_face_renderer(model: BodyModel, size: int = 512) -> Iterator[MeshRen
         yield renderer
 
 
+@contextmanager
+def shared_painted_face(model: BodyModel) -> Iterator[Callable[[], MeshRenderer]]:
+    """A function that opens the 512-pixel painted-face renderer on its first call and returns
+    that one after, closed on exit: the correspondence and its calibration build from one
+    renderer, whose texture bake (about 5 s) would otherwise run once for each."""
+    with ExitStack() as stack:
+        yield cache(lambda: stack.enter_context(painted_face_renderer(model, 512)))
+
+
 def render_face(
     model: BodyModel,
     views: tuple[tuple[float, float], ...],
     size: int = 512,
     expression: dict[str, float] | None = None,
+    renderer: MeshRenderer | None = None,
 ) -> list[dict]:
     """The painted face from each (yaw, pitch) view, neutral or with ``expression`` ({facial
     action: value}): dicts with rgb [H, W, 3] uint8, face_id [H, W], K, viewmat, the rendered
-    vertices [V, 3] and the neutral ones, ``rest`` [V, 3] (the same without an expression)."""
+    vertices [V, 3] and the neutral ones, ``rest`` [V, 3] (the same without an expression).
+    ``renderer``: an open :func:`painted_face_renderer` of ``size`` (else one is opened)."""
     params = model.params_from_pose({"expression": expression or {}})
     with torch.no_grad():
         rest = model(model.default_params(1)).vertices[0]
         vertices = model(params).vertices[0] if expression else rest
     out = []
-    with painted_face_renderer(model, size) as renderer:
+    with ExitStack() as stack:
+        if renderer is None:
+            renderer = stack.enter_context(painted_face_renderer(model, size))
         for yaw, pitch in views:
             K, view = head_camera(model, yaw, pitch, size)
             r = renderer.render(vertices, view, K)
@@ -259,18 +273,27 @@ def _barycentric(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
 
 
 def build_correspondence(
-    model: BodyModel, views: tuple[tuple[float, float], ...] = VIEWS_DEG, max_spread: float = 0.004
+    model: BodyModel,
+    views: tuple[tuple[float, float], ...] = VIEWS_DEG,
+    max_spread: float = 0.004,
+    renderer: MeshRenderer | None = None,
 ) -> FaceMeshCorrespondence:
     """The correspondence of ``model`` (module docstring). Needs the mesh renderer (EGL) and
-    MediaPipe; takes a few seconds."""
+    MediaPipe; takes a few seconds. ``renderer``: an open 512-pixel :func:`painted_face_renderer`
+    (else one is opened for both sets of renders)."""
     faces = model.faces.cpu().numpy()
     face_part = model.sided_part_ids.cpu().numpy()
     face_index = SIDED_PART_NAMES.index("face")
     skin = skin_faces(faces, model.num_vertices)
     inner_lips = set(INNER_LIPS)
     candidates: list[list[tuple[int, np.ndarray, np.ndarray]]] = [[] for _ in range(NUM_LANDMARKS)]
-    renders = [(r, False) for r in render_face(model, views)]
-    renders += [(r, True) for r in render_face(model, views, expression=INNER_LIP_EXPRESSION)]
+    with ExitStack() as stack:
+        if renderer is None:
+            renderer = stack.enter_context(painted_face_renderer(model, 512))
+        renders = [(r, False) for r in render_face(model, views, renderer=renderer)]
+        renders += [
+            (r, True) for r in render_face(model, views, expression=INNER_LIP_EXPRESSION, renderer=renderer)
+        ]
     for r, open_mouth in renders:
         pts = detect_face_mesh(r["rgb"])
         if pts is None:
@@ -364,17 +387,20 @@ def cached_json(
     return built
 
 
-def load_correspondence(model: BodyModel, cache_dir: Path | None = None) -> FaceMeshCorrespondence | None:
+def load_correspondence(
+    model: BodyModel, cache_dir: Path | None = None, renderer: Callable[[], MeshRenderer] | None = None
+) -> FaceMeshCorrespondence | None:
     """The cached correspondence of ``model`` (built and cached on first use), or None where it
     cannot be made (a model without the painted-face renderer, i.e. not Anny; no MediaPipe: dense
-    face fitting is then off)."""
+    face fitting is then off). ``renderer``: called for the renderer to build with, if it must
+    (:func:`shared_painted_face`)."""
     if model.name != "anny":
         return None
     return cached_json(
         cache_folder(model, cache_dir) / FILE_NAME,
         _cache_key(model),
         "face-mesh correspondence",
-        lambda: build_correspondence(model),
+        lambda: build_correspondence(model, renderer=renderer() if renderer else None),
         FaceMeshCorrespondence.from_json,
         missing=(ImportError,),
     )

@@ -10,7 +10,7 @@ from torch import Tensor
 
 from eva_engine.align.body_prior import body_articulation_prior
 from eva_engine.align.face_calibration import EYE_CORNERS, load_calibration
-from eva_engine.align.face_mesh import OPENING_PAIRS, load_correspondence
+from eva_engine.align.face_mesh import OPENING_PAIRS, load_correspondence, shared_painted_face
 from eva_engine.align.hands import articulation_prior
 from eva_engine.align.robust import weighted_gm, z_only_gm
 from eva_engine.align.silhouette import (
@@ -79,13 +79,15 @@ class FitProblem:
         self.calibration = None  # what the detector reads beyond those points, in their order
         dense = config.dense_face and targets.face_mesh is not None
         if dense and any(s.w_face_mesh > 0 or s.w_openings > 0 or s.face_z > 0 for s in config.stages):
-            corr = load_correspondence(model)
+            with shared_painted_face(model) as renderer:  # opened only where a cache is missing
+                corr = load_correspondence(model, renderer=renderer)
+                use = corr is not None and config.detector_calibration
+                calibration = load_calibration(model, corr, renderer=renderer) if use else None
             if corr is not None:
                 self.face_mesh = corr.regressor(model)
                 at = {int(k): i for i, k in enumerate(self.face_mesh[1])}
                 pairs = [(at[a], at[b]) for a, b in OPENING_PAIRS if a in at and b in at]
                 self.opening_pairs = torch.tensor(pairs, dtype=torch.long).reshape(-1, 2).T
-                calibration = load_calibration(model, corr) if config.detector_calibration else None
                 if calibration is not None:
                     self.calibration = calibration.aligned(self.face_mesh[1])
         self.silhouette = None  # (regressor of the outline's vertices, SilhouetteTargets, spacing m)

@@ -21,7 +21,7 @@ def setup(
     cache_dir: Path = typer.Option(None, help="Anny cache folder (default: <data dir>/cache/anny)."),
 ) -> None:
     """Build the Anny body-model cache (once, ~10 s), its face-mesh correspondence (MediaPipe on
-    rendered faces, ~10 s) and the face mesh's calibration (~35 s), build the C++ kernels of the
+    rendered faces, ~5 s) and the face mesh's calibration (~30 s), build the C++ kernels of the
     rasterizer and the skinning (~30 s), and check the offline LPIPS weights."""
     from eva_engine.body import load_body_model, prepare_anny_cache
     from eva_engine.metrics import LPIPSWeightsError, prepare_lpips
@@ -40,32 +40,7 @@ def setup(
         f"[green]ok[/] Anny cache {path}: {model.num_vertices} vertices, {model.num_joints} joints, "
         f"{len(model.expression_names)} expressions ({time.perf_counter() - started:.0f} s)"
     )
-    from eva_engine.align.face_mesh import load_correspondence
-
-    started = time.perf_counter()
-    with console.status("face-mesh correspondence (MediaPipe on rendered faces)..."):
-        corr = load_correspondence(model, cache_dir=path)
-    if corr is None:
-        console.print("[yellow]warning[/] no face-mesh correspondence: dense face fitting is off")
-    else:
-        console.print(
-            f"[green]ok[/] face-mesh correspondence: {int(corr.valid.sum())} of {len(corr.valid)} landmarks "
-            f"({time.perf_counter() - started:.0f} s)"
-        )
-        from eva_engine.align.face_calibration import load_calibration
-
-        started = time.perf_counter()
-        with console.status("face-mesh calibration (MediaPipe on faces with expressions)..."):
-            calibration = load_calibration(model, corr, cache_dir=path)
-        if calibration is None:
-            console.print(
-                "[yellow]warning[/] no face-mesh calibration: the fit compares the correspondence alone"
-            )
-        else:
-            console.print(
-                f"[green]ok[/] face-mesh calibration: {len(calibration.landmarks)} landmarks, "
-                f"{calibration.gain.shape[0]} facial actions ({time.perf_counter() - started:.0f} s)"
-            )
+    _face_mesh_files(console, model, path)
     with console.status("C++ kernels (compiled once per machine)..."):
         built = kernels.result()
     for library, ops, seconds in built:
@@ -85,6 +60,36 @@ def setup(
         console.print(f"[red]error[/] LPIPS weights: {err}")
         raise typer.Exit(1) from err
     console.print("[green]ok[/] LPIPS weights " + ", ".join(f"{k}: {v}" for k, v in weights.items()))
+
+
+def _face_mesh_files(console: Console, model, path: Path) -> None:
+    """The face mesh's correspondence and calibration, built from one painted-face renderer."""
+    from eva_engine.align.face_calibration import load_calibration
+    from eva_engine.align.face_mesh import load_correspondence, shared_painted_face
+
+    with shared_painted_face(model) as renderer:
+        started = time.perf_counter()
+        with console.status("face-mesh correspondence (MediaPipe on rendered faces)..."):
+            corr = load_correspondence(model, cache_dir=path, renderer=renderer)
+        if corr is None:
+            console.print("[yellow]warning[/] no face-mesh correspondence: dense face fitting is off")
+            return
+        console.print(
+            f"[green]ok[/] face-mesh correspondence: {int(corr.valid.sum())} of {len(corr.valid)} landmarks "
+            f"({time.perf_counter() - started:.0f} s)"
+        )
+        started = time.perf_counter()
+        with console.status("face-mesh calibration (MediaPipe on faces with expressions)..."):
+            calibration = load_calibration(model, corr, cache_dir=path, renderer=renderer)
+    if calibration is None:
+        console.print(
+            "[yellow]warning[/] no face-mesh calibration: the fit compares the correspondence alone"
+        )
+    else:
+        console.print(
+            f"[green]ok[/] face-mesh calibration: {len(calibration.landmarks)} landmarks, "
+            f"{calibration.gain.shape[0]} facial actions ({time.perf_counter() - started:.0f} s)"
+        )
 
 
 def _build_kernels(force: bool) -> list[tuple[object, object, float]]:
