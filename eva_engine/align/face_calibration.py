@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from eva_engine.align.face_mesh import (
+    SHIPPED_DIR,
     FaceMeshCorrespondence,
     cache_folder,
     cached_json,
@@ -190,7 +191,7 @@ def in_face_frame(offsets: np.ndarray, detected: np.ndarray) -> np.ndarray:
     return np.stack([offsets @ ex, offsets @ ey], axis=-1) / scale
 
 
-def _cache_key(corr: FaceMeshCorrespondence) -> str:
+def cache_key(corr: FaceMeshCorrespondence) -> str:
     h = hashlib.sha256(json.dumps(corr.to_json()).encode())
     h.update(f"{VERSION}/{SAMPLES}/{VIEWS_DEG}/{RIDGE}/{sorted(EYE_CONTOURS)}".encode())
     return h.hexdigest()[:16]
@@ -208,9 +209,10 @@ def load_calibration(
     build with, if it must (``face_mesh.shared_painted_face``)."""
     return cached_json(
         cache_folder(model, cache_dir) / FILE_NAME,
-        _cache_key(corr),
+        cache_key(corr),
         "face-mesh calibration",
         lambda: build_calibration(model, corr, renderer=renderer() if renderer else None),
         DetectorCalibration.from_json,
         missing=(ImportError, RuntimeError),  # no renderer or MediaPipe, or no face found
+        shipped=SHIPPED_DIR / f"{FILE_NAME}.gz",
     )

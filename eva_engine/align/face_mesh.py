@@ -28,6 +28,7 @@ the facial actions) where 16 sparse points could not.
 
 from __future__ import annotations
 
+import gzip
 import hashlib
 import json
 import logging
@@ -345,7 +346,7 @@ def build_correspondence(
     return FaceMeshCorrespondence(tri, bary_out, valid, spread)
 
 
-def _cache_key(model: BodyModel) -> str:
+def cache_key(model: BodyModel) -> str:
     """Changes with the body model's mesh, the MediaPipe version and this module's VERSION."""
     import mediapipe
 
@@ -362,19 +363,35 @@ def cache_folder(model: BodyModel, cache_dir: Path | None = None) -> Path:
     return Path(cache_dir or own or paths.cache_dir("anny"))
 
 
+SHIPPED_DIR = Path(__file__).parent / "shipped"
+"""The correspondence and calibration of the default Anny, as ``make face-mesh-files`` built them
+(``align.shipped_face_files``): read where their key matches, so a fresh install does not spend
+half a minute rendering and detecting faces to make the same files again."""
+
+
 def cached_json(
-    path: Path, key: str, what: str, build: Callable[[], T], parse: Callable[[dict], T], missing: tuple = ()
+    path: Path,
+    key: str,
+    what: str,
+    build: Callable[[], T],
+    parse: Callable[[dict], T],
+    missing: tuple = (),
+    shipped: Path | None = None,
 ) -> T | None:
     """The object that ``parse`` reads from ``path`` if it was written there for ``key``, else
-    ``build()``'s, written there (``to_json``, atomically) for the next time; None, with a
-    warning, if building raised one of ``missing``. An unreadable file is built again."""
-    if path.is_file():
+    from the gzipped ``shipped`` file if that was, else ``build()``'s, written to ``path``
+    (``to_json``, atomically) for the next time; None, with a warning, if building raised one of
+    ``missing``. An unreadable file is built again."""
+    for source in (path, shipped):
+        if source is None or not source.is_file():
+            continue
         try:
-            doc = json.loads(path.read_text())
+            raw = source.read_bytes()
+            doc = json.loads(gzip.decompress(raw) if source.suffix == ".gz" else raw)
             if doc.get("key") == key:
                 return parse(doc)
         except (OSError, ValueError, KeyError) as err:
-            logger.warning("unreadable %s %s (%s); rebuilding it", what, path, err)
+            logger.warning("unreadable %s %s (%s); rebuilding it", what, source, err)
     try:
         built = build()
     except missing as err:
@@ -398,9 +415,10 @@ def load_correspondence(
         return None
     return cached_json(
         cache_folder(model, cache_dir) / FILE_NAME,
-        _cache_key(model),
+        cache_key(model),
         "face-mesh correspondence",
         lambda: build_correspondence(model, renderer=renderer() if renderer else None),
         FaceMeshCorrespondence.from_json,
         missing=(ImportError,),
+        shipped=SHIPPED_DIR / f"{FILE_NAME}.gz",
     )
