@@ -35,6 +35,11 @@ def setup(
         model = load_body_model("anny", cache_dir=path, build_cache=False)
     # The kernels compile after the Anny build (beside it they halved its pace), beside the face
     # mesh's files, which are read (shipped) or built (bench/results/first_contact_setup/).
+    # cpp_extension imported here, before the threads: its import (setuptools, which puts its
+    # vendored packages on the path) raced with other imports and failed a build now and then
+    # ("No module named 'jaraco'", bench/results/first_contact_setup/shipped_face_files.md).
+    from torch.utils import cpp_extension  # noqa: F401
+
     kernels = ThreadPoolExecutor(max_workers=1).submit(_build_kernels, force)
     console.print(
         f"[green]ok[/] Anny cache {path}: {model.num_vertices} vertices, {model.num_joints} joints, "
