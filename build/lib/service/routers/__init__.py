@@ -1,0 +1,1 @@
+"""Thin routers: validate (schemas, deps), call ``jobs`` / ``service.rendering``, answer."""
