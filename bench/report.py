@@ -441,6 +441,7 @@ class TestSuite(_Run):
     wall_seconds: float
     pytest_seconds: float | None
     counts: dict[str, int]
+    fresh_clone: bool = False
 
 
 class FirstContact(_Run):
@@ -500,7 +501,8 @@ def speed_targets(results: Path) -> list[str]:
         for varies in dict.fromkeys(v for v, _ in ratios)
     )
     suite = load(TestSuite, "test_suite", results)
-    counts = ", ".join(f"{n} {k}" for k, n in suite.counts.items() if k != "warnings")
+    fresh = load(TestSuite, "test_suite_fresh_clone", results)
+    counts = ", ".join(f"{n} {k}" for k, n in fresh.counts.items() if k != "warnings")
     demo = load(FirstContact, "first_contact", results)
     steps = ", ".join(f"{k} {v:.0f} s" for k, v in demo.steps_seconds.items() if v >= 1)
     raster = load(Rasterizer, "rasterizer", results)
@@ -517,10 +519,12 @@ def speed_targets(results: Path) -> list[str]:
         f"{_verdict(p50 <= 30)} | `service.md` |",
         f"| 16 clients' throughput at least one client's | {ratio_text}; {_when(service)}: "
         f"{_verdict(min(ratios.values()) >= 1.0)} | `service.md` |",
-        "| `make test` ≤ 5 min of wall time (timed in a checkout with its venv and caches: a fresh "
-        f"clone adds the install) | {suite.wall_seconds:.0f} s ({counts or 'no pytest summary'}; "
-        f"exit code {suite.exit_code}); {_when(suite)}: "
-        f"{_verdict(suite.exit_code == 0 and suite.wall_seconds <= 300)} | `test_suite.md` |",
+        "| a fresh clone's `make test` ≤ 5 min of wall time, the install included | "
+        f"{fresh.wall_seconds:.0f} s, pytest {fresh.pytest_seconds:.0f} s ({counts or 'no pytest summary'}; "
+        f"exit code {fresh.exit_code}); {_when(fresh)}: "
+        f"{_verdict(fresh.exit_code == 0 and fresh.wall_seconds <= 300)}. In a checkout with its venv and "
+        f"caches: {suite.wall_seconds:.0f} s; {_when(suite)} "
+        "| `test_suite_fresh_clone.md`, `test_suite.md` |",
         f"| a fresh clone's `make demo` ≤ 3 min, system packages included | {demo.total_seconds:.0f} s "
         f"({steps}); {_when(demo)}: {_verdict(demo.exit_code == 0 and demo.total_seconds <= 180)} "
         "| `first_contact.md` |",
