@@ -39,12 +39,9 @@ lint: install
 # fixtures are built once), each torch on one thread (OMP_NUM_THREADS, inherited by the processes
 # the tests start): on 2 cores 1.6x faster than one process on two threads, whose torch ops leave
 # the second core mostly idle (bench/results/test_suite_workers.md).
-# --no-loadscope-reorder: files in the order tests/conftest.py gives them (the slow end-to-end
-# files first), not xdist's by test count, which handed them out last and left one worker idle
-# at the end.
 # --durations: the slowest tests, in CI's output too (where the suite's time goes).
 TEST_WORKERS ?= 2
-PYTEST := OMP_NUM_THREADS=1 $(BIN)/pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
+PYTEST := OMP_NUM_THREADS=1 $(BIN)/pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 test: install
 	$(BIN)/ruff check .
