@@ -88,6 +88,29 @@ class ServiceLatency(_Run):
     rows: list[LatencyRow]
 
 
+class NovelPoseSplit(_Loose):
+    """One split of ``novel_pose.json``: per region a mean over seeds of each metric; debris and
+    holes as fractions of the alpha mass and of the person's pixels."""
+
+    full: dict[str, Stat]
+    hand: dict[str, Stat]
+    face: dict[str, Stat]
+    arm: dict[str, Stat]
+    debris: Stat
+    holes: Stat
+
+
+class NovelPoseRow(_Loose):
+    seeds: list[int]
+    splits: dict[str, NovelPoseSplit]
+
+
+class NovelPose(_Run):
+    """``bench.novel_pose``'s merged result: one row per training variant."""
+
+    methods: dict[str, NovelPoseRow]
+
+
 def load(model: type[BaseModel], name: str, results: Path) -> BaseModel:
     return model.model_validate_json((results / f"{name}.json").read_text())
 
@@ -466,6 +489,59 @@ SPEED_TRAIN_RUNS = {
 SPEED_REAL_VIDEO = ("speed_fast/real_videos_fast_mmpose", "mmpose_body3d_demo.mp4")
 
 
+NOVEL_POSE_SPLITS = ("near", "far", "view", "far_view")
+NOVEL_POSE_CANDIDATES = {
+    "before": "before",
+    "thin": "**thin** (kept)",
+    "scale_cap": "scale_cap",
+    "thin_cap": "thin_cap (both)",
+    "final_prune": "final_prune",
+    "pose_noise": "pose_noise",
+    "random_bg": "random_bg",
+    "sh0": "sh0",
+    "skinning_prior": "skinning_prior",
+    "knn_std": "knn_std",
+}
+"""docs/novel-views.md's rows of ``novel_pose.json`` (row -> its label there), in its order."""
+
+
+def _percent(stat: Stat) -> str:
+    return f"{stat.mean * 100:.2f} ± {stat.std * 100:.2f}"
+
+
+def novel_pose_candidates(results: Path) -> list[str]:
+    """Each candidate of the novel-pose work: full-image LPIPS-VGG ×1000 per split, debris % from
+    the new views (docs/novel-views.md, "What was tried")."""
+    doc = load(NovelPose, "novel_pose", results)
+    lines = [
+        "| row | seeds | " + " | ".join(NOVEL_POSE_SPLITS) + " | debris, view | debris, far_view |",
+        "|---|---|" + "---:|" * (len(NOVEL_POSE_SPLITS) + 2),
+    ]
+    for name, label in NOVEL_POSE_CANDIDATES.items():
+        row = doc.methods[name]
+        cells = [_mean_std(row.splits[s].full["lpips_vgg"]) for s in NOVEL_POSE_SPLITS]
+        cells += [_percent(row.splits[s].debris) for s in ("view", "far_view")]
+        lines.append(f"| {label} | {len(row.seeds)} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def novel_pose_before_after(results: Path) -> list[str]:
+    """``before`` against ``thin`` per split: LPIPS-VGG ×1000 per region, debris and holes %
+    (docs/novel-views.md, "The product now")."""
+    doc = load(NovelPose, "novel_pose", results)
+    lines = [
+        "| split | row | full | hand | face | arm | debris % | holes % |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for split in NOVEL_POSE_SPLITS:
+        for name in ("before", "thin"):
+            s = doc.methods[name].splits[split]
+            cells = [_mean_std(getattr(s, region)["lpips_vgg"]) for region in ("full", "hand", "face", "arm")]
+            cells += [_percent(s.debris), _percent(s.holes)]
+            lines.append(f"| {split} | {name} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def _when(doc) -> str:
     commit = (doc.commit or "").replace("+dirty", "")[:7]
     return f"{doc.date[:16].replace('T', ' ')}Z" + (f" at {commit}" if commit else "")
@@ -534,6 +610,8 @@ def speed_targets(results: Path) -> list[str]:
 
 
 SECTIONS: dict[str, Callable[[Path], list[str]]] = {
+    "novel_pose_candidates": novel_pose_candidates,
+    "novel_pose_before_after": novel_pose_before_after,
     "paper_tables": paper_tables,
     "paper_regime": paper_regime,
     "service_latency": service_latency,
