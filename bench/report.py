@@ -184,6 +184,30 @@ def paper_tables(results: Path) -> list[str]:
     return _lpips_table(doc, rows, seeds_column=False)
 
 
+def baselines(results: Path) -> list[str]:
+    """The four methods and EVA's ablation without its contributions on the synthetic benchmark
+    (``paper_tables.json``; docs/baselines.md, "Results")."""
+    doc = load(PaperTables, "paper_tables", results)
+    names = ("3dgs+body", "gart+body", "gauhuman+body", "eva-no-cadc-no-cl", "eva")
+    return _lpips_table(doc, {name: name for name in names}, seeds_column=False)
+
+
+def baselines_real(results: Path) -> list[str]:
+    """Every method on the two full-body reference videos (``real_videos.json``): LPIPS-VGG ×1000
+    full / hand / face (docs/baselines.md, "Results")."""
+    doc = load(RealVideos, "real_videos", results)
+    videos = list(doc.videos)
+    head = "| | " + " | ".join(v.removesuffix(".mp4") for v in videos) + " |"
+    lines = [head, "|---|" + "---|" * len(videos)]
+    for method in doc.videos[videos[0]].methods:
+        cells = []
+        for video in videos:
+            m = doc.videos[video].methods[method]
+            cells.append(" / ".join(f"{1e3 * r['lpips_vgg']:.1f}" for r in (m.full, m.hand, m.face)))
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def paper_regime(results: Path) -> list[str]:
     """The paper's own regime, with the authors' recipe (``paper_regime.json``)."""
     doc = load(PaperTables, "paper_regime", results)
@@ -462,6 +486,9 @@ class TrainRun(_Run):
 class RealVideoMethod(_Loose):
     train_seconds: float
     n_gaussians: int
+    full: dict[str, float | None] = {}
+    hand: dict[str, float | None] = {}
+    face: dict[str, float | None] = {}
 
 
 class RealVideo(_Loose):
@@ -669,6 +696,8 @@ def speed_targets(results: Path) -> list[str]:
 
 
 SECTIONS: dict[str, Callable[[Path], list[str]]] = {
+    "baselines": baselines,
+    "baselines_real": baselines_real,
     "novel_pose_candidates": novel_pose_candidates,
     "novel_pose_before_after": novel_pose_before_after,
     "novel_pose_goals": novel_pose_goals,
