@@ -1,1 +1,0 @@
-"""Thin routers: validate (schemas, deps), call ``jobs`` / ``service.rendering``, answer."""
