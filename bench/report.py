@@ -19,6 +19,7 @@ import json
 import re
 from collections.abc import Callable
 from pathlib import Path
+from typing import Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict
 
@@ -88,37 +89,30 @@ class ServiceLatency(_Run):
     rows: list[LatencyRow]
 
 
-class NovelPoseSplit(_Loose):
-    """One split of ``novel_pose.json``: per region a mean over seeds of each metric; debris and
-    holes as fractions of the alpha mass and of the person's pixels."""
-
-    full: dict[str, Stat]
-    hand: dict[str, Stat]
-    face: dict[str, Stat]
-    arm: dict[str, Stat]
-    debris: Stat
-    holes: Stat
+V = TypeVar("V", float, Stat)
 
 
-class NovelPoseRunSplit(_Loose):
-    """One seed's split: per region its metrics; debris and holes as fractions."""
+class NovelPoseSplit(_Loose, Generic[V]):
+    """One split of ``novel_pose.json``, with ``V`` a seed's value (float) or a mean over seeds
+    (``Stat``): per region each metric; debris and holes as fractions of the alpha mass and of
+    the person's pixels."""
 
-    full: dict[str, float]
-    hand: dict[str, float]
-    face: dict[str, float]
-    arm: dict[str, float]
-    debris: float
-    holes: float
+    full: dict[str, V]
+    hand: dict[str, V]
+    face: dict[str, V]
+    arm: dict[str, V]
+    debris: V
+    holes: V
 
 
 class NovelPoseRun(_Loose):
     seed: int
-    splits: dict[str, NovelPoseRunSplit]
+    splits: dict[str, NovelPoseSplit[float]]
 
 
 class NovelPoseRow(_Loose):
     seeds: list[int]
-    splits: dict[str, NovelPoseSplit]
+    splits: dict[str, NovelPoseSplit[Stat]]
     runs: list[NovelPoseRun]
 
 
