@@ -1,17 +1,18 @@
 """Dense face fitting: a fixed correspondence between MediaPipe's 478 face-mesh landmarks and
 points on the body model's face surface, computed by the project itself.
 
-How the correspondence is made (:func:`build_correspondence`, once, then cached beside the
-Anny cache): the neutral subject is rendered with the synthetic benchmark's painted face (eyes,
-brows, lids, lips: what the face mesh needs to lock on) by the triangle-mesh renderer, seen head
-on and turned up to 20 degrees; MediaPipe FaceMesh (static images, refined irises) runs on each
-render; each landmark's pixel gives the triangle seen there and the barycentric coordinates of
-that pixel in the triangle's projection, i.e. a point on the rest surface. Per landmark the
-views are combined by the median 3D point, and the view's candidate nearest to it is kept. A
-landmark is kept (``valid``) when it was found in most views, the views agree to within
-``max_spread`` metres, it lies on a face triangle, and it is not on the face's silhouette oval
-(those points slide along the outline as the head turns, so no surface point matches them), and
-it is not one of the ten iris points (gaze is not what the painted eyes pin down).
+How the correspondence is made (:func:`build_correspondence`, once, then cached beside the Anny
+cache; the default Anny's ships in the package, ``SHIPPED_DIR``): the neutral subject is rendered
+with the synthetic benchmark's painted face (eyes, brows, lids, lips: what the face mesh needs to
+lock on) by the triangle-mesh renderer, seen head on and turned up to 20 degrees; MediaPipe
+FaceMesh (static images, refined irises) runs on each render; each landmark's pixel gives the
+triangle seen there and the barycentric coordinates of that pixel in the triangle's projection,
+i.e. a point on the rest surface. Per landmark the views are combined by the median 3D point, and
+the view's candidate nearest to it is kept. A landmark is kept (``valid``) when it was found in
+most views, the views agree to within ``max_spread`` metres, it lies on a face triangle, and it is
+not on the face's silhouette oval (those points slide along the outline as the head turns, so no
+surface point matches them), and it is not one of the ten iris points (gaze is not what the painted
+eyes pin down).
 
 Two places where the pixel alone picks the wrong surface (version 2): the lid landmarks sit on
 the edge of the lid, where the pixel often shows the eyeball, a separate mesh that no blink
