@@ -202,6 +202,40 @@ def baselines_real(results: Path) -> list[str]:
     return lines
 
 
+REAL_VIDEO_HANDS = {"gesturing": "real_videos_hands_gesturing_s*", "seated": "real_videos_hands_s*"}
+"""The hand-rich videos' runs in ``real_videos_hands/`` (one file per seed), by the docs' label."""
+REAL_VIDEO_HANDS_LABELS = {"eva-official": "eva-official (trained on the metric; scored on black)"}
+
+
+def real_video_hands(results: Path) -> list[str]:
+    """Each method on the two LatentSync videos over the seeds run (``real_videos_hands/``):
+    LPIPS-VGG ×1000 full / hand / face, Gaussians and training seconds (docs/eva-contributions.md,
+    "Hand-rich real video")."""
+    lines = [
+        "| video | method | seeds | full | hand | face | N-GS | train (s) |",
+        "|---|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for label, pattern in REAL_VIDEO_HANDS.items():
+        runs = {}  # method -> [(seed, RealVideoMethod)]
+        for path in sorted((results / "real_videos_hands").glob(f"{pattern}.json")):
+            seed = int(path.stem.rsplit("_s", 1)[1])
+            (video,) = load(RealVideos, f"real_videos_hands/{path.stem}", results).videos.values()
+            for method, m in video.methods.items():
+                runs.setdefault(method, []).append((seed, m))
+        for method, seeded in runs.items():
+            ms = [m for _, m in seeded]
+            cells = [
+                _mean_std(Stat(**mean_std([getattr(m, region)["lpips_vgg"] for m in ms])))
+                for region in ("full", "hand", "face")
+            ]
+            cells.append(f"{sum(m.n_gaussians for m in ms) / len(ms):,.0f}")
+            cells.append(f"{sum(m.train_seconds for m in ms) / len(ms):.0f}")
+            seeds = _seeds([seed for seed, _ in seeded])
+            name = REAL_VIDEO_HANDS_LABELS.get(method, method)
+            lines.append(f"| {label} | {name} | {seeds} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def paper_regime(results: Path) -> list[str]:
     """The paper's own regime, with the authors' recipe (``paper_regime.json``)."""
     doc = load(PaperTables, "paper_regime", results)
@@ -692,6 +726,7 @@ def speed_targets(results: Path) -> list[str]:
 SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "baselines": baselines,
     "baselines_real": baselines_real,
+    "real_video_hands": real_video_hands,
     "novel_pose_candidates": novel_pose_candidates,
     "novel_pose_before_after": novel_pose_before_after,
     "novel_pose_goals": novel_pose_goals,
