@@ -692,6 +692,14 @@ def speed_targets(results: Path) -> list[str]:
     )
     suite = load(TestSuite, "test_suite", results)
     fresh = load(TestSuite, "test_suite_fresh_clone", results)
+    # Its runs at the same code kept beside it: met only when every one of them is.
+    again = [
+        load(TestSuite, f"test_suite_runs/{p.stem}", results)
+        for p in sorted((results / "test_suite_runs").glob("fresh_clone_run*.json"))
+    ]
+    fresh_runs = [fresh, *again]
+    fresh_met = all(r.exit_code == 0 and r.wall_seconds <= 300 for r in fresh_runs)
+    fresh_walls = " and ".join(f"{r.wall_seconds:.0f} s" for r in fresh_runs)
     counts = ", ".join(f"{n} {k}" for k, n in fresh.counts.items() if k != "warnings")
     demo = load(FirstContact, "first_contact", results)
     steps = ", ".join(f"{k} {v:.0f} s" for k, v in demo.steps_seconds.items() if v >= 1)
@@ -710,11 +718,10 @@ def speed_targets(results: Path) -> list[str]:
         f"| 16 clients' throughput at least one client's | {ratio_text}; {_when(service)}: "
         f"{_verdict(min(ratios.values()) >= 1.0)} | `service.md` |",
         "| a fresh clone's `make test` ≤ 5 min of wall time, the install included | "
-        f"{fresh.wall_seconds:.0f} s, pytest {fresh.pytest_seconds:.0f} s ({counts or 'no pytest summary'}; "
-        f"exit code {fresh.exit_code}); {_when(fresh)}: "
-        f"{_verdict(fresh.exit_code == 0 and fresh.wall_seconds <= 300)}. In a checkout with its venv and "
-        f"caches: {suite.wall_seconds:.0f} s; {_when(suite)} "
-        "| `test_suite_fresh_clone.md`, `test_suite.md` |",
+        f"{fresh_walls} in {len(fresh_runs)} run(s) of it; the first: pytest {fresh.pytest_seconds:.0f} s "
+        f"({counts or 'no pytest summary'}; exit code {fresh.exit_code}); {_when(fresh)}: "
+        f"{_verdict(fresh_met)}. In a checkout with its venv and caches: {suite.wall_seconds:.0f} s; "
+        f"{_when(suite)} | `test_suite_fresh_clone.md`, `test_suite_runs/`, `test_suite.md` |",
         f"| a fresh clone's `make demo` ≤ 3 min, system packages included | {demo.total_seconds:.0f} s "
         f"({steps}); {_when(demo)}: {_verdict(demo.exit_code == 0 and demo.total_seconds <= 180)} "
         "| `first_contact.md` |",
