@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from bench.machine import header_line, run_header, write_result
+from bench.stats import zero_crossing
 
 RESULTS = Path(__file__).resolve().parent / "results" / "expressions"
 LIDS = ((159, 145), (386, 374))
@@ -58,15 +59,6 @@ def with_blink(params, names: list[str], value: float):
     for n in BLINKS:
         e[..., names.index(n)] = value
     return dataclasses.replace(params, expression=e)
-
-
-def crossing(values: list[float], gaps: list[float]) -> float | None:
-    """The blink value where the gap first reaches zero (linear between samples), else None."""
-    points = list(zip(values, gaps, strict=True))
-    for (v0, g0), (v1, g1) in zip(points, points[1:], strict=False):
-        if g0 > 0 >= g1:
-            return round(v0 + (v1 - v0) * g0 / (g0 - g1), 3)
-    return None
 
 
 def anny_sweep(model, reg, ids, values: list[float]) -> dict:
@@ -184,7 +176,7 @@ def main(argv: list[str] | None = None) -> None:
 def markdown(doc: dict) -> str:
     def row(label: str, gaps: list[float]) -> str:
         cells = " | ".join(f"{g:+.3f}" for g in gaps)
-        closes = crossing(doc["blinks"], gaps)
+        closes = zero_crossing(doc["blinks"], gaps)
         return f"| {label} | {cells} | {closes if closes is not None else '–'} |"
 
     head = " | ".join(f"{v:g}" for v in doc["blinks"])

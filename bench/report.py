@@ -23,7 +23,7 @@ from typing import Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict
 
-from bench.stats import compare_paired, fmt, mean_std
+from bench.stats import compare_paired, fmt, mean_std, zero_crossing
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -233,6 +233,38 @@ def real_video_hands(results: Path) -> list[str]:
             seeds = _seeds([seed for seed, _ in seeded])
             name = REAL_VIDEO_HANDS_LABELS.get(method, method)
             lines.append(f"| {label} | {name} | {seeds} | " + " | ".join(cells) + " |")
+    return lines
+
+
+class BlinkSweep(_Run):
+    """``bench.blink_sweep``'s result: signed lid gaps (over the eye-corner distance) per blink."""
+
+    blinks: list[float]
+    anny: dict[str, list[float]]
+    fitted: dict[str, object]
+    avatar: dict[str, object]
+
+
+def blink_sweep(results: Path) -> list[str]:
+    """One frame's blink swept from 0 to 1: the signed lid gap on Anny's render and points, the
+    fitted face's points and two avatars' renders (``expressions/blink/blink_sweep_{product,eva}``;
+    docs/alignment.md, "Where the gesturing clip's blink is lost")."""
+    product = load(BlinkSweep, "expressions/blink/blink_sweep_product", results)
+    eva = load(BlinkSweep, "expressions/blink/blink_sweep_eva", results)
+    frame = product.fitted["frame"]
+    rows = {
+        "Anny's render, MediaPipe": product.anny["mediapipe"],
+        "Anny, the correspondence points": product.anny["model"],
+        f"frame {frame}'s fitted face, correspondence points": product.fitted["model"],
+        "default avatar (`avatar-product-s0`), MediaPipe on its render": product.avatar["mediapipe"],
+        "paper's EVA (`avatar-eva-…_s0`), MediaPipe on its render": eva.avatar["mediapipe"],
+    }
+    head = " | ".join(f"blink {v:g}" if i == 0 else f"{v:g}" for i, v in enumerate(product.blinks))
+    lines = [f"| source | {head} | gap reaches 0 at |", "|---|" + "---:|" * (len(product.blinks) + 1)]
+    for label, gaps in rows.items():
+        closes = zero_crossing(product.blinks, gaps)
+        cells = [_signed(g, 3) for g in gaps] + ["never" if closes is None else f"{closes:.2f}"]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -745,6 +777,7 @@ def speed_targets(results: Path) -> list[str]:
 SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "baselines": baselines,
     "baselines_real": baselines_real,
+    "blink_sweep": blink_sweep,
     "real_video_hands": real_video_hands,
     "novel_pose_candidates": novel_pose_candidates,
     "novel_pose_before_after": novel_pose_before_after,

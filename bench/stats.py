@@ -47,3 +47,13 @@ def compare_paired(a: list[float], b: list[float], lower_is_better: bool) -> tup
         return "no difference", gaps
     improved = gaps["mean"] < 0 if lower_is_better else gaps["mean"] > 0
     return ("better" if improved else "worse"), gaps
+
+
+def zero_crossing(values: list[float], gaps: list[float]) -> float | None:
+    """The value where ``gaps`` (sampled at ``values``) first falls from above zero to zero or
+    below (linear between samples, 3 decimals), else None: e.g. the blink that closes a lid gap."""
+    points = list(zip(values, gaps, strict=True))
+    for (v0, g0), (v1, g1) in zip(points, points[1:], strict=False):
+        if g0 > 0 >= g1:
+            return round(v0 + (v1 - v0) * g0 / (g0 - g1), 3)
+    return None
