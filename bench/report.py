@@ -236,6 +236,49 @@ def real_video_hands(results: Path) -> list[str]:
     return lines
 
 
+class MetricChange(_Loose):
+    """One metric of ``bench.real_videos_compare``: before and after over the seeds, the per-seed
+    relative gap (%) and its verdict."""
+
+    before: Stat
+    after: Stat
+    gap_pct: Stat
+    verdict: str
+
+
+class RealVideosCompare(_Run):
+    """``bench.real_videos_compare``'s result: video -> region -> metric -> its change."""
+
+    comparison: dict[str, dict[str, dict[str, MetricChange]]]
+
+
+def real_videos_change(name: str, psnr: bool = False) -> Callable[[Path], list[str]]:
+    """The section of one ``real_videos_compare`` result ``name``: per video and region,
+    LPIPS-VGG ×1000 before, after and the paired change (with ``psnr``, PSNR's too)."""
+
+    def section(results: Path) -> list[str]:
+        doc = load(RealVideosCompare, name, results)
+        if psnr:
+            lines = [
+                "| video | region | LPIPS-VGG before | after | change | PSNR before | after | change |",
+                "|---|---|---:|---:|---|---:|---:|---|",
+            ]
+        else:
+            lines = ["| video | region | before | after | change |", "|---|---|---:|---:|---|"]
+        for video, regions in doc.comparison.items():
+            for region, metrics in regions.items():
+                v = metrics["lpips_vgg"]
+                gap = f"{_signed(v.gap_pct.mean)} ± {v.gap_pct.std:.1f}% ({v.verdict})"
+                cells = [_mean_std(v.before), _mean_std(v.after), gap]
+                if psnr:
+                    p = metrics["psnr"]
+                    cells += [f"{p.before.mean:.2f}", f"{p.after.mean:.2f}", p.verdict]
+                lines.append(f"| {video.removesuffix('.mp4')} | {region} | " + " | ".join(cells) + " |")
+        return lines
+
+    return section
+
+
 class BlinkSweep(_Run):
     """``bench.blink_sweep``'s result: signed lid gaps (over the eye-corner distance) per blink."""
 
@@ -778,6 +821,10 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "baselines": baselines,
     "baselines_real": baselines_real,
     "blink_sweep": blink_sweep,
+    "real_videos_expr": real_videos_change("real_videos_expr"),
+    "real_videos_sil": real_videos_change("real_videos_sil"),
+    "real_videos_fz": real_videos_change("real_videos_fz"),
+    "real_videos_fb": real_videos_change("real_videos_fb", psnr=True),
     "real_video_hands": real_video_hands,
     "novel_pose_candidates": novel_pose_candidates,
     "novel_pose_before_after": novel_pose_before_after,
