@@ -252,9 +252,12 @@ class RealVideosCompare(_Run):
     comparison: dict[str, dict[str, dict[str, MetricChange]]]
 
 
-def real_videos_change(name: str, psnr: bool = False) -> Callable[[Path], list[str]]:
+def real_videos_change(
+    name: str, psnr: bool = False, labels: tuple[str, str] = ("before", "after")
+) -> Callable[[Path], list[str]]:
     """The section of one ``real_videos_compare`` result ``name``: per video and region,
-    LPIPS-VGG ×1000 before, after and the paired change (with ``psnr``, PSNR's too)."""
+    LPIPS-VGG ×1000 before, after (the columns' ``labels``) and the paired change (with ``psnr``,
+    PSNR's too)."""
 
     def section(results: Path) -> list[str]:
         doc = load(RealVideosCompare, name, results)
@@ -264,7 +267,7 @@ def real_videos_change(name: str, psnr: bool = False) -> Callable[[Path], list[s
                 "|---|---|---:|---:|---|---:|---:|---|",
             ]
         else:
-            lines = ["| video | region | before | after | change |", "|---|---|---:|---:|---|"]
+            lines = [f"| video | region | {labels[0]} | {labels[1]} | change |", "|---|---|---:|---:|---|"]
         for video, regions in doc.comparison.items():
             for region, metrics in regions.items():
                 v = metrics["lpips_vgg"]
@@ -825,6 +828,9 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "real_videos_sil": real_videos_change("real_videos_sil"),
     "real_videos_fz": real_videos_change("real_videos_fz"),
     "real_videos_fb": real_videos_change("real_videos_fb", psnr=True),
+    "real_videos_ssim_vs_bs": real_videos_change(
+        "real_videos_ssim_vs_bs", labels=("λ_s = 0.01 (paper)", "λ_s = 0.2")
+    ),
     "real_video_hands": real_video_hands,
     "novel_pose_candidates": novel_pose_candidates,
     "novel_pose_before_after": novel_pose_before_after,
