@@ -282,6 +282,49 @@ def real_videos_change(
     return section
 
 
+def per_frame_hands(results: Path) -> list[str]:
+    """The clip fit's hands against each frame's hands stage re-run alone (``align.json``;
+    docs/alignment.md, the per-frame hand solver)."""
+    runs = load(AlignResult, "align", results).synthetic.per_frame_hands
+    lines = ["| targets | clip fit | + per-frame hands stage |", "|---|---:|---:|"]
+    targets = {"exact_targets": "exact projections and depths", "detections": "MediaPipe detections"}
+    for key, label in targets.items():
+        r = runs[key]
+        lines.append(f"| {label} | {r.clip_fit_mm['hands']:.1f} mm | {r.per_frame_mm['hands']:.1f} mm |")
+    return lines
+
+
+class RegionSensitivityVideo(_Loose):
+    regions: dict[str, dict[str, dict[str, float] | int]]
+    box_px: dict[str, float]
+    methods: dict[str, dict[str, dict[str, float]]]
+
+
+class RegionSensitivity(_Run):
+    """``bench.region_sensitivity``'s result: each region of a test target against itself moved
+    or blurred, and the methods' scores of the same crops."""
+
+    videos: dict[str, RegionSensitivityVideo]
+
+
+def region_sensitivity(results: Path) -> list[str]:
+    """taiji's hands and faces scored against themselves shifted or blurred, and eva's avatar
+    (``region_sensitivity.json``; docs/alignment.md)."""
+    video = load(RegionSensitivity, "region_sensitivity", results).videos["hybrik_taiji.mp4"]
+    rows = {f"shifted {k} px": f"shift {k} px" for k in (1, 2, 3, 4)}
+    rows["blurred, sigma 1.5 px"] = "blur 1.5 px"
+    lines = ["| target against itself | hand | face |", "|---|---:|---:|"]
+    for label, key in rows.items():
+        hand, face = (1e3 * video.regions[r][key]["lpips_vgg"] for r in ("hand", "face"))
+        lines.append(f"| {label} | {hand:.1f} | {face:.1f} |")
+    eva = video.methods["eva"]
+    lines.append(
+        f"| eva's avatar (`real_videos.md`, seed 0) | {1e3 * eva['hand']['lpips_vgg']:.1f} "
+        f"| {1e3 * eva['face']['lpips_vgg']:.1f} |"
+    )
+    return lines
+
+
 class BlinkSweep(_Run):
     """``bench.blink_sweep``'s result: signed lid gaps (over the eye-corner distance) per blink."""
 
@@ -358,9 +401,18 @@ class Agreement(_Loose):
     range_ratio: float
 
 
+class HandsPerFrame(_Loose):
+    """``bench.align``'s per-frame hands check: hand MPJPE of the clip fit and of each frame's
+    hands stage re-run alone."""
+
+    clip_fit_mm: dict[str, float]
+    per_frame_mm: dict[str, float]
+
+
 class AlignSynthetic(_Loose):
     fitted: AlignFit
     openings: dict[str, dict[str, Agreement]]
+    per_frame_hands: dict[str, HandsPerFrame] = {}
 
 
 class AlignResult(_Loose):
@@ -824,6 +876,8 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "baselines": baselines,
     "baselines_real": baselines_real,
     "blink_sweep": blink_sweep,
+    "per_frame_hands": per_frame_hands,
+    "region_sensitivity": region_sensitivity,
     "real_videos_expr": real_videos_change("real_videos_expr"),
     "real_videos_sil": real_videos_change("real_videos_sil"),
     "real_videos_fz": real_videos_change("real_videos_fz"),
