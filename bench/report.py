@@ -126,6 +126,14 @@ def load(model: type[BaseModel], name: str, results: Path) -> BaseModel:
     return model.model_validate_json((results / f"{name}.json").read_text())
 
 
+def load_each(model: type[BaseModel], pattern: str, results: Path) -> list[tuple[str, BaseModel]]:
+    """(name, parsed) of every result file whose name (under ``results``, without ``.json``)
+    matches the glob ``pattern``, in name order."""
+    paths = sorted(results.glob(f"{pattern}.json"))
+    names = [p.relative_to(results).with_suffix("").as_posix() for p in paths]
+    return [(name, load(model, name, results)) for name in names]
+
+
 # ----------------------------------------------------------------------------- sections
 
 
@@ -217,9 +225,9 @@ def real_video_hands(results: Path) -> list[str]:
     ]
     for label, pattern in REAL_VIDEO_HANDS.items():
         runs = {}  # method -> [(seed, RealVideoMethod)]
-        for path in sorted((results / "real_videos_hands").glob(f"{pattern}.json")):
-            seed = int(path.stem.rsplit("_s", 1)[1])
-            (video,) = load(RealVideos, f"real_videos_hands/{path.stem}", results).videos.values()
+        for name, doc in load_each(RealVideos, f"real_videos_hands/{pattern}", results):
+            seed = int(name.rsplit("_s", 1)[1])
+            (video,) = doc.videos.values()
             for method, m in video.methods.items():
                 runs.setdefault(method, []).append((seed, m))
         for method, seeded in runs.items():
@@ -812,13 +820,9 @@ def speed_targets(results: Path) -> list[str]:
     p50 = rows["pose", 512, 1].p50_ms
     # The runs in a row that service.json is one of (``service_latency/runs_<commit>/``, the same
     # commit): met only when every one of them is.
-    same_code = [
-        load(ServiceLatency, f"service_latency/{p.parent.name}/{p.stem}", results)
-        for p in sorted((results / "service_latency").glob("runs_*/run*.json"))
-    ]
     p50s = [
         next(r.p50_ms for r in run.rows if (r.varies, r.size, r.clients) == ("pose", 512, 1))
-        for run in same_code
+        for _, run in load_each(ServiceLatency, "service_latency/runs_*/run*", results)
         if run.commit == service.commit
     ] or [p50]
     ratios = {
@@ -833,12 +837,9 @@ def speed_targets(results: Path) -> list[str]:
     )
     suite = load(TestSuite, "test_suite", results)
     fresh = load(TestSuite, "test_suite_fresh_clone", results)
-    # Its runs at the same code kept beside it: met only when every one of them is.
-    again = [
-        load(TestSuite, f"test_suite_runs/{p.stem}", results)
-        for p in sorted((results / "test_suite_runs").glob("fresh_clone_run*.json"))
-    ]
-    fresh_runs = [fresh, *again]
+    # The later fresh-clone runs kept beside it: met only when every one of them is.
+    later = load_each(TestSuite, "test_suite_runs/fresh_clone_run*", results)
+    fresh_runs = [fresh, *(run for _, run in later)]
     fresh_met = all(r.exit_code == 0 and r.wall_seconds <= 300 for r in fresh_runs)
     fresh_walls = " and ".join(f"{r.wall_seconds:.0f} s" for r in fresh_runs)
     counts = ", ".join(f"{n} {k}" for k, n in fresh.counts.items() if k != "warnings")
