@@ -52,8 +52,9 @@ def main(argv: list[str] | None = None) -> None:
     args.name = args.name or ("test_suite_fresh_clone" if args.fresh_clone else "test_suite")
     load_before = list(os.getloadavg())
     work = Path(tempfile.mkdtemp(prefix="eva-test-suite-")) if args.fresh_clone else None
-    # The clone stands alone: no venv, data folder or sources of this checkout reach it.
-    env = {k: v for k, v in os.environ.items() if k not in ("VENV", "EVA_DATA_DIR", "PYTHONPATH")}
+    env = None  # the checkout runs as the caller's environment has it
+    if work is not None:  # the clone stands alone: no venv, data folder or sources of this checkout
+        env = {k: v for k, v in os.environ.items() if k not in ("VENV", "EVA_DATA_DIR", "PYTHONPATH")}
     started = time.perf_counter()
     try:
         cwd = ROOT
