@@ -40,14 +40,21 @@ def setup(
     # ("No module named 'jaraco'", bench/results/first_contact_setup/shipped_face_files.md).
     from torch.utils import cpp_extension  # noqa: F401
 
-    kernels = ThreadPoolExecutor(max_workers=1).submit(_build_kernels, force)
+    from eva_engine.avatar.skinning import SKINNING
+    from eva_engine.render.native import RASTER
+
+    # One compiler each: a compiler keeps one core busy, and with the face-mesh files shipped
+    # little else runs beside them.
+    compilers = ThreadPoolExecutor(max_workers=2)
+    kernels = [compilers.submit(_build_kernel, library, force) for library in (RASTER, SKINNING)]
+    compilers.shutdown(wait=False)
     console.print(
         f"[green]ok[/] Anny cache {path}: {model.num_vertices} vertices, {model.num_joints} joints, "
         f"{len(model.expression_names)} expressions ({time.perf_counter() - started:.0f} s)"
     )
     _face_mesh_files(console, model, path)
     with console.status("C++ kernels (compiled once per machine)..."):
-        built = kernels.result()
+        built = [kernel.result() for kernel in kernels]
     for library, ops, seconds in built:
         if ops is None:
             # Not fatal: the torch kernels give the same results, only slower.
@@ -97,18 +104,8 @@ def _face_mesh_files(console: Console, model, path: Path) -> None:
         )
 
 
-def _build_kernels(force: bool) -> list[tuple[object, object, float]]:
-    """Compile (or load) the rasterizer's and the skinning's C++ kernels: (library, ops or None,
-    seconds) each."""
-    from eva_engine.avatar.skinning import SKINNING
-    from eva_engine.render.native import RASTER
-
-    def build(library) -> tuple[object, object, float]:
-        started = time.perf_counter()
-        ops = library.load(force=force)
-        return library, ops, time.perf_counter() - started
-
-    # One compiler each: a compiler keeps one core busy, and with the face-mesh files shipped
-    # nothing else runs beside them.
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        return list(pool.map(build, (RASTER, SKINNING)))
+def _build_kernel(library, force: bool) -> tuple[object, object, float]:
+    """Compile (or load) one library of C++ kernels: (library, its ops or None, seconds)."""
+    started = time.perf_counter()
+    ops = library.load(force=force)
+    return library, ops, time.perf_counter() - started
