@@ -20,6 +20,10 @@ folder to run it again.
     .venv/bin/python -m bench hard_inputs --seeds 0 1 2       # run (about 7 min a case and seed)
     .venv/bin/python -m bench hard_inputs --seeds 0 --max-scale-cm 10   # the jobs' bound
     .venv/bin/python -m bench hard_inputs --report            # gather
+
+A training variant (``--variant NAME --set FIELD=VALUE ...``) trains on the plain run's dataset
+of the same case, seed and bound (run that first); ``--compare-variant NAME`` pairs them by seed
+(``bench/results/hard_inputs_blur/`` is one).
 """
 
 from __future__ import annotations
@@ -84,41 +88,60 @@ def bounded(config, max_scale_cm: float | None):
     return dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, max_scale=bound))
 
 
-def run_case(case: str, seed: int, work: Path, model, max_scale_cm: float | None = None) -> dict:
+def run_case(
+    case: str,
+    seed: int,
+    work: Path,
+    model,
+    max_scale_cm: float | None = None,
+    variant: str | None = None,
+    overrides: tuple[str, ...] = (),
+) -> dict:
+    """One case and seed through the job path. A ``variant`` (training ``overrides``, dotted
+    ``TrainConfig`` fields) trains on the plain run's clip and dataset when that run has them
+    (paired: the same detections and fit), else renders and preprocesses its own."""
     from eva_engine.align import PreprocessError, preprocess_video
     from eva_engine.data import load_dataset
-    from eva_engine.synth.hard import HARD_CASES, render_hard_video
+    from eva_engine.synth.hard import HARD_CASES, HardVideo, render_hard_video
     from eva_engine.train import preset, train_avatar
+    from eva_engine.train.config import with_overrides
     from jobs.options import JobOptions
 
-    out = work / run_name({"case": case, "seed": seed, "max_scale_cm": max_scale_cm})
-    size = SIZE if case in HARD_CASES else REFUSAL_SIZE  # too_small is sized for 256 px
-    hv = render_hard_video(case, seed, out / "clip", frames=FRAMES, size=size, model=model)
-    options = JobOptions()
-    config = options.preprocess_config(FRAMES)
+    names = {"case": case, "seed": seed, "max_scale_cm": max_scale_cm}
+    out = work / run_name({**names, "variant": variant})
+    base = work / run_name(names)
     seconds: dict[str, float] = {}
-    result: dict = {
-        "case": case,
-        "seed": seed,
-        "max_scale_cm": max_scale_cm,
-        "refusal_case": case not in HARD_CASES,
-    }
+    result: dict = {**names, "refusal_case": case not in HARD_CASES}
+    if variant:
+        result.update(variant=variant, overrides=list(overrides))
+    options = JobOptions()
+    if variant and (base / "result.json").is_file() and (base / "dataset").is_dir():
+        hv = HardVideo.load(base / "clip")
+        restore_frames(base / "dataset", hv.video)
+        dataset_dir, result["refused"], result["dataset_of"] = base / "dataset", None, base.name
+    else:
+        size = SIZE if case in HARD_CASES else REFUSAL_SIZE  # too_small is sized for 256 px
+        hv = render_hard_video(case, seed, out / "clip", frames=FRAMES, size=size, model=model)
+        dataset_dir = out / "dataset"
+        start = time.perf_counter()
+        try:
+            preprocess_video(
+                hv.video, dataset_dir, options.preprocess_config(FRAMES), model=model, overwrite=True
+            )
+        except PreprocessError as err:
+            result.update(
+                refused=str(err).replace(str(hv.video), "the video"),
+                seconds={"preprocess": time.perf_counter() - start},
+            )
+            return result
+        seconds["preprocess"] = time.perf_counter() - start
+        result["refused"] = None
+        if result["refusal_case"]:  # it should have been refused: say what it became instead
+            return {**result, "seconds": seconds}
+    ds = load_dataset(dataset_dir)
+    config = with_overrides(bounded(preset(options.preset), max_scale_cm), list(overrides))
     start = time.perf_counter()
-    try:
-        preprocess_video(hv.video, out / "dataset", config, model=model, overwrite=True)
-    except PreprocessError as err:
-        result.update(
-            refused=str(err).replace(str(hv.video), "the video"),
-            seconds={"preprocess": time.perf_counter() - start},
-        )
-        return result
-    seconds["preprocess"] = time.perf_counter() - start
-    result["refused"] = None
-    if result["refusal_case"]:  # it should have been refused: say what it became instead
-        return {**result, "seconds": seconds}
-    ds = load_dataset(out / "dataset")
-    start = time.perf_counter()
-    trained = train_avatar(ds, bounded(preset(options.preset), max_scale_cm), body=model)
+    trained = train_avatar(ds, config, body=model)
     seconds["train"] = time.perf_counter() - start
     result.update(score(trained.avatar, ds, hv, out / "sheet.jpg", seconds))
     return result
@@ -253,12 +276,14 @@ def run(args) -> None:
         for case in cases:
             if case in REFUSAL_CASES and (seed != args.seeds[0] or args.max_scale_cm):
                 continue
-            done = args.work / run_name({"case": case, "seed": seed, "max_scale_cm": args.max_scale_cm})
-            done = done / "result.json"
+            names = {"case": case, "seed": seed, "max_scale_cm": args.max_scale_cm, "variant": args.variant}
+            done = args.work / run_name(names) / "result.json"
             if not claim(done.parent) and (not args.reclaim or done.is_file()):
                 continue
             start = time.perf_counter()
-            result = run_case(case, seed, args.work, model, args.max_scale_cm)
+            result = run_case(
+                case, seed, args.work, model, args.max_scale_cm, args.variant, tuple(args.set or ())
+            )
             result["wall_s"] = time.perf_counter() - start
             result["machine"] = describe()
             done.write_text(json.dumps(result, indent=1))
@@ -314,10 +339,11 @@ def calibrate(runs: list[dict]) -> dict:
 
 
 def run_name(r: dict) -> str:
-    """The folder of a run: ``<case>[_cap<cm>]_s<seed>``, ``budget<N>[_cap<cm>]_s<seed>``."""
+    """The folder of a run: ``<case>[_cap<cm>][_<variant>]_s<seed>``, ``budget<N>[_cap<cm>]_s<seed>``."""
     cap = f"_cap{r['max_scale_cm']:g}" if r.get("max_scale_cm") else ""
     if "iterations" not in r:
-        return f"{r['case']}{cap}_s{r['seed']}"
+        variant = f"_{r['variant']}" if r.get("variant") else ""
+        return f"{r['case']}{cap}{variant}_s{r['seed']}"
     return f"budget{r['iterations']}{cap}_s{r['seed']}"
 
 
@@ -360,6 +386,7 @@ def report(args) -> None:
 
     rules = VerdictRules()
     found = [json.loads(p.read_text()) for p in sorted(args.work.glob("*_s*/result.json"))]
+    found = [r for r in found if not r.get("variant")]  # variants: --compare-variant
     previous = json.loads(args.previous.read_text())["results"] if args.previous else []
     runs = {run_name(r): r for r in previous}
     runs.update({run_name(r): r for r in found})  # a run done again replaces the earlier one
@@ -465,6 +492,68 @@ def report(args) -> None:
     write_result(args.out, "hard_inputs", doc, lines, show=True)
 
 
+def without_seed(r: dict) -> str:
+    """The plain run's folder name without its seed: ``<case>[_cap<cm>]``."""
+    return run_name({**r, "variant": None}).rsplit("_s", 1)[0]
+
+
+def compare_variant(args) -> None:
+    """``<out>/<name>.{json,md}``: each run of ``--compare-variant`` against the plain run of the
+    same case, seed and bound (paired by seed: truth LPIPS-VGG, PSNR, silhouette IoU, the
+    report's LPIPS-VGG and verdict), from the result files in ``--work``."""
+    from bench.stats import compare_paired
+
+    found = [json.loads(p.read_text()) for p in sorted(args.work.glob("*_s*/result.json"))]
+    plain = {run_name(r): r for r in found if not r.get("variant") and "iterations" not in r}
+    pairs = [
+        (plain[run_name({**r, "variant": None})], r)
+        for r in found
+        if r.get("variant") == args.compare_variant and run_name({**r, "variant": None}) in plain
+    ]
+    if not pairs:
+        raise SystemExit(f"no runs of variant {args.compare_variant!r} with a plain run in {args.work}")
+    measures = {
+        "truth LPIPS-VGG ×1000": (lambda r: 1000 * r["truth"]["lpips_vgg"], True),
+        "truth PSNR": (lambda r: r["truth"]["psnr"], False),
+        "truth silhouette IoU": (lambda r: r["truth"]["silhouette_iou"], False),
+        "report LPIPS-VGG ×1000": (lambda r: 1000 * r["quality"]["held_out"]["lpips_vgg"], True),
+    }
+    doc = {
+        **run_header(),
+        "variant": args.compare_variant,
+        "overrides": pairs[0][1].get("overrides", []),
+        "runs": [{"plain": a, "variant": b} for a, b in pairs],
+        "paired": {},
+    }
+    lines = [
+        f"# Hard inputs: variant `{args.compare_variant}` against the plain runs",
+        "",
+        header_line(doc),
+        f"- variant: `--set {' '.join(doc['overrides'])}`, trained on the plain run's dataset "
+        "(the same clip, detections and fit); paired by case, seed and bound",
+        "",
+        "| case | seed | " + " | ".join(f"{m}: plain → variant" for m in measures) + " | verdicts |",
+        "|---|---:|" + "---|" * len(measures) + "---|",
+    ]
+    for a, b in pairs:
+        cells = [
+            f"{get(a):.2f} → {get(b):.2f}" if "IoU" not in m else f"{get(a):.3f} → {get(b):.3f}"
+            for m, (get, _) in measures.items()
+        ]
+        verdicts = f"{a['quality']['verdict']} → {b['quality']['verdict']}"
+        lines.append(f"| {without_seed(a)} | {a['seed']} | " + " | ".join(cells) + f" | {verdicts} |")
+    lines += ["", "Paired over the seeds, per case (gap: the variant's against the plain run's, %):", ""]
+    for case in sorted({without_seed(a) for a, _ in pairs}):
+        group = [(a, b) for a, b in pairs if without_seed(a) == case]
+        for m, (get, lower) in measures.items():
+            word, gaps = compare_paired([get(b) for _, b in group], [get(a) for a, _ in group], lower)
+            doc["paired"].setdefault(case, {})[m] = {"verdict": word, **gaps, "seeds": len(group)}
+            lines.append(
+                f"- {case}, {m}: {gaps['mean']:+.1f} ± {gaps['std']:.1f}% ({word}, {len(group)} seeds)"
+            )
+    write_result(args.out, args.name or f"hard_inputs_{args.compare_variant}", doc, lines, show=True)
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -480,10 +569,18 @@ def main(argv: list[str] | None = None) -> None:
         "--max-scale-cm", type=float, default=None, help="bound every Gaussian's std (cm), as the jobs do"
     )
     ap.add_argument("--previous", type=Path, default=None, help="--report: an earlier report's JSON")
+    ap.add_argument(
+        "--variant", default=None, help="name a training variant: trains on the plain run's dataset"
+    )
+    ap.add_argument("--set", nargs="*", metavar="FIELD=VALUE", help="--variant: dotted TrainConfig fields")
+    ap.add_argument("--compare-variant", default=None, help="pair a variant's runs with the plain ones")
+    ap.add_argument("--name", default=None, help="--compare-variant: the result files' name")
     ap.add_argument("--budgets", type=int, nargs="*", help="train the clean datasets for these iterations")
     args = ap.parse_args(argv)
     if args.report:
         report(args)
+    elif args.compare_variant:
+        compare_variant(args)
     elif args.budgets:
         run_budgets(args)
     else:

@@ -158,3 +158,35 @@ def test_the_test_suite_benchmark_reads_pytests_summary_line():
     failed = "28.04s call     tests/test_demo.py::test_x\n== 1 failed, 875 passed in 220.10s (0:03:40) ==\n"
     assert pytest_summary(failed) == ({"failed": 1, "passed": 875}, 220.1)
     assert pytest_summary("make: *** [Makefile:44: test] Error 1") == ({}, None)
+
+
+def test_hard_inputs_pairs_a_variant_with_its_plain_runs(tmp_path):
+    """`bench hard_inputs --compare-variant`: each variant run against the plain run of its case,
+    seed and bound; the main report leaves variants out."""
+    from bench import hard_inputs
+
+    def run(seed: int, lpips: float, variant: str | None = None, cap: float | None = 10.0) -> None:
+        r = {"case": "blur", "seed": seed, "max_scale_cm": cap, "refusal_case": False, "refused": None}
+        if variant:
+            r["variant"] = variant
+        r["truth"] = {"lpips_vgg": lpips, "psnr": 20.0, "silhouette_iou": 0.9}
+        r["quality"] = {"verdict": "good", "held_out": {"lpips_vgg": lpips - 0.01}}
+        folder = tmp_path / "work" / hard_inputs.run_name(r)
+        folder.mkdir(parents=True)
+        (folder / "result.json").write_text(json.dumps(r))
+
+    for seed, (plain, variant) in enumerate([(0.110, 0.100), (0.180, 0.171), (0.120, 0.110)]):
+        run(seed, plain)
+        run(seed, variant, "grad")
+    run(3, 0.1, "grad")  # no plain run: left out
+    assert hard_inputs.run_name({"case": "blur", "seed": 2, "max_scale_cm": 10.0, "variant": "grad"}) == (
+        "blur_cap10_grad_s2"
+    )
+    out = tmp_path / "out"
+    hard_inputs.main(["--work", str(tmp_path / "work"), "--compare-variant", "grad", "--out", str(out)])
+    doc = json.loads((out / "hard_inputs_grad.json").read_text())
+    assert len(doc["runs"]) == 3
+    lpips = doc["paired"]["blur_cap10"]["truth LPIPS-VGG ×1000"]
+    assert lpips["verdict"] == "better" and lpips["seeds"] == 3 and lpips["mean"] < -5
+    with pytest.raises(SystemExit, match="no runs of variant"):
+        hard_inputs.main(["--work", str(tmp_path / "work"), "--compare-variant", "other", "--out", str(out)])
