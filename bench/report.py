@@ -290,6 +290,106 @@ def real_videos_change(
     return section
 
 
+class OpeningChange(_Loose):
+    """One row of ``bench.expressions_compare``: a measure of issue 39 before and after, paired."""
+
+    measure: str
+    before: Stat
+    after: Stat
+    gap: Stat
+    gap_unit: str
+    verdict: str
+
+
+class OpeningsPaired(_Run):
+    """``bench.expressions_compare``'s result."""
+
+    rows: list[OpeningChange]
+
+
+class EvalChange(_Loose):
+    """One row of an ``eva eval`` comparison: a region's metric before and after, paired."""
+
+    region: str
+    metric: str
+    before: Stat
+    after: Stat
+    gap_percent: Stat
+    verdict: str
+
+
+class EvalPaired(_Run):
+    rows: list[EvalChange]
+
+
+# (label, source, key): source "openings" reads ``OpeningsPaired`` rows by measure, "eval"
+# ``EvalPaired`` rows by "region.metric"; LPIPS is shown ×1000.
+OPENING_ROWS = (
+    ("mouth r", "openings", "mouth_r"),
+    ("mouth range", "openings", "mouth_range"),
+    ("eyes r", "openings", "eyes_r"),
+    ("eyes range", "openings", "eyes_range"),
+)
+
+
+def _change(before: Stat, after: Stat, gap: Stat, verdict: str, percent: bool, digits: int) -> list[str]:
+    """The cells before | after | gap of a paired change; the gap alone says "no difference"."""
+    if verdict == "no difference":
+        cell = verdict
+    elif percent:
+        cell = f"{_signed(gap.mean)} ± {gap.std:.1f}%, {verdict}"
+    else:
+        cell = f"{_signed(gap.mean, 2)} ± {gap.std:.2f}, {verdict}"
+    return [
+        f"{before.mean:.{digits}f} ± {before.std:.{digits}f}",
+        f"{after.mean:.{digits}f} ± {after.std:.{digits}f}",
+        cell,
+    ]
+
+
+def face_changes(
+    heading: str,
+    columns: tuple[str, str],
+    openings: str,
+    evals: str | None,
+    rows: tuple[tuple[str, str, str], ...],
+    clips: tuple[str, ...] = ("gesturing", "seated"),
+) -> Callable[[Path], list[str]]:
+    """A section of issue 39's paired comparisons on the upper-body clips: per row, each clip's
+    before ± std, after ± std and gap (``columns`` name before and after); ``openings`` and
+    ``evals`` are result names with ``{clip}`` for the clip (``bench.expressions_compare`` and
+    ``eva eval`` comparisons; no ``evals``: the rows read ``openings`` only). LPIPS is shown ×1000."""
+
+    def section(results: Path) -> list[str]:
+        found = {}
+        for clip in clips:
+            opened = load(OpeningsPaired, openings.format(clip=clip), results).rows
+            evaluated = load(EvalPaired, evals.format(clip=clip), results).rows if evals else []
+            found[clip] = {
+                "openings": {
+                    r.measure: (r.before, r.after, r.gap, r.verdict, r.gap_unit in ("%", "percent"))
+                    for r in opened
+                },
+                "eval": {
+                    f"{r.region}.{r.metric}": (r.before, r.after, r.gap_percent, r.verdict, True)
+                    for r in evaluated
+                },
+            }
+        head = " | ".join(f"{clip}, {columns[0]} | {columns[1]} | gap" for clip in clips)
+        lines = [f"| {heading} | {head} |", "|---|" + "---:|---:|---:|" * len(clips)]
+        for label, source, key in rows:
+            cells = []
+            scale = 1000.0 if source == "eval" and "lpips" in key else 1.0  # the openings' are ×1000
+            for clip in clips:
+                before, after, gap, verdict, percent = found[clip][source][key]
+                before, after = (Stat(mean=x.mean * scale, std=x.std * scale, n=x.n) for x in (before, after))
+                cells += _change(before, after, gap, verdict, percent, 1 if "lpips" in key else 2)
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        return lines
+
+    return section
+
+
 def per_frame_hands(results: Path) -> list[str]:
     """The clip fit's hands against each frame's hands stage re-run alone (``align.json``;
     docs/alignment.md, the per-frame hand solver)."""
@@ -887,6 +987,56 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         "real_videos_ssim_vs_bs", labels=("λ_s = 0.01 (paper)", "λ_s = 0.2")
     ),
     "real_video_hands": real_video_hands,
+    "closeup_views": face_changes(
+        "mean ± std, 3 seeds (gap: per seed)",
+        ("frames only", "with close-ups"),
+        "expressions/closeups/closeup_{clip}_paired",
+        None,
+        (
+            ("close-up LPIPS-VGG ×1000", "openings", "lpips_vgg"),
+            ("close-up PSNR", "openings", "psnr"),
+            *((f"close-up {label}", source, key) for label, source, key in OPENING_ROWS),
+        ),
+    ),
+    "closeup_frames": face_changes(
+        "at 512 px, mean ± std, 3 seeds",
+        ("frames only", "with close-ups"),
+        "expressions/closeups/frame_{clip}_paired",
+        "expressions/closeups/eval_closeups_{clip}",
+        (
+            *OPENING_ROWS,
+            ("face LPIPS-VGG ×1000", "eval", "face.lpips_vgg"),
+            ("face PSNR", "eval", "face.psnr"),
+            ("full LPIPS-VGG ×1000", "eval", "full.lpips_vgg"),
+            ("full PSNR", "eval", "full.psnr"),
+            ("face LPIPS-Alex ×1000 (trained on)", "eval", "face.lpips_alex"),
+        ),
+    ),
+    "expression_colours": face_changes(
+        "mean ± std, 3 seeds (gap: per seed)",
+        ("rest colours", "expression colours"),
+        "expressions/colours/{clip}_paired",
+        "expressions/colours/eval_{clip}",
+        (
+            *OPENING_ROWS,
+            ("face LPIPS-VGG ×1000", "eval", "face.lpips_vgg"),
+            ("face PSNR", "eval", "face.psnr"),
+            ("full LPIPS-VGG ×1000", "eval", "full.lpips_vgg"),
+            ("hand LPIPS-VGG ×1000", "eval", "hand.lpips_vgg"),
+        ),
+    ),
+    "blink_colours": face_changes(
+        "mean ± std, 3 seeds",
+        ("rest colours", "blink colours"),
+        "expressions/colours/blinks/{clip}_paired",
+        "expressions/colours/blinks/eval_{clip}",
+        (
+            *OPENING_ROWS,
+            ("face LPIPS-VGG ×1000", "eval", "face.lpips_vgg"),
+            ("full LPIPS-VGG ×1000", "eval", "full.lpips_vgg"),
+            ("hand LPIPS-VGG ×1000", "eval", "hand.lpips_vgg"),
+        ),
+    ),
     "novel_pose_candidates": novel_pose_candidates,
     "novel_pose_before_after": novel_pose_before_after,
     "novel_pose_goals": novel_pose_goals,
