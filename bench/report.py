@@ -337,7 +337,8 @@ def _change(before: Stat, after: Stat, gap: Stat, verdict: str, percent: bool, d
     if verdict == "no difference":
         cell = verdict
     elif percent:
-        cell = f"{_signed(gap.mean)} ± {gap.std:.1f}%, {verdict}"
+        places = 2 if gap.std < 0.1 else 1  # a small gap keeps its second decimal
+        cell = f"{_signed(gap.mean, places)} ± {gap.std:.{places}f}%, {verdict}"
     else:
         cell = f"{_signed(gap.mean, 2)} ± {gap.std:.2f}, {verdict}"
     return [
@@ -1011,6 +1012,28 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
             ("full PSNR", "eval", "full.psnr"),
             ("face LPIPS-Alex ×1000 (trained on)", "eval", "face.lpips_alex"),
         ),
+    ),
+    "colour_spread": face_changes(
+        "mean ± std, 3 seeds (gap: per seed)",
+        ("default", "spread 6 mm"),
+        "expressions/colour_spread/{clip}_spread_local_paired",
+        "expressions/colour_spread/eval_{clip}_spread_local",
+        (
+            *OPENING_ROWS,
+            ("face LPIPS-VGG ×1000", "eval", "face.lpips_vgg"),
+            ("full LPIPS-VGG ×1000", "eval", "full.lpips_vgg"),
+            ("hand LPIPS-VGG ×1000", "eval", "hand.lpips_vgg"),
+            ("full PSNR", "eval", "full.psnr"),
+            ("hand PSNR", "eval", "hand.psnr"),
+        ),
+    ),
+    "colour_spread_driving": face_changes(
+        "mean ± std, 3 seeds (gap: per seed)",
+        ("default", "spread 6 mm"),
+        "expressions/colour_spread/{clip}_spread_local_paired",
+        None,
+        OPENING_ROWS,
+        clips=("driving",),
     ),
     "expression_colours": face_changes(
         "mean ± std, 3 seeds (gap: per seed)",
