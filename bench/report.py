@@ -391,6 +391,56 @@ def face_changes(
     return section
 
 
+def face_variants(
+    openings: str,
+    evals: str,
+    variants: dict[str, str],
+    rows: tuple[tuple[str, str, str], ...],
+    clips: tuple[str, str] = ("gesturing", "seated"),
+) -> Callable[[Path], list[str]]:
+    """Several variants against one before on two clips, compactly: per row, the before's means
+    (clip / clip), then per variant its means (openings) or paired gaps (image metrics) with the
+    verdicts. ``openings`` / ``evals``: result names with ``{clip}`` and ``{variant}``;
+    ``variants``: variant -> its column's label."""
+
+    def section(results: Path) -> list[str]:
+        found = {}
+        for variant in variants:
+            for clip in clips:
+                names = {"clip": clip, "variant": variant}
+                opened = load(OpeningsPaired, openings.format(**names), results).rows
+                evaluated = load(EvalPaired, evals.format(**names), results).rows
+                found[variant, clip] = {
+                    "openings": {r.measure: (r.before, r.after, r.gap, r.verdict) for r in opened},
+                    "eval": {
+                        f"{r.region}.{r.metric}": (r.before, r.after, r.gap_percent, r.verdict)
+                        for r in evaluated
+                    },
+                }
+        pair = " / ".join(clips)
+        lines = [
+            f"| measure ({pair}) | before | " + " | ".join(variants.values()) + " |",
+            "|---|" + "---|" * (1 + len(variants)),
+        ]
+        for label, source, key in rows:
+            scale = 1000.0 if source == "eval" and "lpips" in key else 1.0
+            digits = 1 if "lpips" in key else 2
+            first = next(iter(variants))
+            before = " / ".join(f"{found[first, c][source][key][0].mean * scale:.{digits}f}" for c in clips)
+            cells = [before]
+            for variant in variants:
+                got = [found[variant, c][source][key] for c in clips]
+                if source == "openings":
+                    values = " / ".join(f"{g[1].mean:.{digits}f}" for g in got)
+                else:
+                    values = " / ".join(f"{_signed(g[2].mean)} ± {g[2].std:.1f}%" for g in got)
+                cells.append(f"{values} ({' / '.join(g[3] for g in got)})")
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        return lines
+
+    return section
+
+
 def per_frame_hands(results: Path) -> list[str]:
     """The clip fit's hands against each frame's hands stage re-run alone (``align.json``;
     docs/alignment.md, the per-frame hand solver)."""
@@ -1034,6 +1084,20 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         None,
         OPENING_ROWS,
         clips=("driving",),
+    ),
+    "calibration_videos": face_variants(
+        "expressions/calibration/{clip}_paired_{variant}",
+        "expressions/calibration/eval_{clip}_{variant}",
+        {"calib": "every landmark calibrated", "noeyes": "this tree (eye outlines not)"},
+        (
+            ("render: mouth r", "openings", "mouth_r"),
+            ("render: mouth range over the target's", "openings", "mouth_range"),
+            ("render: eyes r", "openings", "eyes_r"),
+            ("render: eyes range over the target's", "openings", "eyes_range"),
+            ("face LPIPS-VGG ×1000", "eval", "face.lpips_vgg"),
+            ("full LPIPS-VGG ×1000", "eval", "full.lpips_vgg"),
+            ("hand LPIPS-VGG ×1000", "eval", "hand.lpips_vgg"),
+        ),
     ),
     "expression_colours": face_changes(
         "mean ± std, 3 seeds (gap: per seed)",
