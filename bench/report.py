@@ -441,6 +441,44 @@ def face_variants(
     return section
 
 
+def smoothing_stages(results: Path) -> list[str]:
+    """The expression's time smoothing on and off, stage by stage (docs/alignment.md): the fit (one
+    per clip, so seed 0's case), the render over the seeds, and ``eva eval``'s face and full
+    LPIPS-VGG (``expressions/smoothing/``)."""
+    folder = "expressions/smoothing"
+    columns = {
+        "gesturing, σ = 0.04 s": ("expressions_base", "eval_nosmooth", "before"),
+        "gesturing, σ = 0": ("expressions_nosmooth", "eval_nosmooth", "after"),
+        "seated, σ = 0.04 s": ("expressions_seated_base", "eval_nosmooth_seated", "before"),
+        "seated, σ = 0": ("expressions_seated_nosmooth", "eval_nosmooth_seated", "after"),
+    }
+    cells: dict[str, list[str]] = {}
+    for openings, evals, side in columns.values():
+        cases = list(load(ExpressionsResult, f"{folder}/{openings}", results).cases.values())
+        fitted = cases[0].stages["fitted"]
+        render = [c.stages["render"] for c in cases]
+        rows = {f"{r.region}.{r.metric}": r for r in load(EvalPaired, f"{folder}/{evals}", results).rows}
+        column = {
+            "fitted: mouth r / range over the target's": f"{fitted['mouth'].r:.2f} / "
+            f"{fitted['mouth'].range_ratio:.2f}",
+            "fitted: eyes r / range": f"{fitted['eyes'].r:.2f} / {fitted['eyes'].range_ratio:.2f}",
+            "render: mouth r": _stat([r["mouth"].r for r in render], 2),
+            "render: mouth range": _stat([r["mouth"].range_ratio for r in render], 2),
+            "render: eyes r": _stat([r["eyes"].r for r in render], 2),
+            "render: eyes range": _stat([r["eyes"].range_ratio for r in render], 2),
+        }
+        for region in ("face", "full"):
+            stat = getattr(rows[f"{region}.lpips_vgg"], side)
+            column[f"{region} LPIPS-VGG ×1000"] = _mean_std(stat)
+        for label, value in column.items():
+            cells.setdefault(label, []).append(value)
+    lines = [
+        "| stage against the target (mean ± std over seeds) | " + " | ".join(columns) + " |",
+        "|---|" + "---:|" * len(columns),
+    ]
+    return lines + [f"| {label} | " + " | ".join(values) + " |" for label, values in cells.items()]
+
+
 def per_frame_hands(results: Path) -> list[str]:
     """The clip fit's hands against each frame's hands stage re-run alone (``align.json``;
     docs/alignment.md, the per-frame hand solver)."""
@@ -1085,6 +1123,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         OPENING_ROWS,
         clips=("driving",),
     ),
+    "smoothing_stages": smoothing_stages,
     "calibration_videos": face_variants(
         "expressions/calibration/{clip}_paired_{variant}",
         "expressions/calibration/eval_{clip}_{variant}",
