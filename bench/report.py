@@ -479,6 +479,53 @@ def smoothing_stages(results: Path) -> list[str]:
     return lines + [f"| {label} | " + " | ".join(values) + " |" for label, values in cells.items()]
 
 
+def render_openings(base: str, variants: dict[str, str]) -> Callable[[Path], list[str]]:
+    """The render stage's openings of ``bench.expressions`` runs that hold a baseline's cases
+    (``<base>_s<seed>``) beside a variant's (``<variant>_s<seed>``): per measure the baseline's
+    mean ± std over the seeds, then each variant's with its per-seed gap to the baseline (higher
+    is better). ``variants``: ``"<result name>:<the variant's case prefix>"`` -> column label."""
+    measures = {
+        "mouth r": ("mouth", "r"),
+        "mouth range / target's": ("mouth", "range_ratio"),
+        "eyes r": ("eyes", "r"),
+        "eyes range / target's": ("eyes", "range_ratio"),
+    }
+
+    def section(results: Path) -> list[str]:
+        docs = {key: load(ExpressionsResult, key.split(":")[0], results).cases for key in variants}
+
+        def values(cases: dict[str, ExpressionCase], prefix: str, part: str, field: str) -> dict[str, float]:
+            """seed -> the render stage's ``field`` of ``part`` in the cases ``<prefix>_s<seed>``."""
+            return {
+                name.removeprefix(f"{prefix}_s"): getattr(case.stages["render"][part], field)
+                for name, case in cases.items()
+                if name.startswith(f"{prefix}_s")
+            }
+
+        lines = [
+            "| measure | default | " + " | ".join(variants.values()) + " |",
+            "|---|---:|" + "---:|" * len(variants),
+        ]
+        for label, (part, field) in measures.items():
+            first = next(iter(docs.values()))
+            baseline = values(first, base, part, field)
+            cells = [_stat(list(baseline.values()), 2)]
+            for key, cases in docs.items():
+                variant = values(cases, key.split(":")[1], part, field)
+                seeds = sorted(set(variant) & set(baseline))
+                gaps = mean_std([variant[k] - baseline[k] for k in seeds])
+                if abs(gaps["mean"]) <= gaps["std"]:
+                    word = "no difference"
+                else:
+                    word = "better" if gaps["mean"] > 0 else "worse"
+                change = f"{_signed(gaps['mean'], 2)} ± {gaps['std']:.2f}, {word}"
+                cells.append(f"{_stat([variant[k] for k in seeds], 2)} ({change})")
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        return lines
+
+    return section
+
+
 def per_frame_hands(results: Path) -> list[str]:
     """The clip fit's hands against each frame's hands stage re-run alone (``align.json``;
     docs/alignment.md, the per-frame hand solver)."""
@@ -1124,6 +1171,17 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         clips=("driving",),
     ),
     "smoothing_stages": smoothing_stages,
+    "thin_term_face": render_openings(
+        "product", {"expressions/face_views/expressions_thin:no_thin": "without the thin term"}
+    ),
+    "thin_term_face_relaxed": render_openings(
+        "product",
+        {
+            "expressions/face_views/expressions_face_thin_02:face_thin_02": "face weight 0.2",
+            "expressions/face_views/expressions_face_target_1cm:face_target_1cm": "face free to 1 cm",
+            "expressions/face_views/expressions_face_thin_off:face_thin_off": "face weight 0",
+        },
+    ),
     "calibration_videos": face_variants(
         "expressions/calibration/{clip}_paired_{variant}",
         "expressions/calibration/eval_{clip}_{variant}",
