@@ -526,6 +526,29 @@ def render_openings(base: str, variants: dict[str, str]) -> Callable[[Path], lis
     return section
 
 
+def real_videos_regions(name: str) -> Callable[[Path], list[str]]:
+    """The section of one ``real_videos_compare`` result ``name``, a row per video: each
+    region's held-out LPIPS-VGG ×1000 before → after with the paired change, or "no difference"."""
+
+    def section(results: Path) -> list[str]:
+        doc = load(RealVideosCompare, name, results)
+        lines = ["| video | full | hand | face |", "|---|---|---|---|"]
+        for video, regions in doc.comparison.items():
+            cells = []
+            for region in ("full", "hand", "face"):
+                v = regions[region]["lpips_vgg"]
+                if v.verdict == "no difference":
+                    cells.append(v.verdict)
+                else:
+                    before, after = v.before.mean * 1e3, v.after.mean * 1e3
+                    gap = f"{_signed(v.gap_pct.mean)} ± {v.gap_pct.std:.1f}%"
+                    cells.append(f"{before:.1f} → {after:.1f} ({gap}, {v.verdict})")
+            lines.append(f"| {video.removesuffix('.mp4')} | " + " | ".join(cells) + " |")
+        return lines
+
+    return section
+
+
 def per_frame_hands(results: Path) -> list[str]:
     """The clip fit's hands against each frame's hands stage re-run alone (``align.json``;
     docs/alignment.md, the per-frame hand solver)."""
@@ -1171,6 +1194,8 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         clips=("driving",),
     ),
     "smoothing_stages": smoothing_stages,
+    "outline_real": real_videos_regions("outline_real/compare"),
+    "body_prior_real": real_videos_regions("body_prior/compare"),
     "thin_term_face": render_openings(
         "product", {"expressions/face_views/expressions_thin:no_thin": "without the thin term"}
     ),
