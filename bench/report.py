@@ -549,6 +549,42 @@ def real_videos_regions(name: str) -> Callable[[Path], list[str]]:
     return section
 
 
+def opening_stages(results: Path) -> list[str]:
+    """The opening term before and after, stage by stage on the two upper-body clips (gesturing /
+    seated; ``expressions/expressions_{before,after}``): the detections and the fit are one per
+    clip (their mean over the seeds' cases), the render's mean ± std over the seeds."""
+    docs = {
+        side: load(ExpressionsResult, f"expressions/expressions_{side}", results).cases
+        for side in ("before", "after")
+    }
+    clips = ("gesturing", "seated")
+    measures = (("mouth", "r"), ("mouth", "range_ratio"), ("eyes", "r"), ("eyes", "range_ratio"))
+
+    def cell(side: str, stage: str, part: str, field: str, spread: bool) -> str:
+        per_clip = []
+        for clip in clips:
+            values = [
+                getattr(case.stages[stage][part], field)
+                for name, case in docs[side].items()
+                if name.startswith(f"{clip}_s")
+            ]
+            per_clip.append(_stat(values, 2) if spread else f"{mean_std(values)['mean']:.2f}")
+        return " / ".join(per_clip)
+
+    rows = {
+        "detected (what preprocessing stored)": ("after", "detected", False),
+        "fitted, before": ("before", "fitted", False),
+        "fitted, after": ("after", "fitted", False),
+        "render, before": ("before", "render", True),
+        "render, after": ("after", "render", True),
+    }
+    lines = ["| stage | mouth r | mouth range | eyes r | eyes range |", "|---|---|---|---|---|"]
+    for label, (side, stage, spread) in rows.items():
+        cells = [cell(side, stage, part, field, spread) for part, field in measures]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def per_frame_hands(results: Path) -> list[str]:
     """The clip fit's hands against each frame's hands stage re-run alone (``align.json``;
     docs/alignment.md, the per-frame hand solver)."""
@@ -1194,6 +1230,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         clips=("driving",),
     ),
     "smoothing_stages": smoothing_stages,
+    "opening_stages": opening_stages,
     "outline_real": real_videos_regions("outline_real/compare"),
     "body_prior_real": real_videos_regions("body_prior/compare"),
     "thin_term_face": render_openings(
