@@ -585,6 +585,73 @@ def opening_stages(results: Path) -> list[str]:
     return lines
 
 
+def attach_variants(
+    columns: tuple[tuple[str, str, str, str], ...], rows: tuple[str, ...]
+) -> Callable[[Path], list[str]]:
+    """Ways of attaching Gaussians to the face, on the two upper-body clips (gesturing / seated):
+    per column (label, ``bench.expressions`` result, the folder of the
+    ``{gesturing,seated}_before_after`` comparisons that hold its images, and which side of them
+    it is: "before" or "after"), the rows among: ``eyes``, ``mouth``, ``face`` (held-out
+    LPIPS-VGG), ``face_change`` (paired by seed), ``driving``."""
+    clips = {"gesturing": "latentsync_demo3_gesturing.mp4", "seated": "latentsync_demo1_seated.mp4"}
+
+    def section(results: Path) -> list[str]:
+        labels = {
+            "eyes": ("render eyes r", "render eye range"),
+            "mouth": ("render mouth r, range",),
+            "face": ("face LPIPS-VGG ×1000",),
+            "face_change": ("face, change paired by seed",),
+            "driving": ("driving: eyes r, range",),
+        }
+        table: dict[str, list[str]] = {label: [] for row in rows for label in labels[row]}
+        for _, openings, folder, side in columns:
+            cases = load(ExpressionsResult, openings, results).cases
+            faces = {
+                clip: load(RealVideosCompare, f"{folder}/{clip}_before_after", results).comparison[video][
+                    "face"
+                ]["lpips_vgg"]
+                for clip, video in clips.items()
+            }
+
+            def render(clip: str, part: str, field: str, cases: dict[str, ExpressionCase] = cases) -> str:
+                stages = [c.stages["render"][part] for n, c in cases.items() if n.startswith(f"{clip}_s")]
+                return _stat([getattr(stage, field) for stage in stages], 2)
+
+            if "eyes" in rows:
+                table["render eyes r"].append(" / ".join(render(c, "eyes", "r") for c in clips))
+                table["render eye range"].append(" / ".join(render(c, "eyes", "range_ratio") for c in clips))
+            if "mouth" in rows:
+                table["render mouth r, range"].append(
+                    " / ".join(
+                        f"{render(c, 'mouth', 'r')}, {render(c, 'mouth', 'range_ratio')}" for c in clips
+                    )
+                )
+            if "face" in rows:
+                table["face LPIPS-VGG ×1000"].append(
+                    " / ".join(_mean_std(getattr(faces[c], side)) for c in clips)
+                )
+            if "face_change" in rows:
+                table["face, change paired by seed"].append(
+                    "–"
+                    if side == "before"
+                    else " / ".join(
+                        f"{_signed(faces[c].gap_pct.mean)} ± {faces[c].gap_pct.std:.1f}% ({faces[c].verdict})"
+                        for c in clips
+                    )
+                )
+            if "driving" in rows:
+                drive = cases["driving"].stages["render"]
+                table["driving: eyes r, range"].append(
+                    f"{drive['eyes'].r:.2f}, {drive['eyes'].range_ratio:.2f}"
+                )
+        head = "| gesturing / seated | " + " | ".join(label for label, *_ in columns) + " |"
+        return [head, "|---|" + "---|" * len(columns)] + [
+            f"| {label} | " + " | ".join(cells) + " |" for label, cells in table.items()
+        ]
+
+    return section
+
+
 def per_frame_hands(results: Path) -> list[str]:
     """The clip fit's hands against each frame's hands stage re-run alone (``align.json``;
     docs/alignment.md, the per-frame hand solver)."""
@@ -1302,6 +1369,52 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         clips=("driving",),
     ),
     "smoothing_stages": smoothing_stages,
+    "attach_by_piece": attach_variants(
+        (
+            (
+                "before (`expressions_after.md`)",
+                "expressions/expressions_after",
+                "expressions/real_videos_pieces",
+                "before",
+            ),
+            (
+                "pieces (`expressions_pieces.md`)",
+                "expressions/expressions_pieces",
+                "expressions/real_videos_pieces",
+                "after",
+            ),
+        ),
+        ("eyes", "face"),
+    ),
+    "skin_frames": attach_variants(
+        (
+            (
+                "offsets only (before)",
+                "expressions/expressions_after",
+                "expressions/real_videos_frames",
+                "before",
+            ),
+            (
+                "a: frames, all levered",
+                "expressions/expressions_frames",
+                "expressions/real_videos_frames",
+                "after",
+            ),
+            (
+                "b: frames, none levered",
+                "expressions/expressions_frames_b",
+                "expressions/real_videos_frames_b",
+                "after",
+            ),
+            (
+                "d: frames, levered within 1 cm (the product)",
+                "expressions/expressions_frames_d",
+                "expressions/real_videos_frames_d",
+                "after",
+            ),
+        ),
+        ("eyes", "mouth", "face", "face_change", "driving"),
+    ),
     "opening_term": opening_term,
     "opening_stages": opening_stages,
     "outline_real": real_videos_regions("outline_real/compare"),
