@@ -652,6 +652,49 @@ def attach_variants(
     return section
 
 
+REGION_TERMS = {  # clip -> (label, the runs' glob under expressions/region_terms/), baseline first
+    "seated": (
+        ("baseline, seeds 0-2", "base/real_videos_hands_s?"),
+        ("LPIPS-Alex on the face box, weight 0.04", "face04/face04_s0"),
+        ("L1 + 0.2 D-SSIM on the face box, weight 0.3", "facew03/facew03_s0"),
+        ("the same, weight 1", "facew10/facew10_s0"),
+    ),
+    "gesturing": (
+        ("baseline, seeds 0-2", "base/real_videos_hands_gesturing_s?"),
+        ("LPIPS-Alex on the face box, weight 0.04", "face04/face04_gesturing_s2"),
+    ),
+}
+
+
+def region_terms(results: Path) -> list[str]:
+    """The face's own loss terms, a pilot (``expressions/region_terms/``): each variant's one run
+    against the baseline's three seeds; LPIPS ×1000."""
+    lines = [
+        "| clip | variant | face LPIPS-VGG (held out) | face LPIPS-Alex | face PSNR | full LPIPS-VGG |",
+        "|---|---|---:|---:|---:|---:|",
+    ]
+    for clip, variants in REGION_TERMS.items():
+        for label, pattern in variants:
+            runs = []
+            for _, doc in load_each(RealVideos, f"expressions/region_terms/{pattern}", results):
+                (video,) = doc.videos.values()
+                runs.append(video.methods["eva"])
+            measures = (
+                ("face", "lpips_vgg"),
+                ("face", "lpips_alex"),
+                ("face", "psnr"),
+                ("full", "lpips_vgg"),
+            )
+            cells = []
+            for region, metric in measures:
+                values = [getattr(run, region)[metric] for run in runs]
+                scale, digits = (1e3, 1) if "lpips" in metric else (1.0, 2)
+                one = len(values) == 1
+                cells.append(f"{scale * values[0]:.{digits}f}" if one else _stat(values, digits, scale))
+            lines.append(f"| {clip} | {label} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def per_frame_hands(results: Path) -> list[str]:
     """The clip fit's hands against each frame's hands stage re-run alone (``align.json``;
     docs/alignment.md, the per-frame hand solver)."""
@@ -1369,6 +1412,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         clips=("driving",),
     ),
     "smoothing_stages": smoothing_stages,
+    "region_terms": region_terms,
     "attach_by_piece": attach_variants(
         (
             (
