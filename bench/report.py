@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import re
+import statistics
 from collections.abc import Callable
 from pathlib import Path
 from typing import Generic, TypeVar
@@ -1196,6 +1197,57 @@ def _percent(stat: Stat) -> str:
     return f"{stat.mean * 100:.2f} ± {stat.std * 100:.2f}"
 
 
+class NovelPoseFrame(_Loose):
+    pose_deg: float
+    yaw_deg: float
+
+
+class NovelPoseFrames(_Loose):
+    per_frame: dict[str, NovelPoseFrame]
+
+
+class NovelPoseFramesRun(_Loose):
+    splits: dict[str, NovelPoseFrames]
+
+
+class NovelPoseFramesRow(_Loose):
+    runs: list[NovelPoseFramesRun]
+
+
+class NovelPoseNovelty(_Loose):
+    methods: dict[str, NovelPoseFramesRow]
+
+
+NOVEL_POSE_SPLITS = {
+    "near": "other takes of the training generator",
+    "far": "a take raising the arms above the shoulders",
+    "view": "training poses from 35° and 70°",
+    "far_view": "far poses from 35°",
+}
+
+
+def novel_pose_splits(results: Path) -> list[str]:
+    """How new each test split of ``novel_pose.json`` is: the largest joint angle to the nearest
+    training pose and the camera's yaw about the body, over the first row's runs' frames."""
+    runs = next(iter(load(NovelPoseNovelty, "novel_pose", results).methods.values())).runs
+    lines = [
+        "| split | what it is | largest joint angle to the nearest training pose, median [min, max] "
+        "| camera yaw about the body |",
+        "|---|---|---|---|",
+    ]
+    for split, what in NOVEL_POSE_SPLITS.items():
+        frames = [f for run in runs for f in run.splits[split].per_frame.values()]
+        pose = sorted(f.pose_deg for f in frames)
+        yaw = [f.yaw_deg for f in frames]
+        median = (
+            pose[len(pose) // 2] if len(pose) % 2 else (pose[len(pose) // 2 - 1] + pose[len(pose) // 2]) / 2
+        )
+        angles = f"{median:.0f}° [{pose[0]:.0f}, {pose[-1]:.0f}]"
+        yaws = f"{_signed(min(yaw), 0).lstrip('+')}° to {_signed(max(yaw), 0).lstrip('+')}°"
+        lines.append(f"| {split} | {what} | {angles} | {yaws} |")
+    return lines
+
+
 def novel_pose_candidates(results: Path) -> list[str]:
     """Each candidate of the novel-pose work: full-image LPIPS-VGG ×1000 per split, debris % from
     the new views (docs/novel-views.md, "What was tried")."""
@@ -1513,6 +1565,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
             ("hand LPIPS-VGG ×1000", "eval", "hand.lpips_vgg"),
         ),
     ),
+    "novel_pose_splits": novel_pose_splits,
     "novel_pose_candidates": novel_pose_candidates,
     "novel_pose_before_after": novel_pose_before_after,
     "novel_pose_goals": novel_pose_goals,
