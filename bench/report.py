@@ -1239,10 +1239,7 @@ def novel_pose_splits(results: Path) -> list[str]:
         frames = [f for run in runs for f in run.splits[split].per_frame.values()]
         pose = sorted(f.pose_deg for f in frames)
         yaw = [f.yaw_deg for f in frames]
-        median = (
-            pose[len(pose) // 2] if len(pose) % 2 else (pose[len(pose) // 2 - 1] + pose[len(pose) // 2]) / 2
-        )
-        angles = f"{median:.0f}° [{pose[0]:.0f}, {pose[-1]:.0f}]"
+        angles = f"{statistics.median(pose):.0f}° [{pose[0]:.0f}, {pose[-1]:.0f}]"
         yaws = f"{_signed(min(yaw), 0).lstrip('+')}° to {_signed(max(yaw), 0).lstrip('+')}°"
         lines.append(f"| {split} | {what} | {angles} | {yaws} |")
     return lines
