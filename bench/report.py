@@ -907,6 +907,91 @@ def opening_term(results: Path) -> list[str]:
     return ["| measure | before | after |", "|---|---:|---|"] + [f"| {a} | {b} | {c} |" for a, b, c in rows]
 
 
+class FitLeverRun(_Loose):
+    case: str
+    seed: int
+    variant: str
+    fit_iou: float
+    joint_error_px: dict[str, float]
+    skin_error_px: dict[str, float]
+
+
+class FitLevers(_Run):
+    """``bench.fit_levers``' report: the fit against the truth on the hard clips."""
+
+    runs: list[FitLeverRun]
+
+
+class CloseupLever(_Loose):
+    variant: str
+    seed: int
+    round: int = 1  # the first round's runs recorded none
+    truth: dict[str, float]
+
+
+class CloseupLevers(_Loose):
+    """``bench.closeup_levers``' result: one run per variant, seed and round."""
+
+    runs: list[CloseupLever]
+
+
+class ExactFit(_Loose):
+    mpjpe_mm: dict[str, float]
+
+
+class AlignExact(AlignSynthetic):
+    fitted_to_exact_targets: ExactFit
+
+
+class AlignExactResult(_Loose):
+    synthetic: AlignExact
+
+
+def body_prior(results: Path) -> list[str]:
+    """The articulation prior on Anny's redundant bones, without and with (``body_prior/``): the
+    hard clips' fit (seed 0), the close-up's avatar (``closeup_levers.json``, round 3) and the
+    synthetic ``wild`` fit."""
+    fits = load(FitLevers, "body_prior/fit_levers_body_prior", results).runs
+    avatars = [r for r in load(CloseupLevers, "closeup_levers", results).runs if r.round == 3]
+    wild = {
+        side: load(AlignExactResult, f"body_prior/{name}", results).synthetic
+        for side, name in (("baseline", "align_before"), ("body_prior", "align_subject_axes"))
+    }
+
+    def fit(case: str, variant: str) -> str:
+        (r,) = [r for r in fits if r.case == case and r.variant == variant and r.seed == 0]
+        skin, joints = r.skin_error_px, r.joint_error_px
+        return (
+            f"{r.fit_iou:.3f} / {skin['torso']:.1f} / {skin['torso slide']:.1f} / {joints['shoulders']:.1f}"
+        )
+
+    def avatar(variant: str) -> str:
+        runs = sorted((r for r in avatars if r.variant == variant), key=lambda r: r.seed)
+        return " / ".join(f"{1000 * r.truth['lpips_vgg']:.1f}" for r in runs)
+
+    def on_detections(variant: str) -> str:
+        f = wild[variant].fitted
+        mm = " / ".join(f"{f.mpjpe_mm[k]:.1f}" for k in ("body_in_view", "body", "hands"))
+        return f"{mm}; {f.expression_mm:.2f}; {f.head_deg:.1f}"
+
+    detections = "`wild`, on detections: body in view / all / hands MPJPE, mm; expression, mm; head, degrees"
+    rows = {
+        "close-up fit, seed 0: silhouette IoU / torso skin px / torso slide px / shoulders px": lambda v: fit(
+            "closeup", v
+        ),
+        "clean clip fit, seed 0: the same": lambda v: fit("clean", v),
+        "close-up avatar, truth LPIPS-VGG ×1000, seeds 0 / 1 / 2 (`closeup_levers.md`, round 3)": avatar,
+        detections: on_detections,
+        "`wild`, fitted to exact targets: body in view MPJPE, mm": lambda v: (
+            f"{wild[v].fitted_to_exact_targets.mpjpe_mm['body_in_view']:.1f}"
+        ),
+    }
+    lines = ["| measure | without | with |", "|---|---:|---:|"]
+    return lines + [
+        f"| {label} | {cell('baseline')} | {cell('body_prior')} |" for label, cell in rows.items()
+    ]
+
+
 def calibration_wild(results: Path) -> list[str]:
     """The face mesh's calibration on synthetic ``wild``: the fit before, with the calibration at
     the face stage's old and new iterations, and this tree (``expressions/calibration/``)."""
@@ -1461,6 +1546,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         clips=("driving",),
     ),
     "smoothing_stages": smoothing_stages,
+    "body_prior": body_prior,
     "region_terms": region_terms,
     "attach_by_piece": attach_variants(
         (
