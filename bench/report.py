@@ -1230,6 +1230,44 @@ class RealVideos(_Run):
     videos: dict[str, RealVideo]
 
 
+REAL_VIDEOS_HISTORY = {  # column label -> the eva runs' result files (several: mean ± std over them)
+    "before this work": ("real_videos_before",),
+    "detection ≤ 1280 px (`real_videos.md` at 93627af)": ("real_videos_history/real_videos_93627af",),
+    "+ wide body stage, hands turned again (`real_videos.md` at c3261c7)": (
+        "real_videos_history/real_videos_c3261c7",
+    ),
+    "+ outline, face depths and fallback (seed 0)": ("real_videos_bs_seed0",),
+    "the same, 3 seeds (`real_videos_bs_seed{0,1,2}`)": tuple(f"real_videos_bs_seed{s}" for s in range(3)),
+    "+ SSIM weight 0.2 (now, 3 seeds, `real_videos_ssim_seed{0,1,2}`)": tuple(
+        f"real_videos_ssim_seed{s}" for s in range(3)
+    ),
+}
+
+
+def real_videos_history(results: Path) -> list[str]:
+    """eva on the two full-body reference videos through the alignment work, LPIPS-VGG ×1000
+    full / hand / face per step (docs/alignment.md; ``real_videos_history/`` holds the two
+    intermediate results from git history)."""
+    columns = {
+        label: [load(RealVideos, name, results).videos for name in names]
+        for label, names in REAL_VIDEOS_HISTORY.items()
+    }
+    videos = list(next(iter(columns.values()))[0])
+    lines = ["| video | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
+    for video in videos:
+        cells = []
+        for runs in columns.values():
+            methods = [run[video].methods["eva"] for run in runs]
+            cells.append(
+                " / ".join(
+                    _mean_std(Stat(**mean_std([getattr(m, region)["lpips_vgg"] for m in methods])))
+                    for region in ("full", "hand", "face")
+                )
+            )
+        lines.append(f"| {video.removesuffix('.mp4')} | " + " | ".join(cells) + " |")
+    return lines
+
+
 class TestSuite(_Run):
     """``bench.test_suite``'s result."""
 
@@ -1546,6 +1584,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         clips=("driving",),
     ),
     "smoothing_stages": smoothing_stages,
+    "real_videos_history": real_videos_history,
     "body_prior": body_prior,
     "region_terms": region_terms,
     "attach_by_piece": attach_variants(
