@@ -80,6 +80,11 @@ def main() -> None:
     ap.add_argument("--name", default=None)
     ap.add_argument("--zero", nargs="*", default=[], help="FitStage weights set to 0 in every stage")
     ap.add_argument("--starts", nargs="+", choices=("estimate", "truth"), default=["estimate", "truth"])
+    ap.add_argument(
+        "--exact-2d",
+        action="store_true",
+        help="an ideal 2D detector: every keypoint in the frame at its true projection",
+    )
     args = ap.parse_args()
     torch.set_num_threads(1)
     model = load_body_model("anny")
@@ -98,16 +103,23 @@ def main() -> None:
     scene = hard_scene(args.case, args.seed, frames=len(hv.times), size=w, model=model)
     true_kp = projected_keypoints(model, scene.sharp_params, scene.viewmat, scene.K)
     truth = truth_in_fit_world(model, scene.sharp_params, scene.viewmat, viewmat)
-    starts = {
-        "the fit's initial estimate": initial_estimate(model, targets, config.fitting),
-        "the truth": truth,
-    }
+    if args.exact_2d:  # the true projections (the fit's camera sees the moved truth as the true one did)
+        exact = projected_keypoints(model, truth, viewmat, K)
+        inside = (exact[..., 0] >= 0) & (exact[..., 0] < w) & (exact[..., 1] >= 0) & (exact[..., 1] < h)
+        keypoints = torch.cat([exact, inside[..., None].to(exact)], dim=-1)  # what the frame shows
+        targets = dataclasses.replace(targets, keypoints=keypoints.to(targets.keypoints.dtype))
+    starts = {}
+    if "estimate" in args.starts:
+        starts["the fit's initial estimate"] = initial_estimate(model, targets, config.fitting)
+    if "truth" in args.starts:
+        starts["the truth"] = truth
     doc = {
         **run_header(),
         "case": args.case,
         "seed": args.seed,
         "fov_y_deg": config.fov_y_deg,
         "zeroed": args.zero,
+        "exact_2d": args.exact_2d,
         "runs": {},
     }
     for label, start in starts.items():
@@ -128,7 +140,12 @@ def main() -> None:
         "clip's "
         "stored detections; scored against the truth: silhouette IoU with the true person mask, and the "
         "projected joints' error (px, mean over the frames)"
-        + (f"; weights set to 0 in every stage: {', '.join(args.zero)}" if args.zero else ""),
+        + (f"; weights set to 0 in every stage: {', '.join(args.zero)}" if args.zero else "")
+        + (
+            "; the 2D keypoints exact (the true projections; confidence 1 inside the frame, 0 outside)"
+            if args.exact_2d
+            else ""
+        ),
         "",
         "| start | | silhouette IoU | " + " | ".join(f"{g} px" for g in groups) + " | fit (s) |",
         "|---|---|---:|" + "---:|" * len(groups) + "---:|",
