@@ -333,6 +333,13 @@ OPENING_ROWS = (
 )
 
 
+LPIPS_ROWS = (  # each region's held-out LPIPS-VGG from an ``eva eval`` comparison
+    ("face LPIPS-VGG ×1000", "eval", "face.lpips_vgg"),
+    ("full LPIPS-VGG ×1000", "eval", "full.lpips_vgg"),
+    ("hand LPIPS-VGG ×1000", "eval", "hand.lpips_vgg"),
+)
+
+
 def _change(before: Stat, after: Stat, gap: Stat, verdict: str, percent: bool, digits: int) -> list[str]:
     """The cells before | after | gap of a paired change; the gap alone says "no difference"."""
     if verdict == "no difference":
@@ -1568,9 +1575,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         "expressions/colour_spread/eval_{clip}_spread_local",
         (
             *OPENING_ROWS,
-            ("face LPIPS-VGG ×1000", "eval", "face.lpips_vgg"),
-            ("full LPIPS-VGG ×1000", "eval", "full.lpips_vgg"),
-            ("hand LPIPS-VGG ×1000", "eval", "hand.lpips_vgg"),
+            *LPIPS_ROWS,
             ("full PSNR", "eval", "full.psnr"),
             ("hand PSNR", "eval", "hand.psnr"),
         ),
@@ -1657,9 +1662,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
             ("render: mouth range over the target's", "openings", "mouth_range"),
             ("render: eyes r", "openings", "eyes_r"),
             ("render: eyes range over the target's", "openings", "eyes_range"),
-            ("face LPIPS-VGG ×1000", "eval", "face.lpips_vgg"),
-            ("full LPIPS-VGG ×1000", "eval", "full.lpips_vgg"),
-            ("hand LPIPS-VGG ×1000", "eval", "hand.lpips_vgg"),
+            *LPIPS_ROWS,
         ),
     ),
     "expression_colours": face_changes(
@@ -1669,10 +1672,8 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         "expressions/colours/eval_{clip}",
         (
             *OPENING_ROWS,
-            ("face LPIPS-VGG ×1000", "eval", "face.lpips_vgg"),
+            *LPIPS_ROWS,
             ("face PSNR", "eval", "face.psnr"),
-            ("full LPIPS-VGG ×1000", "eval", "full.lpips_vgg"),
-            ("hand LPIPS-VGG ×1000", "eval", "hand.lpips_vgg"),
         ),
     ),
     "blink_colours": face_changes(
@@ -1682,9 +1683,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         "expressions/colours/blinks/eval_{clip}",
         (
             *OPENING_ROWS,
-            ("face LPIPS-VGG ×1000", "eval", "face.lpips_vgg"),
-            ("full LPIPS-VGG ×1000", "eval", "full.lpips_vgg"),
-            ("hand LPIPS-VGG ×1000", "eval", "hand.lpips_vgg"),
+            *LPIPS_ROWS,
         ),
     ),
     "novel_pose_splits": novel_pose_splits,
