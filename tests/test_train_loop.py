@@ -25,7 +25,8 @@ from eva_engine.train import (
     with_overrides,
 )
 from eva_engine.train.config import OptimConfig
-from eva_engine.train.trainer import make_extra_optimizers, means_lr
+from eva_engine.train.frame_order import ExpressionEventsConfig
+from eva_engine.train.trainer import TrainingRun, make_extra_optimizers, means_lr
 
 
 @pytest.fixture(scope="module")
@@ -331,3 +332,22 @@ def test_official_rates_per_network_and_the_means_decay_horizon(anny_model):
     assert means_lr(preset("default"), 1999) == pytest.approx(1.6e-6, rel=1e-6)  # the run's own
     with pytest.raises(ValueError, match="means_lr_steps"):
         OptimConfig(means_lr_steps=0)
+
+
+def test_the_trainer_visits_a_blinking_frame_more_often(scene, anny_model):
+    """``TrainConfig.expression_events`` (``train/frame_order.py``): a frame with a fitted blink
+    comes back ``repeats`` more times per epoch; without it, every frame once."""
+    ds, _ = scene
+    train = list(ds.splits["train"])
+    blink = anny_model.expression_names.index("eyeBlinkLeft")
+    params = ds.params
+    expression = params.expression.clone()
+    expression[train[0], blink] = 0.8
+    blinking = dataclasses.replace(ds, params=dataclasses.replace(params, expression=expression))
+    config = dataclasses.replace(
+        preset("tiny", iterations=2), expression_events=ExpressionEventsConfig(repeats=4)
+    )
+    run = TrainingRun(blinking, config, anny_model, torch.device("cpu"))
+    assert sorted(run.epoch) == sorted([*range(len(train)), 0, 0, 0, 0])
+    plain = TrainingRun(blinking, preset("tiny", iterations=2), anny_model, torch.device("cpu"))
+    assert plain.epoch == list(range(len(train)))

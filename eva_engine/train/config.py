@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from eva_engine.avatar.config import AvatarConfig
 from eva_engine.recipes import PRESETS
 from eva_engine.train.face_views import FaceViewConfig
+from eva_engine.train.frame_order import ExpressionEventsConfig
 from eva_engine.train.losses import LossConfig
 from eva_engine.train.pose_correction import PoseCorrectionConfig
 from eva_engine.train.regularizers import RegularizerConfig
@@ -100,6 +101,8 @@ class TrainConfig:
         learns its shape near each pose, not only at it.
     image_scale: resample frames (and intrinsics) by this factor before training.
     face_view: the dataset's face close-ups as a second view of their frames (``train/face_views.py``).
+    expression_events: the frames of a rare expression (a blink) visited more often
+        (``train/frame_order.py``; off by default).
     seed: the initial weights, the seed vertices and the frame order (the density-control strategy
     has its own ``seed``). Runs on one CPU thread are bit-identical given it; with more threads,
     oneDNN's convolution backward may sum in another order and the last bits differ.
@@ -120,6 +123,7 @@ class TrainConfig:
     pose_noise: float = 0.0
     image_scale: float = 1.0
     face_view: FaceViewConfig = field(default_factory=FaceViewConfig)
+    expression_events: ExpressionEventsConfig = field(default_factory=ExpressionEventsConfig)
     seed: int = 0
     device: str = "cpu"
     progress_every: int = 10

@@ -30,6 +30,7 @@ from eva_engine.data.resampled import ResampledDataset
 from eva_engine.progress import Progress, ProgressEvent
 from eva_engine.train.config import TrainConfig
 from eva_engine.train.face_views import FaceViews
+from eva_engine.train.frame_order import epoch_frames, shuffled
 from eva_engine.train.losses import AvatarLoss, composite_target
 from eva_engine.train.pose_correction import PoseCorrection
 from eva_engine.train.regularizers import regularization
@@ -288,6 +289,9 @@ class TrainingRun:
         self.parts_before = part_counts(self.avatar.gaussians.part_ids)
 
         self.frame_order = torch.Generator().manual_seed(config.seed)
+        self.epoch = epoch_frames(
+            self.params.expression.cpu(), list(body.expression_names), config.expression_events
+        )
         # Draws of the options that perturb a step (their own generator: turning one on leaves the
         # frame order and the initial weights as they were).
         self.perturb = torch.Generator().manual_seed(config.seed + 1)
@@ -313,7 +317,7 @@ class TrainingRun:
         config, avatar, tick = self.config, self.avatar, self._tick
         t = time.perf_counter()
         if not self.order:
-            self.order = torch.randperm(len(self.train_ids), generator=self.frame_order).tolist()
+            self.order = shuffled(self.epoch, self.frame_order)
         i = self.order.pop()
         if step > 0 and step % config.sh_degree_interval == 0:
             avatar.active_sh_degree = min(avatar.active_sh_degree + 1, avatar.gaussians.sh_degree)
