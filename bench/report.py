@@ -20,7 +20,7 @@ import re
 import statistics
 from collections.abc import Callable
 from pathlib import Path
-from typing import Generic, TypeVar
+from typing import Generic, NamedTuple, TypeVar
 
 from pydantic import BaseModel, ConfigDict
 
@@ -340,8 +340,48 @@ LPIPS_ROWS = (  # each region's held-out LPIPS-VGG from an ``eva eval`` comparis
 )
 
 
-def _change(before: Stat, after: Stat, gap: Stat, verdict: str, percent: bool, digits: int) -> list[str]:
+class PairedChange(NamedTuple):
+    """One paired change of issue 39's comparisons, LPIPS ×1000: before and after over the seeds,
+    the per-seed gap (in % where ``percent``) and its verdict."""
+
+    before: Stat
+    after: Stat
+    gap: Stat
+    verdict: str
+    percent: bool
+
+
+def _scaled(stat: Stat, scale: float) -> Stat:
+    return Stat(mean=stat.mean * scale, std=stat.std * scale, n=stat.n)
+
+
+def _paired_changes(openings: str, evals: str | None, results: Path) -> dict[str, dict[str, PairedChange]]:
+    """The changes of one ``bench.expressions_compare`` result (``"openings"``, by measure; its
+    LPIPS is ×1000 already) and one ``eva eval`` comparison (``"eval"``, by ``region.metric``;
+    none without ``evals``)."""
+    opened = load(OpeningsPaired, openings, results).rows
+    evaluated = load(EvalPaired, evals, results).rows if evals else []
+    return {
+        "openings": {
+            r.measure: PairedChange(r.before, r.after, r.gap, r.verdict, r.gap_unit in ("%", "percent"))
+            for r in opened
+        },
+        "eval": {
+            f"{r.region}.{r.metric}": PairedChange(
+                _scaled(r.before, 1e3 if "lpips" in r.metric else 1.0),
+                _scaled(r.after, 1e3 if "lpips" in r.metric else 1.0),
+                r.gap_percent,
+                r.verdict,
+                True,
+            )
+            for r in evaluated
+        },
+    }
+
+
+def _change(change: PairedChange, digits: int) -> list[str]:
     """The cells before | after | gap of a paired change; the gap alone says "no difference"."""
+    before, after, gap, verdict, percent = change
     if verdict == "no difference":
         cell = verdict
     elif percent:
@@ -370,29 +410,16 @@ def face_changes(
     ``eva eval`` comparisons; no ``evals``: the rows read ``openings`` only). LPIPS is shown ×1000."""
 
     def section(results: Path) -> list[str]:
-        found = {}
-        for clip in clips:
-            opened = load(OpeningsPaired, openings.format(clip=clip), results).rows
-            evaluated = load(EvalPaired, evals.format(clip=clip), results).rows if evals else []
-            found[clip] = {
-                "openings": {
-                    r.measure: (r.before, r.after, r.gap, r.verdict, r.gap_unit in ("%", "percent"))
-                    for r in opened
-                },
-                "eval": {
-                    f"{r.region}.{r.metric}": (r.before, r.after, r.gap_percent, r.verdict, True)
-                    for r in evaluated
-                },
-            }
+        found = {
+            clip: _paired_changes(openings.format(clip=clip), evals and evals.format(clip=clip), results)
+            for clip in clips
+        }
         head = " | ".join(f"{clip}, {columns[0]} | {columns[1]} | gap" for clip in clips)
         lines = [f"| {heading} | {head} |", "|---|" + "---:|---:|---:|" * len(clips)]
         for label, source, key in rows:
             cells = []
-            scale = 1000.0 if source == "eval" and "lpips" in key else 1.0  # the openings' are ×1000
             for clip in clips:
-                before, after, gap, verdict, percent = found[clip][source][key]
-                before, after = (Stat(mean=x.mean * scale, std=x.std * scale, n=x.n) for x in (before, after))
-                cells += _change(before, after, gap, verdict, percent, 1 if "lpips" in key else 2)
+                cells += _change(found[clip][source][key], 1 if "lpips" in key else 2)
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
         return lines
 
@@ -412,37 +439,29 @@ def face_variants(
     ``variants``: variant -> its column's label."""
 
     def section(results: Path) -> list[str]:
-        found = {}
-        for variant in variants:
-            for clip in clips:
-                names = {"clip": clip, "variant": variant}
-                opened = load(OpeningsPaired, openings.format(**names), results).rows
-                evaluated = load(EvalPaired, evals.format(**names), results).rows
-                found[variant, clip] = {
-                    "openings": {r.measure: (r.before, r.after, r.gap, r.verdict) for r in opened},
-                    "eval": {
-                        f"{r.region}.{r.metric}": (r.before, r.after, r.gap_percent, r.verdict)
-                        for r in evaluated
-                    },
-                }
+        found = {
+            (variant, clip): _paired_changes(
+                openings.format(clip=clip, variant=variant), evals.format(clip=clip, variant=variant), results
+            )
+            for variant in variants
+            for clip in clips
+        }
         pair = " / ".join(clips)
         lines = [
             f"| measure ({pair}) | before | " + " | ".join(variants.values()) + " |",
             "|---|" + "---|" * (1 + len(variants)),
         ]
+        first = next(iter(variants))
         for label, source, key in rows:
-            scale = 1000.0 if source == "eval" and "lpips" in key else 1.0
             digits = 1 if "lpips" in key else 2
-            first = next(iter(variants))
-            before = " / ".join(f"{found[first, c][source][key][0].mean * scale:.{digits}f}" for c in clips)
-            cells = [before]
+            cells = [" / ".join(f"{found[first, c][source][key].before.mean:.{digits}f}" for c in clips)]
             for variant in variants:
                 got = [found[variant, c][source][key] for c in clips]
                 if source == "openings":
-                    values = " / ".join(f"{g[1].mean:.{digits}f}" for g in got)
+                    values = " / ".join(f"{g.after.mean:.{digits}f}" for g in got)
                 else:
-                    values = " / ".join(f"{_signed(g[2].mean)} ± {g[2].std:.1f}%" for g in got)
-                cells.append(f"{values} ({' / '.join(g[3] for g in got)})")
+                    values = " / ".join(f"{_signed(g.gap.mean)} ± {g.gap.std:.1f}%" for g in got)
+                cells.append(f"{values} ({' / '.join(g.verdict for g in got)})")
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
         return lines
 
