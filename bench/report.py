@@ -216,6 +216,14 @@ REAL_VIDEO_HANDS = {"gesturing": "real_videos_hands_gesturing_s*", "seated": "re
 REAL_VIDEO_HANDS_LABELS = {"eva-official": "eva-official (trained on the metric; scored on black)"}
 
 
+def region_lpips(runs: list[RealVideoMethod]) -> list[str]:
+    """Full, hand and face LPIPS-VGG ×1000 over ``runs`` (one method's, e.g. one per seed)."""
+    return [
+        _mean_std(Stat(**mean_std([getattr(m, region)["lpips_vgg"] for m in runs])))
+        for region in ("full", "hand", "face")
+    ]
+
+
 def real_video_hands(results: Path) -> list[str]:
     """Each method on the two LatentSync videos over the seeds run (``real_videos_hands/``):
     LPIPS-VGG ×1000 full / hand / face, Gaussians and training seconds (docs/eva-contributions.md,
@@ -233,10 +241,7 @@ def real_video_hands(results: Path) -> list[str]:
                 runs.setdefault(method, []).append((seed, m))
         for method, seeded in runs.items():
             ms = [m for _, m in seeded]
-            cells = [
-                _mean_std(Stat(**mean_std([getattr(m, region)["lpips_vgg"] for m in ms])))
-                for region in ("full", "hand", "face")
-            ]
+            cells = region_lpips(ms)
             cells.append(f"{sum(m.n_gaussians for m in ms) / len(ms):,.0f}")
             cells.append(f"{sum(m.train_seconds for m in ms) / len(ms):.0f}")
             seeds = _seeds([seed for seed, _ in seeded])
@@ -1284,12 +1289,7 @@ def real_videos_history(results: Path) -> list[str]:
         cells = []
         for runs in columns.values():
             methods = [run[video].methods["eva"] for run in runs]
-            cells.append(
-                " / ".join(
-                    _mean_std(Stat(**mean_std([getattr(m, region)["lpips_vgg"] for m in methods])))
-                    for region in ("full", "hand", "face")
-                )
-            )
+            cells.append(" / ".join(region_lpips(methods)))
         lines.append(f"| {video.removesuffix('.mp4')} | " + " | ".join(cells) + " |")
     return lines
 
