@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from eva_engine.body import KEYPOINT_NAMES, PART_NAMES, AnnyCacheError, ensure_anny_cache, load_body_model
-from eva_engine.body.anny_backend import ANNY_TO_WORLD, SEGMENT_LABELS
+from eva_engine.body.anny_backend import ANNY_TO_WORLD, SEGMENT_LABELS, face_segment_masks
 from eva_engine.body.anny_cache import _stale_entries, cache_is_valid, default_cache_dir, expected_cache_file
 
 
@@ -71,6 +71,17 @@ def test_surface_mask_drops_only_hidden_eye_geometry(anny_model):
     assert 500 < int((~m.surface_vertex_mask).sum()) < 700
     kept = {labels[i] for i in torch.nonzero(m.surface_vertex_mask).squeeze(1).tolist()}
     assert {"eye_front.L", "eye_front.R", "mouth_cavity", "tongue", "head", "hand.L", "body"} <= kept
+
+
+def test_face_segments_are_annys_own(anny_model):
+    """Every label read in one pass is the mask Anny's own function gives for that label."""
+    from anny.face_segmentation import get_face_segmentation_mask
+
+    masks = face_segment_masks(anny_model.anny)
+    assert masks.shape == (anny_model.faces.shape[0], len(SEGMENT_LABELS))
+    for i, label in enumerate(SEGMENT_LABELS):
+        expected = get_face_segmentation_mask(anny_model.anny, [label]).cpu().numpy()
+        assert (masks[:, i] == expected).all() and expected.any(), label
 
 
 def test_expression_moves_the_face_only(anny_model):

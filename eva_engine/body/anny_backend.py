@@ -116,6 +116,28 @@ class AnnyConfig:
     """Build a missing or stale cache (~10 s) instead of failing with a message."""
 
 
+def face_segment_masks(model) -> np.ndarray:
+    """[F, L] bool: which of ``SEGMENT_LABELS`` each face of the Anny ``model`` has, as
+    ``anny.face_segmentation.get_face_segmentation_mask`` reads it (the segmentation image's
+    colour at the face's mean texture coordinate), for every label from one read of the image:
+    Anny's function reads and decodes it again per label (0.2 s of every model load)."""
+    import PIL.Image
+    import yaml
+    from anny.paths import get_anny_root_dir
+
+    folder = get_anny_root_dir() / "data/segmentation"
+    image = np.asarray(PIL.Image.open(folder / "body_parts_segmentation.png").convert("RGB"))
+    colours = yaml.safe_load((folder / "body_parts_segmentation.yaml").read_text())["colors"]
+    centre = model.texture_coordinates[model.face_texture_coordinate_indices].mean(dim=1)
+    # Anny's rounding and clamping, to the letter.
+    u = torch.round(centre[:, 0] * image.shape[1]).to(torch.int64).clamp_max(image.shape[0] - 1)
+    v = torch.round((1 - centre[:, 1]) * image.shape[0]).to(torch.int64).clamp_max(image.shape[1] - 1)
+    face_colours = image[v.detach().cpu().numpy(), u.detach().cpu().numpy()]  # [F, 3]
+    return np.stack(
+        [np.all(face_colours == np.asarray(colours[label]), axis=-1) for label in SEGMENT_LABELS], axis=1
+    )
+
+
 class AnnyBody(BodyModel):
     """Anny behind :class:`BodyModel` (see the module docstring)."""
 
@@ -292,22 +314,48 @@ class AnnyBody(BodyModel):
         return kp, joints
 
     def _build_keypoint_space(self, reg):
-        """(pair_k [N], pair_j [N], A [N], P0 [N, 3], PB [C, N * 3]) over the N weighted pairs."""
-        k, v = len(reg.names), self.num_vertices
-        w_v = torch.zeros(k, v, dtype=torch.float64, device=self.device)
-        w_v.index_put_((reg.vertex_rows, reg.vertex_cols), reg.vertex_weights.double(), accumulate=True)
-        used = torch.nonzero(w_v.abs().sum(0) > 0).squeeze(1)
-        w_v = w_v[:, used]  # [K, U]
-        skin = self.skinning_weights[used].double()  # [U, J]
-        c = self.anny_to_world.double()
-        template = self.anny.template_vertices[used].double() @ c.T  # [U, 3]
-        shapes = self.anny.blendshapes[:, used].double() @ c.T  # [C, U, 3]
-        area = w_v @ skin  # [K, J]
+        """(pair_k [N], pair_j [N], A [N], P0 [N, 3], PB [C, N * 3]) over the N weighted pairs.
+
+        With W [K, V] the regressor's vertex weights and w [V, J] the skinning weights:
+        A = W w, P0_kj = sum_u W_ku w_uj x_u, PB the same over the blendshapes. Built from the
+        (keypoint, vertex, bone) triples of the two sparse matrices: the dense [N, V] product took
+        ~0.9 s for the fit's 2,500 outline points, once per fit."""
+        k, v, j = len(reg.names), self.num_vertices, len(self.joint_names)
+        f64 = dict(dtype=torch.float64, device=self.device)
+        w = torch.sparse_coo_tensor(
+            torch.stack([reg.vertex_rows, reg.vertex_cols]),
+            reg.vertex_weights.to(**f64),
+            (k, v),
+            check_invariants=False,  # built here from valid indices
+        ).coalesce()  # duplicates summed
+        (wk, wu), wval = w.indices(), w.values()
+        skin = self.skinning_weights.to(**f64)
+        bone_v, bone_j = torch.nonzero(skin, as_tuple=True)  # sorted by vertex
+        per_vertex = torch.bincount(bone_v, minlength=v)
+        first = torch.cumsum(per_vertex, 0) - per_vertex
+        reps = per_vertex[wu]
+        entry = torch.repeat_interleave(torch.arange(len(wu), device=self.device), reps)
+        start = torch.cumsum(reps, 0) - reps
+        slot = first[wu][entry] + torch.arange(len(entry), device=self.device) - start[entry]
+        t_k, t_u, t_j = wk[entry], wu[entry], bone_j[slot]
+        t_w = wval[entry] * skin[t_u, t_j]
+        area = torch.zeros(k, j, **f64).index_put_((t_k, t_j), t_w, accumulate=True)
         pair_k, pair_j = torch.nonzero(area.abs() > 0, as_tuple=True)
-        # P_kj over the kept pairs: sum_u W_ku w_uj x_u, as one sparse-free gather per pair.
-        coef = w_v[pair_k] * skin[:, pair_j].T  # [N, U]
-        p0 = coef @ template  # [N, 3]
-        pb = torch.einsum("nu,cud->cnd", coef, shapes).reshape(shapes.shape[0], -1)
+        pair_of = torch.full((k, j), -1, dtype=torch.int64, device=self.device)
+        pair_of[pair_k, pair_j] = torch.arange(len(pair_k), device=self.device)
+        t_n = pair_of[t_k, t_j]
+        keep = t_n >= 0  # a pair whose terms cancel exactly is dropped, as A's zero says
+        used, t_u = torch.unique(t_u[keep], return_inverse=True)
+        n, c = len(pair_k), self.anny.blendshapes.shape[0]
+        coef = torch.sparse_coo_tensor(
+            torch.stack([t_n[keep], t_u]), t_w[keep], (n, len(used)), check_invariants=False
+        ).coalesce()
+        to_world = self.anny_to_world.double()
+        template = self.anny.template_vertices[used].double() @ to_world.T  # [U, 3]
+        shapes = self.anny.blendshapes[:, used].double() @ to_world.T  # [C, U, 3]
+        p0 = torch.sparse.mm(coef, template)  # [N, 3]
+        pb = torch.sparse.mm(coef, shapes.permute(1, 0, 2).reshape(len(used), c * 3))  # [N, C * 3]
+        pb = pb.view(n, c, 3).permute(1, 0, 2).reshape(c, n * 3)
         dt = self.dtype
         return pair_k, pair_j, area[pair_k, pair_j].to(dt), p0.to(dt), pb.to(dt).contiguous()
 
@@ -336,14 +384,11 @@ class AnnyBody(BodyModel):
     def _vertex_segments(model) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-vertex segment label [V] (label of most incident faces) and [V, L] bool
         "has a face with label l"."""
-        from anny.face_segmentation import get_face_segmentation_mask
-
         faces = model.faces.cpu().numpy()
         counts = np.zeros((model.template_vertices.shape[0], len(SEGMENT_LABELS)), dtype=np.int64)
-        for i, label in enumerate(SEGMENT_LABELS):
-            mask = get_face_segmentation_mask(model, [label]).cpu().numpy()
+        for i, mask in enumerate(face_segment_masks(model).T):
             for corner in range(3):
-                np.add.at(counts[:, i], faces[mask, corner], 1)
+                counts[:, i] += np.bincount(faces[mask, corner], minlength=counts.shape[0])
         return torch.from_numpy(counts.argmax(axis=1)), torch.from_numpy(counts > 0)
 
     def _build_keypoints(self, model, labels: torch.Tensor, any_label: torch.Tensor) -> KeypointRegressor:

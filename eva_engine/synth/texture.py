@@ -17,7 +17,7 @@ import dataclasses
 import numpy as np
 import torch
 
-from eva_engine.body.anny_backend import SEGMENT_LABELS
+from eva_engine.body.anny_backend import SEGMENT_LABELS, face_segment_masks
 from eva_engine.body.rest_axes import rest_axes
 from eva_engine.geometry import vertex_normals
 
@@ -136,12 +136,11 @@ class _Anatomy:
 
 
 def face_segments(model) -> np.ndarray:
-    """Anny segment label per face [F] (index into ``anny_backend.SEGMENT_LABELS``)."""
-    from anny.face_segmentation import get_face_segmentation_mask
-
+    """Anny segment label per face [F] (index into ``anny_backend.SEGMENT_LABELS``; a face with
+    none gets 0, one with several the last)."""
     labels = np.zeros(model.faces.shape[0], np.int64)
-    for i, name in enumerate(SEGMENT_LABELS):
-        labels[get_face_segmentation_mask(model.anny, [name]).cpu().numpy()] = i
+    for i, mask in enumerate(face_segment_masks(model.anny).T):
+        labels[mask] = i
     return labels
 
 
