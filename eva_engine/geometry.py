@@ -68,18 +68,21 @@ def knn_indices(points: Tensor, k: int) -> Tensor:
     return torch.from_numpy(np.asarray(idx).reshape(len(x), k)).to(points.device)
 
 
-def mean_neighbour_distance(points: Tensor, k: int, chunk: int = 2048) -> Tensor:
-    """[N] mean distance of each of ``points [N, 3]`` to its ``k`` nearest other points (0.01 m
-    when there are no others)."""
+def mean_neighbour_distance(points: Tensor, k: int) -> Tensor:
+    """[N] mean distance of each of ``points [N, 3]`` (finite) to its ``k`` nearest other points
+    (0.01 m when there are no others); no gradient.
+
+    Exact, by a k-d tree in float64: the brute-force ``torch.cdist`` it replaces took 0.7 s for
+    Anny's 13,718 vertices and, computing distances through dot products in float32, was up to
+    8% off for millimetre neighbours a metre from the origin."""
     n = points.shape[0]
     if n < 2:
         return points.new_full((n,), 0.01)
-    k = min(k, n - 1)
-    out = []
-    for p in points.split(chunk):
-        d = torch.cdist(p, points).topk(k + 1, dim=1, largest=False).values
-        out.append(d[:, 1:].mean(dim=1))
-    return torch.cat(out)
+    xyz = points.detach().cpu().double().numpy()
+    if not np.isfinite(xyz).all():
+        raise ValueError("mean_neighbour_distance needs finite points")
+    distances, _ = cKDTree(xyz).query(xyz, k=min(k, n - 1) + 1)  # the first is the point itself
+    return torch.from_numpy(distances[:, 1:].mean(axis=1)).to(points)
 
 
 def quat_from_z(directions: Tensor) -> Tensor:

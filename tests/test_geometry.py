@@ -1,8 +1,9 @@
 """The shared geometry: world -> camera -> pixels agrees with the pinhole model K [R | t] p."""
 
+import pytest
 import torch
 
-from eva_engine.geometry import MIN_DEPTH, camera_center, project_points, to_camera
+from eva_engine.geometry import MIN_DEPTH, camera_center, mean_neighbour_distance, project_points, to_camera
 from eva_engine.render import orbit_camera
 
 
@@ -31,3 +32,25 @@ def test_camera_center_maps_to_the_origin():
     view = orbit_camera(30.0, 20.0, 2.0, target=(0.1, 0.9, 0.0)).double()
     centre = camera_center(view)[None]
     torch.testing.assert_close(to_camera(centre, view)[0], torch.zeros(3, dtype=torch.float64))
+
+
+def test_mean_neighbour_distance_is_exact_for_millimetre_neighbours_far_from_the_origin():
+    gen = torch.Generator().manual_seed(0)
+    points = torch.tensor([1.0, -0.8, 1.5]) + 0.002 * torch.rand(300, 3, generator=gen)
+    points = torch.cat([points, points[:5]])  # duplicates: a neighbour at distance 0
+    exact = (points.double()[:, None] - points.double()[None]).norm(dim=-1)
+    expected = exact.sort(dim=1).values[:, 1:4].mean(dim=1)
+    got = mean_neighbour_distance(points, 3)
+    assert got.dtype == points.dtype and got.shape == (305,)
+    torch.testing.assert_close(got.double(), expected, rtol=1e-6, atol=1e-9)
+    assert (got[:5] < got[5:].mean()).all()  # a duplicate's nearest neighbour is its twin
+
+
+def test_mean_neighbour_distance_of_few_or_bad_points():
+    torch.testing.assert_close(mean_neighbour_distance(torch.zeros(1, 3), 3), torch.tensor([0.01]))
+    assert mean_neighbour_distance(torch.zeros(0, 3), 3).shape == (0,)
+    # k larger than the other points: all of them.
+    two = mean_neighbour_distance(torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.3, 0.4]]), 3)
+    torch.testing.assert_close(two, torch.tensor([0.5, 0.5]))
+    with pytest.raises(ValueError, match="finite"):
+        mean_neighbour_distance(torch.tensor([[0.0, 0.0, 0.0], [float("nan"), 0.0, 0.0]]), 1)
