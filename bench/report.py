@@ -1478,6 +1478,75 @@ def _verdict(met: bool) -> str:
     return "met" if met else "**not met**"
 
 
+# The speed work's quality guard (``speed_quality/``): (setting, base, what the setting is).
+SPEED_QUALITY = (
+    ("detach", "exact", "the weight MLP's inputs detached"),
+    ("lpips2", "exact", "LPIPS every 2nd step"),
+    ("detach_lpips2", "exact", "both of the above"),
+    ("bf16", "bf16_base", "the weight MLP in bfloat16"),
+    ("lpips_late", "lpips_late_base", "LPIPS every 2nd step after densification"),
+    ("mlp_width64", "mlp_width_base", "both MLPs 64 wide, not 128 (in `default`)"),
+    ("mlp_width64_3dgs", "mlp_width_base_3dgs", "both MLPs 64 wide, not 128 (in `default`)"),
+    ("conf_half", "mlp_width64", "the confidence network at half resolution"),
+    ("knn_new", "knn_base", "initial scales from the exact nearest neighbours (in every preset)"),
+)
+SPEED_QUALITY_CELLS = (  # (column, region or None, metric, lower is better)
+    ("train time", None, "train_seconds", True),
+    ("full LPIPS-VGG", "full", "lpips_vgg", True),
+    ("hand LPIPS-VGG", "hand", "lpips_vgg", True),
+    ("face LPIPS-VGG", "face", "lpips_vgg", True),
+    ("full PSNR", "full", "psnr", False),
+)
+
+
+def seed_runs(folder: Path, name: str) -> tuple[str, dict[str, dict[int, dict]]]:
+    """(preset, {method: {seed: run entry}}) of ``bench paper_tables``' ``<name>_seed*.json``."""
+    files = sorted(folder.glob(f"{name}_seed*.json"))
+    if not files:
+        raise FileNotFoundError(f"no {folder}/{name}_seed*.json")
+    presets, runs = set(), {}
+    for doc in (json.loads(f.read_text()) for f in files):
+        presets.add(doc["config"]["preset"])
+        for method, entry in doc["methods"].items():
+            runs.setdefault(method, {}).update({r["seed"]: r for r in entry["runs"]})
+    if len(presets) != 1:
+        raise ValueError(f"{folder}/{name}_seed*.json mix presets {sorted(presets)}")
+    return presets.pop(), runs
+
+
+def speed_quality(results: Path) -> list[str]:
+    """Every training change the speed work measured against its base, paired over seeds
+    (``docs/speed.md``, "Quality guard"; ``compare_settings``' gaps, one row per setting)."""
+    folder = results / "speed_quality"
+    lines = [
+        "| setting | against | method, preset | "
+        + " | ".join(column for column, *_ in SPEED_QUALITY_CELLS)
+        + " | files |",
+        "|---|---|---|" + "---:|" * len(SPEED_QUALITY_CELLS) + "---|",
+    ]
+    for setting, base, what in SPEED_QUALITY:
+        preset, mine = seed_runs(folder, setting)
+        _, theirs = seed_runs(folder, base)
+        for method in (m for m in mine if m in theirs):
+            seeds = sorted(mine[method].keys() & theirs[method].keys())
+            cells = []
+            for _, region, metric, lower in SPEED_QUALITY_CELLS:
+
+                def value(run: dict, region=region, metric=metric) -> float:
+                    return run[metric] if region is None else run[region][metric]
+
+                verdict, gap = compare_paired(
+                    [value(mine[method][s]) for s in seeds], [value(theirs[method][s]) for s in seeds], lower
+                )
+                cells.append(f"{gap['mean']:+.1f} ± {gap['std']:.1f}%, {verdict}")
+            lines.append(
+                f"| {what} (`{setting}`) | `{base}` | {method}, `{preset}`, {len(seeds)} seeds | "
+                + " | ".join(cells)
+                + f" | `{setting}_seed*`, `{base}_seed*` |"
+            )
+    return lines
+
+
 def speed_targets(results: Path) -> list[str]:
     """Issue 38's goals against the latest run of each (``docs/speed.md``, "Targets")."""
     sections = json.loads((results / "train.json").read_text())  # label -> one run
@@ -1608,6 +1677,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         clips=("driving",),
     ),
     "smoothing_stages": smoothing_stages,
+    "speed_quality": speed_quality,
     "real_videos_history": real_videos_history,
     "body_prior": body_prior,
     "region_terms": region_terms,
