@@ -1319,8 +1319,8 @@ class Rasterizer(_Run):
 
 
 SPEED_TRAIN_RUNS = {
-    "default": "controlled-bench-seed0/default@final_2000",
-    "eva": "controlled-bench-seed0/default/eva@final_2000",
+    "default": "controlled-bench-seed0/default@setup_2000",
+    "eva": "controlled-bench-seed0/default/eva@setup_2000",
 }
 """The ``train.json`` sections the targets table quotes: the latest 2,000-iteration runs of each."""
 SPEED_REAL_VIDEO = ("speed_fast/real_videos_fast_mmpose", "mmpose_body3d_demo.mp4")
