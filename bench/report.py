@@ -1531,13 +1531,11 @@ def speed_quality(results: Path) -> list[str]:
             seeds = sorted(mine[method].keys() & theirs[method].keys())
             cells = []
             for _, region, metric, lower in SPEED_QUALITY_CELLS:
-
-                def value(run: dict, region=region, metric=metric) -> float:
-                    return run[metric] if region is None else run[region][metric]
-
-                verdict, gap = compare_paired(
-                    [value(mine[method][s]) for s in seeds], [value(theirs[method][s]) for s in seeds], lower
-                )
+                values = [
+                    [run[metric] if region is None else run[region][metric] for run in (a[s] for s in seeds)]
+                    for a in (mine[method], theirs[method])
+                ]
+                verdict, gap = compare_paired(*values, lower)
                 cells.append(f"{gap['mean']:+.1f} ± {gap['std']:.1f}%, {verdict}")
             lines.append(
                 f"| {what} (`{setting}`) | `{base}` | {method}, `{preset}`, {len(seeds)} seeds | "
