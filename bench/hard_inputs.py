@@ -338,6 +338,11 @@ def calibrate(runs: list[dict]) -> dict:
     }
 
 
+def load_runs(work: Path) -> list[dict]:
+    """Every run's ``result.json`` in ``work`` (plain, variant and budget runs alike)."""
+    return [json.loads(p.read_text()) for p in sorted(work.glob("*_s*/result.json"))]
+
+
 def run_name(r: dict) -> str:
     """The folder of a run: ``<case>[_cap<cm>][_<variant>]_s<seed>``, ``budget<N>[_cap<cm>]_s<seed>``."""
     cap = f"_cap{r['max_scale_cm']:g}" if r.get("max_scale_cm") else ""
@@ -385,7 +390,7 @@ def report(args) -> None:
     from eva_engine.synth.hard import HARD_CASES, REFUSAL_CASES
 
     rules = VerdictRules()
-    found = [json.loads(p.read_text()) for p in sorted(args.work.glob("*_s*/result.json"))]
+    found = load_runs(args.work)
     found = [r for r in found if not r.get("variant")]  # variants: --compare-variant
     previous = json.loads(args.previous.read_text())["results"] if args.previous else []
     runs = {run_name(r): r for r in previous}
@@ -503,7 +508,7 @@ def compare_variant(args) -> None:
     report's LPIPS-VGG and verdict), from the result files in ``--work``."""
     from bench.stats import compare_paired
 
-    found = [json.loads(p.read_text()) for p in sorted(args.work.glob("*_s*/result.json"))]
+    found = load_runs(args.work)
     plain = {run_name(r): r for r in found if not r.get("variant") and "iterations" not in r}
     pairs = [
         (plain[run_name({**r, "variant": None})], r)
