@@ -149,6 +149,22 @@ def run_header() -> dict:
     }
 
 
+def resumable(doc: dict, path: Path) -> dict:
+    """``doc``, the result file at ``path`` a benchmark is asked to add its missing runs to, if
+    this tree's code made its runs (its ``commit``, ``+dirty`` included, is this checkout's); an
+    empty document where there is none. Else ``SystemExit``: resumed, the old runs would be
+    reported under this commit's header as if this code had made them."""
+    if not doc:
+        return {}
+    made, now = doc.get("commit"), commit()
+    if made is None or made != now:
+        raise SystemExit(
+            f"{path} holds runs made at {made or 'an unrecorded commit'}, and this checkout is "
+            f"{now or 'not a git checkout'}: pass another --name or --out, or remove the file"
+        )
+    return doc
+
+
 def header_line(doc: dict) -> str:
     """The Markdown line a result file opens with, from a ``run_header`` (or an older result's
     date and command, whose commit was not recorded)."""

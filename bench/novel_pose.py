@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench.machine import header_line, run_header, write_result
+from bench.machine import header_line, resumable, run_header, write_result
 from bench.stats import compare_paired, fmt, mean_std
 from eva_engine.recipes import PRESETS, describe_presets
 from eva_engine.synth_names import SYNTH_SIZES, describe_synth_sizes
@@ -614,7 +614,7 @@ def main(argv: list[str] | None = None) -> None:
                 )
                 print(f"wrote {sheet}", file=sys.stderr, flush=True)
         return
-    doc = json.loads(path.read_text()) if path.is_file() else {}
+    doc = resumable(json.loads(path.read_text()) if path.is_file() else {}, path)
     runs: dict[str, list[dict]] = {n: list(e["runs"]) for n, e in doc.get("methods", {}).items()}
     started, previous = time.perf_counter(), doc.get("total_seconds", 0.0)
     metrics = ImageMetrics()

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import torch
 
-from bench.machine import header_line, run_header, write_result
+from bench.machine import header_line, resumable, run_header, write_result
 from bench.stats import compare_paired, fmt, mean_std
 from eva_engine.recipes import METHODS, PRESETS, describe_presets
 from eva_engine.synth_names import SYNTH_SIZES, describe_synth_sizes
@@ -448,7 +448,7 @@ def main(argv: list[str] | None = None) -> None:
         "pixel_norm": args.pixel_norm,
         "train_config": {m: with_overrides(with_method(base, m), args.set).to_dict() for m in args.methods},
     }
-    doc = json.loads(path.read_text()) if path.is_file() else {}
+    doc = resumable(json.loads(path.read_text()) if path.is_file() else {}, path)
     # Resume only a run of the same settings (compared as JSON: tuples are lists there).
     same = bool(doc) and same_settings(doc["config"], json.loads(json.dumps(config, default=str)))
     runs: dict[str, list[dict]] = (

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from bench.machine import header_line, run_header, write_result
+from bench.machine import header_line, resumable, run_header, write_result
 from bench.paper_tables import dataset_for
 from bench.stats import fmt, mean_std
 from eva_engine.recipes import METHODS, PRESETS
@@ -188,7 +188,7 @@ def main(argv: list[str] | None = None) -> None:
         "seeds": args.seeds,
         "eval_every": args.eval_every,
     }
-    doc = json.loads(path.read_text()) if path.is_file() else {"runs": []}
+    doc = resumable(json.loads(path.read_text()) if path.is_file() else {}, path) or {"runs": []}
     if doc.get("config", config) | {"seeds": args.seeds} != config:
         raise SystemExit(f"{path} holds runs of other settings ({doc['config']}); pass another --name")
     doc.update(

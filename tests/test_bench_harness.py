@@ -17,6 +17,7 @@ from bench.machine import (
     command_line,
     local_path,
     portable_path,
+    resumable,
     run_header,
     write_result,
 )
@@ -76,6 +77,28 @@ def test_the_writer_writes_json_and_markdown_and_refuses_a_list(tmp_path):
     assert (tmp_path / "r.md").read_text() == "# R\n\n| x |\n"
     with pytest.raises(TypeError):
         write_result(tmp_path, "bad", [doc], "x")
+
+
+def test_only_the_code_that_made_a_results_runs_adds_to_them(tmp_path, monkeypatch):
+    """A benchmark asked to add its missing runs to an existing result file (``--name`` of one
+    that exists) refuses one made by other code: resumed, those runs would be written under this
+    commit's header as this code's."""
+    import bench.machine as machine
+    from bench import time_to_quality
+
+    monkeypatch.setattr(machine, "commit", lambda: "abc123")
+    assert resumable({}, tmp_path / "r.json") == {}
+    mine = {"commit": "abc123", "runs": [1]}
+    assert resumable(mine, tmp_path / "r.json") == mine
+    for made in ("0ld0ld", "abc123+dirty", None):
+        with pytest.raises(SystemExit, match="holds runs made at"):
+            resumable({"commit": made, "runs": []}, tmp_path / "r.json")
+    # Before anything trains: the stale file is named and left as it was.
+    stale = {**run_header(), "commit": "0ld0ld", "runs": [{"method": "eva", "seed": 0, "points": []}]}
+    (tmp_path / "ttq.json").write_text(json.dumps(stale))
+    with pytest.raises(SystemExit, match="ttq.json holds runs made at 0ld0ld"):
+        time_to_quality.main(["--seeds", "0", "--methods", "eva", "--name", "ttq", "--out", str(tmp_path)])
+    assert json.loads((tmp_path / "ttq.json").read_text()) == stale
 
 
 def test_a_report_block_is_rewritten_and_an_unknown_one_refused(tmp_path):
