@@ -1488,7 +1488,7 @@ SPEED_QUALITY = (
     ("mlp_width64", "mlp_width_base", "both MLPs 64 wide, not 128 (in `default`)"),
     ("mlp_width64_3dgs", "mlp_width_base_3dgs", "both MLPs 64 wide, not 128 (in `default`)"),
     ("conf_half", "mlp_width64", "the confidence network at half resolution"),
-    ("knn_new", "knn_base", "initial scales from the exact nearest neighbours (in every preset)"),
+    ("knn_new", "knn_base", "initial scales from the exact nearest neighbours (reverted: `knn_novel_pose/`)"),
 )
 SPEED_QUALITY_CELLS = (  # (column, region or None, metric, lower is better)
     ("train time", None, "train_seconds", True),

@@ -68,20 +68,28 @@ def knn_indices(points: Tensor, k: int) -> Tensor:
     return torch.from_numpy(np.asarray(idx).reshape(len(x), k)).to(points.device)
 
 
-def mean_neighbour_distance(points: Tensor, k: int) -> Tensor:
+def mean_neighbour_distance(points: Tensor, k: int, exact: bool = True) -> Tensor:
     """[N] mean distance of each of ``points [N, 3]`` (finite) to its ``k`` nearest other points
     (0.01 m when there are no others); no gradient.
 
-    Exact, by a k-d tree in float64: the brute-force ``torch.cdist`` it replaces took 0.7 s for
-    Anny's 13,718 vertices and, computing distances through dot products in float32, was up to
-    8% off for millimetre neighbours a metre from the origin."""
+    ``exact``: by a k-d tree in float64 (0.01 s for Anny's 13,718 vertices). Else by brute force,
+    ``torch.cdist`` in the points' dtype (0.4 s for those vertices on two threads), whose distances
+    through dot products are in float32 up to 8% off for millimetre neighbours a metre from the
+    origin. The Gaussians' initial scales keep the brute force: every benchmark before b9b9fe3
+    measured avatars seeded with it, and the exact distances cost the hands in far poses and new
+    views (``docs/speed.md``, "Levers measured and not kept")."""
     n = points.shape[0]
     if n < 2:
         return points.new_full((n,), 0.01)
-    xyz = points.detach().cpu().double().numpy()
-    if not np.isfinite(xyz).all():
+    if not torch.isfinite(points).all():
         raise ValueError("mean_neighbour_distance needs finite points")
-    distances, _ = cKDTree(xyz).query(xyz, k=min(k, n - 1) + 1)  # the first is the point itself
+    k = min(k, n - 1)
+    if not exact:
+        with torch.no_grad():
+            near = [torch.cdist(p, points).topk(k + 1, dim=1, largest=False) for p in points.split(2048)]
+        return torch.cat([d.values[:, 1:].mean(dim=1) for d in near])  # the first is the point itself
+    xyz = points.detach().cpu().double().numpy()
+    distances, _ = cKDTree(xyz).query(xyz, k=k + 1)
     return torch.from_numpy(distances[:, 1:].mean(axis=1)).to(points)
 
 

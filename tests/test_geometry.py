@@ -52,5 +52,17 @@ def test_mean_neighbour_distance_of_few_or_bad_points():
     # k larger than the other points: all of them.
     two = mean_neighbour_distance(torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.3, 0.4]]), 3)
     torch.testing.assert_close(two, torch.tensor([0.5, 0.5]))
-    with pytest.raises(ValueError, match="finite"):
-        mean_neighbour_distance(torch.tensor([[0.0, 0.0, 0.0], [float("nan"), 0.0, 0.0]]), 1)
+    for exact in (True, False):
+        two = mean_neighbour_distance(torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.3, 0.4]]), 3, exact=exact)
+        torch.testing.assert_close(two, torch.tensor([0.5, 0.5]))
+        with pytest.raises(ValueError, match="finite"):
+            mean_neighbour_distance(torch.tensor([[0.0, 0.0, 0.0], [float("nan"), 0.0, 0.0]]), 1, exact=exact)
+
+
+def test_the_brute_force_neighbour_distance_is_torch_cdists_to_the_bit():
+    """What the Gaussians' initial scales use (``exact=False``): the values every benchmark before
+    b9b9fe3 measured, bit for bit, chunks of 2,048 rows included."""
+    gen = torch.Generator().manual_seed(1)
+    points = torch.tensor([0.1, 0.9, 0.0]) + 0.4 * torch.rand(5000, 3, generator=gen)
+    expected = torch.cdist(points, points).topk(4, dim=1, largest=False).values[:, 1:].mean(dim=1)
+    assert torch.equal(mean_neighbour_distance(points, 3, exact=False), expected)

@@ -99,7 +99,7 @@ class CanonicalGaussians(nn.Module):
             ids = ids[perm.sort().values]
         ids = ids.to(template_vertices.device)
         means = template_vertices[ids].detach().clone()
-        scale = mean_neighbour_distance(means, 3).clamp(1e-4, 0.05)
+        scale = mean_neighbour_distance(means, 3, exact=False).clamp(1e-4, 0.05)
         n = means.shape[0]
         k = num_sh_bases(sh_degree)
         log_scales = torch.log(scale)[:, None].expand(n, 3).clone()
