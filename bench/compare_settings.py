@@ -16,20 +16,20 @@ gaps in LPIPS-VGG (held out), PSNR and SSIM for the full image, the hands and th
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 from pathlib import Path
 
 from bench.machine import header_line, run_header
-from bench.paper_tables import merge, paired_regions, trained_on
+from bench.paper_tables import paired_regions, trained_on
+from bench.seed_results import load_seeds
 from bench.stats import compare_paired, mean_std
 
 
 def load(results: Path, name: str) -> dict:
-    files = sorted(results.glob(f"{name}_seed*.json"))
-    if not files:
-        raise SystemExit(f"no results {results}/{name}_seed*.json")
-    return merge([json.loads(f.read_text()) for f in files])
+    try:
+        return load_seeds(results, name)
+    except FileNotFoundError as e:
+        raise SystemExit(str(e)) from None
 
 
 def changed(base: dict, other: dict, prefix: str = "") -> list[str]:

@@ -24,6 +24,7 @@ from typing import Generic, NamedTuple, TypeVar
 
 from pydantic import BaseModel, ConfigDict
 
+from bench.seed_results import load_seeds, runs_by_seed
 from bench.stats import compare_paired, fmt, mean_std, zero_crossing
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -1501,17 +1502,8 @@ SPEED_QUALITY_CELLS = (  # (column, region or None, metric, lower is better)
 
 def seed_runs(folder: Path, name: str) -> tuple[str, dict[str, dict[int, dict]]]:
     """(preset, {method: {seed: run entry}}) of ``bench paper_tables``' ``<name>_seed*.json``."""
-    files = sorted(folder.glob(f"{name}_seed*.json"))
-    if not files:
-        raise FileNotFoundError(f"no {folder}/{name}_seed*.json")
-    presets, runs = set(), {}
-    for doc in (json.loads(f.read_text()) for f in files):
-        presets.add(doc["config"]["preset"])
-        for method, entry in doc["methods"].items():
-            runs.setdefault(method, {}).update({r["seed"]: r for r in entry["runs"]})
-    if len(presets) != 1:
-        raise ValueError(f"{folder}/{name}_seed*.json mix presets {sorted(presets)}")
-    return presets.pop(), runs
+    doc = load_seeds(folder, name)
+    return doc["config"]["preset"], runs_by_seed(doc)
 
 
 def speed_quality(results: Path) -> list[str]:
