@@ -1757,6 +1757,18 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
             *LPIPS_ROWS,
         ),
     ),
+    "colour_rate": face_variants(
+        "expressions/colour_rate/{clip}_{variant}_paired",
+        "expressions/colour_rate/eval_{clip}_{variant}",
+        {"lr3": "rate 0.02", "lr10": "rate 0.0067"},
+        (
+            ("render: mouth r", "openings", "mouth_r"),
+            ("render: mouth range over the target's", "openings", "mouth_range"),
+            ("render: eyes r", "openings", "eyes_r"),
+            ("render: eyes range over the target's", "openings", "eyes_range"),
+            *LPIPS_ROWS,
+        ),
+    ),
     "expression_colours": face_changes(
         "mean ± std, 3 seeds (gap: per seed)",
         ("rest colours", "expression colours"),
