@@ -1051,6 +1051,27 @@ def calibration_wild(results: Path) -> list[str]:
     return lines
 
 
+def calibration_draws(results: Path) -> list[str]:
+    """Synthetic ``wild``'s expression error over calibrations built from several random draws of
+    expressions, per size of the rendered face (``expressions/calibration/draws/``)."""
+    runs = json.loads((results / "expressions/calibration/draws/wild_fits.json").read_text())["runs"]
+    groups = ("jaw", "lips", "lids", "brows")
+    lines = [
+        "| renders' eye corners, px (expressions per draw) | draws | expression, mm: each draw "
+        "| mean ± std | jaw / lips / lids / brows, mm (mean) |",
+        "|---|---:|---|---:|---|",
+    ]
+    for px, samples in sorted({(r["eye_px"], r["samples"]) for r in runs}, key=lambda k: (-k[0], k[1])):
+        got = [r for r in runs if (r["eye_px"], r["samples"]) == (px, samples)]
+        got.sort(key=lambda r: r["seed"])
+        each = ", ".join(f"{r['expression_mm']:.2f}" + (" (shipped)" if r["shipped"] else "") for r in got)
+        mm = [r["expression_mm"] for r in got]
+        spread = f"{statistics.mean(mm):.2f} ± {statistics.stdev(mm):.2f}" if len(mm) > 1 else f"{mm[0]:.2f}"
+        by_group = " / ".join(f"{statistics.mean(r['groups_mm'][g] for r in got):.2f}" for g in groups)
+        lines.append(f"| {px} ({samples}) | {len(got)} | {each} | {spread} | {by_group} |")
+    return lines
+
+
 class AlignEstimate(AlignFit):
     """An estimate of ``bench.align``'s synthetic section with its image-space errors."""
 
@@ -1798,6 +1819,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "paper_regime": paper_regime,
     "service_latency": service_latency,
     "calibration_wild": calibration_wild,
+    "calibration_draws": calibration_draws,
     "closeup_densify": closeup_densify,
     "speed_targets": speed_targets,
     "align_measurements": align_measurements,
