@@ -7,8 +7,12 @@ A doc includes a table between two markers; everything between them is this modu
     ...
     <!-- /bench report -->
 
-``report --check`` fails when a doc's table is not what the committed results give (a test runs
-it), so a figure in those tables cannot drift from its file. Each section reads its result through
+A figure in a sentence is written the same way, inline, by a function of ``FIGURES``:
+
+    side views by <!-- bench figure: novel_pose.view.full.cut -->22%<!-- /bench figure -->
+
+``report --check`` fails when a doc's table or figure is not what the committed results give (a
+test runs it), so neither can drift from its file. Each section reads its result through
 a pydantic model of the fields it uses: a result whose shape changed fails loudly here, not as a
 wrong number in the docs.
 """
@@ -30,6 +34,7 @@ from bench.stats import compare_paired, fmt, mean_std, zero_crossing
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 DOCS = ("README.md", "docs/*.md")
+FIGURE = re.compile(r"(<!-- bench figure: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /bench figure -->)")
 BLOCK = re.compile(r"(<!-- bench report: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /bench report -->)", re.S)
 
 
@@ -1491,6 +1496,67 @@ def novel_pose_goals(results: Path) -> list[str]:
     ]
 
 
+def novel_pose_gaps(results: Path, metric: str = "lpips_vgg") -> dict[tuple[str, str], dict[str, float]]:
+    """``thin`` against ``before`` in ``novel_pose.json``, paired by seed: {(split, region):
+    mean_std of the per-seed relative gaps in %}; region ``debris`` for the debris."""
+    doc = load(NovelPose, "novel_pose", results)
+    by_seed = {name: {r.seed: r for r in doc.methods[name].runs} for name in ("before", "thin")}
+    seeds = sorted(by_seed["before"].keys() & by_seed["thin"].keys())
+    out = {}
+    for split in NOVEL_POSE_SPLITS:
+        for region in ("full", "hand", "face", "arm", "debris"):
+
+            def value(run: NovelPoseRun, split: str = split, region: str = region) -> float:
+                s = run.splits[split]
+                return s.debris if region == "debris" else getattr(s, region)[metric]
+
+            values = {name: [value(runs[k]) for k in seeds] for name, runs in by_seed.items()}
+            out[split, region] = compare_paired(values["thin"], values["before"], lower_is_better=True)[1]
+    return out
+
+
+def _novel_pose_gap(split: str, region: str) -> Callable[[Path], str]:
+    def figure(results: Path) -> str:
+        g = novel_pose_gaps(results)[split, region]
+        return f"{_signed(g['mean'])} ± {g['std']:.1f}%"
+
+    return figure
+
+
+def _novel_pose_cut(split: str, region: str) -> Callable[[Path], str]:
+    def figure(results: Path) -> str:
+        return f"{-novel_pose_gaps(results)[split, region]['mean']:.0f}%"
+
+    return figure
+
+
+def _novel_pose_cut_range(region: str) -> Callable[[Path], str]:
+    def figure(results: Path) -> str:
+        gaps = novel_pose_gaps(results)
+        cuts = sorted(-gaps[split, region]["mean"] for split in NOVEL_POSE_SPLITS)
+        return f"{cuts[0]:.0f}-{cuts[-1]:.0f}%"
+
+    return figure
+
+
+def _novel_pose_holes(split: str) -> Callable[[Path], str]:
+    def figure(results: Path) -> str:
+        doc = load(NovelPose, "novel_pose", results)
+        before, thin = (doc.methods[name].splits[split].holes.mean * 100 for name in ("before", "thin"))
+        return f"{before:.2f} → {thin:.2f}%"
+
+    return figure
+
+
+def _novel_pose_gap_range(region: str) -> Callable[[Path], str]:
+    def figure(results: Path) -> str:
+        gaps = novel_pose_gaps(results)
+        means = sorted((gaps[split, region]["mean"] for split in NOVEL_POSE_SPLITS), reverse=True)
+        return f"{_signed(means[0])} to {_signed(means[-1])}%"
+
+    return figure
+
+
 def _when(doc) -> str:
     commit = (doc.commit or "").replace("+dirty", "")[:7]
     return f"{doc.date[:16].replace('T', ' ')}Z" + (f" at {commit}" if commit else "")
@@ -1827,6 +1893,17 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
 }
 
 
+FIGURES: dict[str, Callable[[Path], str]] = {
+    **{f"novel_pose.{split}.full": _novel_pose_gap(split, "full") for split in NOVEL_POSE_SPLITS},
+    "novel_pose.view.face": _novel_pose_gap("view", "face"),
+    "novel_pose.view.full.cut": _novel_pose_cut("view", "full"),
+    "novel_pose.view.debris.cut": _novel_pose_cut("view", "debris"),
+    "novel_pose.arm.range": _novel_pose_gap_range("arm"),
+    "novel_pose.debris.cut_range": _novel_pose_cut_range("debris"),
+    "novel_pose.view.holes": _novel_pose_holes("view"),
+}
+
+
 # ----------------------------------------------------------------------------- the docs
 
 
@@ -1844,7 +1921,13 @@ def render(text: str, results: Path, where: str = "") -> str:
         body = "\n".join(SECTIONS[name](results))
         return f"{m[1]}{body}\n{m[4]}"
 
-    return BLOCK.sub(fill, text)
+    def figure(m: re.Match) -> str:
+        name = m["name"]
+        if name not in FIGURES:
+            raise KeyError(f"{where}: unknown bench figure {name!r}")
+        return f"{m[1]}{FIGURES[name](results)}{m[4]}"
+
+    return FIGURE.sub(figure, BLOCK.sub(fill, text))
 
 
 def run(check: bool = False, root: Path = ROOT, results: Path = RESULTS) -> int:
@@ -1852,7 +1935,7 @@ def run(check: bool = False, root: Path = ROOT, results: Path = RESULTS) -> int:
     stale = []
     for path in doc_paths(root):
         text = path.read_text()
-        if "<!-- bench report:" not in text:
+        if "<!-- bench report:" not in text and "<!-- bench figure:" not in text:
             continue
         new = render(text, results, where=str(path.relative_to(root)))
         if new != text:

@@ -114,6 +114,23 @@ def test_a_report_block_is_rewritten_and_an_unknown_one_refused(tmp_path):
         report.render("<!-- bench report: nope -->\n<!-- /bench report -->\n", results)
 
 
+def test_a_figure_in_a_sentence_is_rewritten_in_place_and_a_stale_doc_is_flagged(tmp_path):
+    results = ROOT / "bench" / "results"
+    text = "cuts it by <!-- bench figure: novel_pose.view.full.cut -->99%<!-- /bench figure --> in view.\n"
+    new = report.render(text, results)
+    assert new.startswith("cuts it by <!-- bench figure: novel_pose.view.full.cut -->")
+    assert new.endswith("%<!-- /bench figure --> in view.\n") and "99%" not in new
+    assert report.render(new, results) == new
+    doc = tmp_path / "docs" / "a.md"
+    doc.parent.mkdir()
+    doc.write_text(text)
+    assert report.run(check=True, root=tmp_path, results=results) == 1
+    assert doc.read_text() == text  # --check leaves the doc alone
+    assert report.run(root=tmp_path, results=results) == 0 and doc.read_text() == new
+    with pytest.raises(KeyError, match="unknown bench figure"):
+        report.render("<!-- bench figure: nope -->1<!-- /bench figure -->", results)
+
+
 def test_a_result_of_another_shape_fails_loudly(tmp_path):
     (tmp_path / "service.json").write_text(json.dumps({"date": "d", "machine": "m", "rows": [{"size": 1}]}))
     with pytest.raises(ValueError):
