@@ -7,7 +7,8 @@ A doc includes a table between two markers; everything between them is this modu
     ...
     <!-- /bench report -->
 
-A figure in a sentence is written the same way, inline, by a function of ``FIGURES``:
+A figure in a sentence is written the same way, inline, by a function of ``FIGURES`` (or, for
+``eval_gap/<result>/<region>.<metric>``, by ``eval_gap``):
 
     side views by <!-- bench figure: novel_pose.view.full.cut -->22%<!-- /bench figure -->
 
@@ -34,7 +35,7 @@ from bench.stats import compare_paired, fmt, mean_std, zero_crossing
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 DOCS = ("README.md", "docs/*.md")
-FIGURE = re.compile(r"(<!-- bench figure: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /bench figure -->)")
+FIGURE = re.compile(r"(<!-- bench figure: (?P<name>[\w./-]+) -->)(?P<body>.*?)(<!-- /bench figure -->)")
 BLOCK = re.compile(r"(<!-- bench report: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /bench report -->)", re.S)
 
 
@@ -1847,7 +1848,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "colour_rate": face_variants(
         "expressions/colour_rate/{clip}_{variant}_paired",
         "expressions/colour_rate/eval_{clip}_{variant}",
-        {"lr3": "rate 0.02", "lr10": "rate 0.0067"},
+        {"lr3": "rate 0.02", "lr10": "rate 0.0067", "lr3ev": "rate 0.02, blink frames 3 more times"},
         (
             ("render: mouth r", "openings", "mouth_r"),
             ("render: mouth range over the target's", "openings", "mouth_range"),
@@ -1925,6 +1926,17 @@ def _official_vs_3dgs_ratio(results: Path) -> str:
     return f"{ratios[0]:.1f}-{ratios[-1]:.1f}×"
 
 
+def eval_gap(results: Path, name: str) -> str:
+    """The figure ``eval_gap/<result>/<region>.<metric>``: that row's paired gap of an ``eva eval``
+    comparison (``bench eval_compare``), e.g. ``eval_gap/expressions/events/eval_seated_events/
+    full.psnr`` -> "−1.0 ± 0.6%"."""
+    result, key = name.rsplit("/", 1)
+    for row in load(EvalPaired, result, results).rows:
+        if f"{row.region}.{row.metric}" == key:
+            return f"{_signed(row.gap_percent.mean)} ± {row.gap_percent.std:.1f}%"
+    raise KeyError(f"{result}.json has no row {key!r}")
+
+
 FIGURES: dict[str, Callable[[Path], str]] = {
     **{f"novel_pose.{split}.full": _novel_pose_gap(split, "full") for split in NOVEL_POSE_SPLITS},
     "novel_pose.view.face": _novel_pose_gap("view", "face"),
@@ -1958,6 +1970,8 @@ def render(text: str, results: Path, where: str = "") -> str:
 
     def figure(m: re.Match) -> str:
         name = m["name"]
+        if name.startswith("eval_gap/"):
+            return f"{m[1]}{eval_gap(results, name.removeprefix('eval_gap/'))}{m[4]}"
         if name not in FIGURES:
             raise KeyError(f"{where}: unknown bench figure {name!r}")
         return f"{m[1]}{FIGURES[name](results)}{m[4]}"
