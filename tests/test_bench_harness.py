@@ -129,6 +129,11 @@ def test_a_figure_in_a_sentence_is_rewritten_in_place_and_a_stale_doc_is_flagged
     assert report.run(root=tmp_path, results=results) == 0 and doc.read_text() == new
     with pytest.raises(KeyError, match="unknown bench figure"):
         report.render("<!-- bench figure: nope -->1<!-- /bench figure -->", results)
+    # A paired gap read from an eval_compare file by its path and row.
+    gap = "<!-- bench figure: eval_gap/expressions/colour_rate/eval_seated_lr3ev/full.psnr -->"
+    assert report.render(f"{gap}x<!-- /bench figure -->", results).endswith("%<!-- /bench figure -->")
+    with pytest.raises(KeyError, match="has no row"):
+        report.render(gap.replace("full.psnr", "full.nope") + "x<!-- /bench figure -->", results)
 
 
 def test_a_result_of_another_shape_fails_loudly(tmp_path):
