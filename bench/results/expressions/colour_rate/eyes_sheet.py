@@ -1,7 +1,9 @@
 """The eyes on a clip's three most closed test frames, at four times the frame's pixels: target |
-each avatar given. ``PYTHONPATH=. python bench/results/expressions/colour_rate/eyes_sheet.py <dataset> <out.jpg>
-<avatar>...`` from the repository (the target upsampled bicubically; MediaPipe's lid gap picks
-the frames)."""
+each avatar given. From the repository:
+
+    PYTHONPATH=. python bench/results/expressions/colour_rate/eyes_sheet.py <dataset> <out.jpg> <avatar>...
+
+(the target upsampled bicubically; MediaPipe's lid gap picks the frames)."""
 
 import sys
 
