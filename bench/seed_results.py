@@ -1,7 +1,7 @@
-"""The result documents of ``bench paper_tables`` (and the benchmarks that write its shape:
-``time_to_quality``, ``compare_settings``' inputs), without torch: what one setting's runs are,
-when two documents are of the same setting, and one document from several (one process per
-seed). ``bench report`` reads them too, and must not import the training stack.
+"""The result documents of ``bench paper_tables``, without torch: when two documents are of the
+same setting, and one document from several (one process per seed, ``<name>_seed*.json``).
+``paper_tables --merge``, ``compare_settings`` and ``bench report`` (which must not import the
+training stack) read them through this module.
 
 A document: ``{"date", "command", "machine", "load_average", "total_seconds", "config":
 {..., "seeds", "train_config": {method: config}}, "methods": {method: aggregate}}``; each
