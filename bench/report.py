@@ -1057,23 +1057,37 @@ def calibration_wild(results: Path) -> list[str]:
     return lines
 
 
+class CalibrationDraw(_Loose):
+    """One calibration of ``expressions/calibration/draws/wild_fits.json`` and wild's fit with it."""
+
+    eye_px: int
+    samples: int
+    seed: int
+    shipped: bool
+    expression_mm: float
+    groups_mm: dict[str, float]
+
+
+class CalibrationDraws(_Loose):
+    runs: list[CalibrationDraw]
+
+
 def calibration_draws(results: Path) -> list[str]:
     """Synthetic ``wild``'s expression error over calibrations built from several random draws of
     expressions, per size of the rendered face (``expressions/calibration/draws/``)."""
-    runs = json.loads((results / "expressions/calibration/draws/wild_fits.json").read_text())["runs"]
+    runs = load(CalibrationDraws, "expressions/calibration/draws/wild_fits", results).runs
     groups = ("jaw", "lips", "lids", "brows")
     lines = [
         "| renders' eye corners, px (expressions per draw) | draws | expression, mm: each draw "
         "| mean ± std | jaw / lips / lids / brows, mm (mean) |",
         "|---|---:|---|---:|---|",
     ]
-    for px, samples in sorted({(r["eye_px"], r["samples"]) for r in runs}, key=lambda k: (-k[0], k[1])):
-        got = [r for r in runs if (r["eye_px"], r["samples"]) == (px, samples)]
-        got.sort(key=lambda r: r["seed"])
-        each = ", ".join(f"{r['expression_mm']:.2f}" + (" (shipped)" if r["shipped"] else "") for r in got)
-        mm = [r["expression_mm"] for r in got]
+    for px, samples in sorted({(r.eye_px, r.samples) for r in runs}, key=lambda k: (-k[0], k[1])):
+        got = sorted((r for r in runs if (r.eye_px, r.samples) == (px, samples)), key=lambda r: r.seed)
+        each = ", ".join(f"{r.expression_mm:.2f}" + (" (shipped)" if r.shipped else "") for r in got)
+        mm = [r.expression_mm for r in got]
         spread = f"{statistics.mean(mm):.2f} ± {statistics.stdev(mm):.2f}" if len(mm) > 1 else f"{mm[0]:.2f}"
-        by_group = " / ".join(f"{statistics.mean(r['groups_mm'][g] for r in got):.2f}" for g in groups)
+        by_group = " / ".join(f"{statistics.mean(r.groups_mm[g] for r in got):.2f}" for g in groups)
         lines.append(f"| {px} ({samples}) | {len(got)} | {each} | {spread} | {by_group} |")
     return lines
 
