@@ -7,8 +7,8 @@ A doc includes a table between two markers; everything between them is this modu
     ...
     <!-- /bench report -->
 
-A figure in a sentence is written the same way, inline, by a function of ``FIGURES`` (or, for
-``eval_gap/<result>/<region>.<metric>``, by ``eval_gap``):
+A figure in a sentence is written the same way, inline, by a function of ``FIGURES`` (or, named
+``<family>/<argument>``, of ``FIGURE_FAMILIES``, e.g. ``eval_gap/<result>/<region>.<metric>``):
 
     side views by <!-- bench figure: novel_pose.view.full.cut -->22%<!-- /bench figure -->
 
@@ -292,7 +292,7 @@ def real_videos_change(
         for video, regions in doc.comparison.items():
             for region, metrics in regions.items():
                 v = metrics["lpips_vgg"]
-                gap = f"{_signed(v.gap_pct.mean)} ± {v.gap_pct.std:.1f}% ({v.verdict})"
+                gap = f"{_percent_gap(v.gap_pct.mean, v.gap_pct.std)} ({v.verdict})"
                 cells = [_mean_std(v.before), _mean_std(v.after), gap]
                 if psnr:
                     p = metrics["psnr"]
@@ -472,7 +472,7 @@ def face_variants(
                 if source == "openings":
                     values = " / ".join(f"{g.after.mean:.{digits}f}" for g in got)
                 else:
-                    values = " / ".join(f"{_signed(g.gap.mean)} ± {g.gap.std:.1f}%" for g in got)
+                    values = " / ".join(_percent_gap(g.gap.mean, g.gap.std) for g in got)
                 cells.append(f"{values} ({' / '.join(g.verdict for g in got)})")
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
         return lines
@@ -580,7 +580,7 @@ def real_videos_regions(name: str) -> Callable[[Path], list[str]]:
                     cells.append(v.verdict)
                 else:
                     before, after = v.before.mean * 1e3, v.after.mean * 1e3
-                    gap = f"{_signed(v.gap_pct.mean)} ± {v.gap_pct.std:.1f}%"
+                    gap = _percent_gap(v.gap_pct.mean, v.gap_pct.std)
                     cells.append(f"{before:.1f} → {after:.1f} ({gap}, {v.verdict})")
             lines.append(f"| {video.removesuffix('.mp4')} | " + " | ".join(cells) + " |")
         return lines
@@ -674,7 +674,7 @@ def attach_variants(
                     "–"
                     if side == "before"
                     else " / ".join(
-                        f"{_signed(faces[c].gap_pct.mean)} ± {faces[c].gap_pct.std:.1f}% ({faces[c].verdict})"
+                        f"{_percent_gap(faces[c].gap_pct.mean, faces[c].gap_pct.std)} ({faces[c].verdict})"
                         for c in clips
                     )
                 )
@@ -1473,26 +1473,20 @@ def _signed(value: float, digits: int = 1) -> str:
     return f"{value:+.{digits}f}".replace("-", "\u2212")
 
 
+def _percent_gap(mean: float, std: float) -> str:
+    """A paired relative gap as the docs write it: "−5.4 ± 0.5%"."""
+    return f"{_signed(mean)} ± {std:.1f}%"
+
+
 def novel_pose_goals(results: Path) -> list[str]:
     """``thin`` against ``before``, paired by seed, against the novel-pose issue's goals
     (docs/novel-views.md, "The product now")."""
-    doc = load(NovelPose, "novel_pose", results)
-    before, thin = doc.methods["before"], doc.methods["thin"]
-    seeds = sorted(r.seed for r in before.runs)
-    if seeds != sorted(r.seed for r in thin.runs):
-        raise ValueError("novel_pose.json: before and thin ran on different seeds")
-    by_seed = {name: {r.seed: r for r in row.runs} for name, row in (("before", before), ("thin", thin))}
-
-    def gap(split: str, region: str) -> tuple[str, dict[str, float]]:
-        values = {
-            name: [getattr(runs[k].splits[split], region)["lpips_vgg"] for k in seeds]
-            for name, runs in by_seed.items()
-        }
-        return compare_paired(values["thin"], values["before"], lower_is_better=True)
+    thin = load(NovelPose, "novel_pose", results).methods["thin"]
+    gaps = novel_pose_gaps(results)
 
     def lpips_goal(label: str, split: str, region: str, met: Callable[[float], bool]) -> str:
-        verdict, g = gap(split, region)
-        result = f"{_signed(g['mean'])} ± {g['std']:.1f}% ({verdict})"
+        verdict, g = gaps[split, region]
+        result = f"{_percent_gap(g['mean'], g['std'])} ({verdict})"
         return f"| {label} | {result} | {'yes' if met(g['mean']) else 'no'} |"
 
     debris = {split: thin.splits[split].debris.mean * 100 for split in ("near", "view", "far_view")}
@@ -1511,12 +1505,15 @@ def novel_pose_goals(results: Path) -> list[str]:
     ]
 
 
-def novel_pose_gaps(results: Path, metric: str = "lpips_vgg") -> dict[tuple[str, str], dict[str, float]]:
+def novel_pose_gaps(results: Path, metric: str = "lpips_vgg") -> dict[tuple[str, str], tuple[str, dict]]:
     """``thin`` against ``before`` in ``novel_pose.json``, paired by seed: {(split, region):
-    mean_std of the per-seed relative gaps in %}; region ``debris`` for the debris."""
+    ``stats.compare_paired``'s (verdict, mean_std of the per-seed relative gaps in %)}; region
+    ``debris`` for the debris."""
     doc = load(NovelPose, "novel_pose", results)
     by_seed = {name: {r.seed: r for r in doc.methods[name].runs} for name in ("before", "thin")}
-    seeds = sorted(by_seed["before"].keys() & by_seed["thin"].keys())
+    seeds = sorted(by_seed["before"])
+    if seeds != sorted(by_seed["thin"]):
+        raise ValueError("novel_pose.json: before and thin ran on different seeds")
     out = {}
     for split in NOVEL_POSE_SPLITS:
         for region in ("full", "hand", "face", "arm", "debris"):
@@ -1526,21 +1523,21 @@ def novel_pose_gaps(results: Path, metric: str = "lpips_vgg") -> dict[tuple[str,
                 return s.debris if region == "debris" else getattr(s, region)[metric]
 
             values = {name: [value(runs[k]) for k in seeds] for name, runs in by_seed.items()}
-            out[split, region] = compare_paired(values["thin"], values["before"], lower_is_better=True)[1]
+            out[split, region] = compare_paired(values["thin"], values["before"], lower_is_better=True)
     return out
 
 
 def _novel_pose_gap(split: str, region: str) -> Callable[[Path], str]:
     def figure(results: Path) -> str:
-        g = novel_pose_gaps(results)[split, region]
-        return f"{_signed(g['mean'])} ± {g['std']:.1f}%"
+        g = novel_pose_gaps(results)[split, region][1]
+        return _percent_gap(g["mean"], g["std"])
 
     return figure
 
 
 def _novel_pose_cut(split: str, region: str) -> Callable[[Path], str]:
     def figure(results: Path) -> str:
-        return f"{-novel_pose_gaps(results)[split, region]['mean']:.0f}%"
+        return f"{-novel_pose_gaps(results)[split, region][1]['mean']:.0f}%"
 
     return figure
 
@@ -1548,7 +1545,7 @@ def _novel_pose_cut(split: str, region: str) -> Callable[[Path], str]:
 def _novel_pose_cut_range(region: str) -> Callable[[Path], str]:
     def figure(results: Path) -> str:
         gaps = novel_pose_gaps(results)
-        cuts = sorted(-gaps[split, region]["mean"] for split in NOVEL_POSE_SPLITS)
+        cuts = sorted(-gaps[split, region][1]["mean"] for split in NOVEL_POSE_SPLITS)
         return f"{cuts[0]:.0f}-{cuts[-1]:.0f}%"
 
     return figure
@@ -1566,7 +1563,7 @@ def _novel_pose_holes(split: str) -> Callable[[Path], str]:
 def _novel_pose_gap_range(region: str) -> Callable[[Path], str]:
     def figure(results: Path) -> str:
         gaps = novel_pose_gaps(results)
-        means = sorted((gaps[split, region]["mean"] for split in NOVEL_POSE_SPLITS), reverse=True)
+        means = sorted((gaps[split, region][1]["mean"] for split in NOVEL_POSE_SPLITS), reverse=True)
         return f"{_signed(means[0])} to {_signed(means[-1])}%"
 
     return figure
@@ -1918,7 +1915,7 @@ def _eva_vs_3dgs_hands(results: Path) -> dict[str, MetricChange]:
 def _eva_vs_3dgs_hands_gap(region: str) -> Callable[[Path], str]:
     def figure(results: Path) -> str:
         g = _eva_vs_3dgs_hands(results)[region].gap_pct
-        return f"{_signed(g.mean)} ± {g.std:.1f}%"
+        return _percent_gap(g.mean, g.std)
 
     return figure
 
@@ -1947,7 +1944,7 @@ def eval_gap(results: Path, name: str) -> str:
     result, key = name.rsplit("/", 1)
     for row in load(EvalPaired, result, results).rows:
         if f"{row.region}.{row.metric}" == key:
-            return f"{_signed(row.gap_percent.mean)} ± {row.gap_percent.std:.1f}%"
+            return _percent_gap(row.gap_percent.mean, row.gap_percent.std)
     raise KeyError(f"{result}.json has no row {key!r}")
 
 
@@ -1963,6 +1960,8 @@ FIGURES: dict[str, Callable[[Path], str]] = {
     "real_video_hands.eva_vs_3dgs.cut_range": _eva_vs_3dgs_hands_cut_range,
     "paper_regime.official_vs_3dgs": _official_vs_3dgs_ratio,
 }
+# Figures named ``<family>/<argument>``: one function serves every result file of a kind.
+FIGURE_FAMILIES: dict[str, Callable[[Path, str], str]] = {"eval_gap": eval_gap}
 
 
 # ----------------------------------------------------------------------------- the docs
@@ -1984,8 +1983,9 @@ def render(text: str, results: Path, where: str = "") -> str:
 
     def figure(m: re.Match) -> str:
         name = m["name"]
-        if name.startswith("eval_gap/"):
-            return f"{m[1]}{eval_gap(results, name.removeprefix('eval_gap/'))}{m[4]}"
+        family, _, rest = name.partition("/")
+        if rest and family in FIGURE_FAMILIES:
+            return f"{m[1]}{FIGURE_FAMILIES[family](results, rest)}{m[4]}"
         if name not in FIGURES:
             raise KeyError(f"{where}: unknown bench figure {name!r}")
         return f"{m[1]}{FIGURES[name](results)}{m[4]}"
