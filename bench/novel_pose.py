@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from bench.machine import header_line, resumable, run_header, write_result
+from bench.seed_results import merged_header, union_of_runs
 from bench.stats import compare_paired, fmt, mean_std
 from eva_engine.recipes import PRESETS, describe_presets
 from eva_engine.synth_names import SYNTH_SIZES, describe_synth_sizes
@@ -510,19 +511,14 @@ def markdown(doc: dict) -> str:
 
 def merge(docs: list[dict]) -> dict:
     """One document from several (one process per seed): the union of their runs per row."""
-    runs: dict[str, dict[int, dict]] = {}
+    runs = union_of_runs(docs)
     rows: dict[str, dict] = {}
     for doc in docs:
         for name, entry in doc["methods"].items():
             rows.setdefault(name, entry)
-            for run in entry["runs"]:
-                runs.setdefault(name, {}).setdefault(run["seed"], run)
     seeds = sorted({s for by in runs.values() for s in by})
     return {
-        "date": max(d["date"] for d in docs),
-        "command": " && ".join(d["command"] for d in docs),
-        "machine": docs[0]["machine"],
-        "total_seconds": sum(d["total_seconds"] for d in docs),
+        **merged_header(docs),
         "config": {
             **docs[0]["config"],
             "seeds": seeds,

@@ -78,6 +78,28 @@ def aggregate(runs: list[dict]) -> dict:
     return out
 
 
+def union_of_runs(docs: list[dict]) -> dict[str, dict[int, dict]]:
+    """{method or row: {seed: run}} over ``docs`` (one process per seed): a seed run twice keeps
+    its first run."""
+    runs: dict[str, dict[int, dict]] = {}
+    for doc in docs:
+        for method, entry in doc["methods"].items():
+            for run in entry["runs"]:
+                runs.setdefault(method, {}).setdefault(run["seed"], run)
+    return runs
+
+
+def merged_header(docs: list[dict]) -> dict:
+    """The run header of one document made from ``docs``: the last date, every command, the
+    first's machine and the seconds they took together."""
+    return {
+        "date": max(d["date"] for d in docs),
+        "command": " && ".join(d["command"] for d in docs),
+        "machine": docs[0]["machine"],
+        "total_seconds": sum(d["total_seconds"] for d in docs),
+    }
+
+
 def merge(docs: list[dict]) -> dict:
     """One result document from several of the same settings (e.g. one process per seed): the
     union of their runs (a seed run twice keeps its first run), re-aggregated."""
@@ -86,18 +108,11 @@ def merge(docs: list[dict]) -> dict:
     for doc in docs[1:]:
         if not same_settings(docs[0]["config"], doc["config"]):
             raise ValueError("cannot merge results of different settings (see their config)")
-    runs: dict[str, dict[int, dict]] = {}
-    for doc in docs:
-        for method, entry in doc["methods"].items():
-            for run in entry["runs"]:
-                runs.setdefault(method, {}).setdefault(run["seed"], run)
+    runs = union_of_runs(docs)
     seeds = sorted({s for by_seed in runs.values() for s in by_seed})
     return {
-        "date": max(d["date"] for d in docs),
-        "command": " && ".join(d["command"] for d in docs),
-        "machine": docs[0]["machine"],
+        **merged_header(docs),
         "load_average": [max(x) for x in zip(*(d["load_average"] for d in docs), strict=True)],
-        "total_seconds": sum(d["total_seconds"] for d in docs),
         "wall_seconds": max(d["total_seconds"] for d in docs),
         "config": {
             **docs[0]["config"],
