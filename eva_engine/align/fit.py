@@ -23,8 +23,8 @@ Objective over all frames at once (batched body model, shape shared by the clip)
   articulation_prior``: hinges stay hinges, knuckles do not twist, metacarpals barely move).
 - Face: the expression coefficients are fitted through the 16 face points and, where the body
   model has a face-mesh correspondence (``face_mesh``), through all of MediaPipe's face-mesh
-  landmarks, with a small sparsity prior and the model's valid range; the landmarks are compared
-  with what the detector would read of the model's face (``face_calibration``: the projected
+  landmarks, with a small sparsity prior, inside the model's valid range; the landmarks are
+  compared with what the detector would read of the model's face (``face_calibration``: the projected
   points plus an offset linear in the expression). The face mesh's relative depths (``face_z``,
   MediaPipe's z as the hands' psi_z) turn the head: 2D landmarks leave its pitch and yaw loose.
   Frames where no face was found keep the pose model's coarse face points (nose, eyes, ears) in
@@ -32,14 +32,16 @@ Objective over all frames at once (batched body model, shape shared by the clip)
 - Outline (``align.silhouette``): a two-sided chamfer between the person mask's outline and the
   projected body, in the last, short stage (``outline``), where the targets carry masks.
 
-Optimiser: ``torch.optim.LBFGS`` with strong-Wolfe line search, in stages as in the paper's
-appendix: body init (the head's pose from the face points no facial action moves), first with
-an 8x wider 2D scale so that joints far outside the robust scale are pulled in; hands with
-the hand prior; the expression on its own (inside a joint stage its small gradients barely
-move); fine-tune with hands and face emphasised; the same with the outline added. The
-initial estimate turns each detected hand's palm to the detected 3D palm (``orient_hands``), so
-the fit starts on the right side of the palm-in / palm-out ambiguity, and the hands stage does
-it again for the fitted forearms.
+Optimiser: ``torch.optim.LBFGS`` with strong-Wolfe line search; the stages that move the
+expression run L-BFGS-B instead (``bounded_lbfgs``, scipy's: the same memory, a line search that
+keeps the strong Wolfe conditions), with the expression's range as bounds
+(``FitConfig.bounded_expression``). In stages as in the paper's appendix: body init (the head's
+pose from the face points no facial action moves), first with an 8x wider 2D scale so that
+joints far outside the robust scale are pulled in; hands with the hand prior; the expression on
+its own (inside a joint stage its small gradients barely move); fine-tune with hands and face
+emphasised; the same with the outline added. The initial estimate turns each detected hand's
+palm to the detected 3D palm (``orient_hands``), so the fit starts on the right side of the
+palm-in / palm-out ambiguity, and the hands stage does it again for the fitted forearms.
 Missing detections have confidence 0 and drop out; a frame with nothing detected keeps its
 initial estimate, moved only by the smoothness term (``clip.fit_clip`` then fills hands from
 neighbouring frames).

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from eva_engine.align.body_prior import body_articulation_prior
+from eva_engine.align.bounded_lbfgs import minimize_bounded
 from eva_engine.align.face_calibration import EYE_CORNERS, load_calibration
 from eva_engine.align.face_mesh import OPENING_PAIRS, load_correspondence, shared_painted_face
 from eva_engine.align.hands import articulation_prior
@@ -242,6 +243,10 @@ class FitProblem:
             first = float(self.loss(stage))
         if not moving or stage.iterations == 0:
             return first, first
+        if self.config.bounded_expression and "expression" in moving and self.model.expression_bounds:
+            self._run_bounded(stage, moving, progress)
+            with torch.no_grad():
+                return first, float(self.loss(stage))
         opt = torch.optim.LBFGS(
             [self.values[g] for g in moving],
             lr=1.0,
@@ -268,6 +273,21 @@ class FitProblem:
         with torch.no_grad():
             last = float(self.loss(stage))
         return first, last
+
+    def _run_bounded(self, stage: FitStage, moving: list[str], progress: Progress | None) -> None:
+        """The stage by L-BFGS-B with the expression inside the model's range (the rest free)."""
+        calls = [0]
+
+        def loss() -> Tensor:
+            value = self.loss(stage)
+            calls[0] += 1
+            if progress is not None:
+                progress(ProgressEvent(stage.name, calls[0], stage.iterations, loss=float(value.detach())))
+            return value
+
+        bounds = [self.model.expression_bounds if g == "expression" else None for g in moving]
+        tensors = [self.values[g] for g in moving]
+        minimize_bounded(tensors, bounds, loss, stage.iterations, self.config.history_size)
 
 
 def _silhouette_problem(model: BodyModel, masks: Tensor, count: int):

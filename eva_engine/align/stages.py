@@ -128,11 +128,11 @@ def default_stages() -> tuple[FitStage, ...]:
             orient_hands_first=True,
         ),
         # Expression on its own: inside the joint refine stage its small gradients barely move.
-        # No range penalty here: from the neutral face (every coefficient at its bound, 0) the
-        # first step takes half the coefficients below 0, where the penalty's curvature dwarfs
-        # the face points' and L-BFGS stalls at the bound (expression error 5.21 mm against the
-        # neutral face's 5.26, bench/results/align_before.md). The refine stage's penalty and
-        # the final clamp bring the coefficients back into range. 200 iterations: one step length
+        # No range penalty here: L-BFGS-B keeps the range (FitConfig.bounded_expression). Without
+        # it, a penalty stalls torch's L-BFGS at the bound from the neutral face (every
+        # coefficient at its bound, 0; expression error 5.21 mm against the neutral face's 5.26,
+        # bench/results/align_before.md), so this stage ran unbounded and the refine stage's
+        # penalty and the final clamp brought the coefficients back. 200 iterations: one step length
         # serves every frame's expression, and at 40 the fit was far from its optimum (with the
         # detector's calibration, synthetic expression error 3.11 mm at 40, 2.77 at 200;
         # bench/results/expressions/calibration/).
@@ -183,4 +183,11 @@ class FitConfig:
     side of the palm-facing / back-facing ambiguity."""
     silhouette_points: int = 2500
     """How many of the body model's vertices stand for its outline in the silhouette terms."""
+    bounded_expression: bool = True
+    """Stages that move the expression keep it inside the body model's range (``BodyModel.
+    expression_bounds``) by L-BFGS-B (``align.bounded_lbfgs``) instead of torch's L-BFGS with the
+    range penalty (``FitStage.range_weight``) and a clamp at the end. Left free, the face stage
+    put half of a clip's coefficients below 0 and the refine stage started thousands of times
+    above its optimum, where its line search stalled: on the gesturing clip the fitted eye range
+    was 0.57 of the detector's (``docs/alignment.md``, "The expression kept in its range")."""
     history_size: int = 20
