@@ -1092,6 +1092,95 @@ def calibration_draws(results: Path) -> list[str]:
     return lines
 
 
+class BoundedFit(_Loose):
+    """One full fit of ``expressions/bounded/fits.py``: a clip's openings against its stored
+    detections, or ``wild``'s errors against the truth."""
+
+    variant: str
+    clip: str
+    seconds: float
+    eyes: Agreement | None = None
+    mouth: Agreement | None = None
+    expression_mm: float | None = None
+    groups_mm: dict[str, float] | None = None
+    mpjpe_mm: dict[str, float] | None = None
+
+
+class BoundedFits(_Run):
+    runs: list[BoundedFit]
+
+
+def expression_range_fits(results: Path) -> list[str]:
+    """The fit with the expression kept in its range against the penalty's fit: per upper-body clip
+    the fitted openings against the detections, both fitted in full by one tree
+    (``expressions/bounded/fits``), and ``bench.align``'s synthetic ``wild`` before
+    (``expressions/bounded/align_before``) and now (``align``)."""
+    runs = {(r.variant, r.clip): r for r in load(BoundedFits, "expressions/bounded/fits", results).runs}
+    lines = ["| measure | penalty (before) | in range (L-BFGS-B) |", "|---|---:|---:|"]
+    for clip in ("gesturing", "seated"):
+        for part in ("eyes", "mouth"):
+            got = [getattr(runs[v, clip], part) for v in ("penalty", "bounded")]
+            lines.append(f"| {clip}: fitted {part} r | " + " | ".join(f"{g.r:.2f}" for g in got) + " |")
+            lines.append(
+                f"| {clip}: fitted {part} range over the detections' | "
+                + " | ".join(f"{g.range_ratio:.2f}" for g in got)
+                + " |"
+            )
+    fits = [load(AlignRun, name, results).synthetic for name in ("expressions/bounded/align_before", "align")]
+    neutral = fits[0].initial.expression_mm
+    rows = {
+        f"`wild`, expression, mm (neutral face {neutral:.2f})": lambda s: f"{s.fitted.expression_mm:.2f}",
+        "`wild`, jaw / lips / lids / brows, mm": lambda s: " / ".join(
+            f"{s.fitted.expression_mm_by_group[g]:.2f}" for g in ("jaw", "lips", "lids", "brows")
+        ),
+        "`wild`, body in view / hands MPJPE, mm": lambda s: (
+            f"{s.fitted.mpjpe_mm['body_in_view']:.1f} / {s.fitted.mpjpe_mm['hands']:.1f}"
+        ),
+        "`wild`, head rotation, degrees": lambda s: f"{s.fitted.head_deg:.1f}",
+        f"`wild`, seconds to fit {fits[0].frames} frames (two threads)": lambda s: (
+            f"{s.seconds.fit_total:.1f}"
+        ),
+    }
+    for label, cell in rows.items():
+        lines.append(f"| {label} | " + " | ".join(cell(s) for s in fits) + " |")
+    return lines
+
+
+STAGE_LINE = re.compile(
+    r"(?P<optimiser>\S+) (?P<stage>\w+): (?P<calls>\d+) loss evaluations "
+    r"\(of (?P<iterations>\d+) iterations\), loss (?P<first>\S+) -> (?P<last>\S+), "
+    r"(?P<outside>\d+)% of the coefficients outside \[0, 1\], lowest (?P<lowest>\S+), (?P<seconds>\d+) s"
+)
+
+
+def expression_range_stages(results: Path) -> list[str]:
+    """The face and refine stages from a clip's stored fit, by each optimiser
+    (``expressions/bounded/stages.log``, one line per optimiser and stage)."""
+    text = (results / "expressions/bounded/stages.log").read_text()
+    found = [STAGE_LINE.fullmatch(line.strip()) for line in text.splitlines() if line.strip()]
+    if not found or not all(found):
+        raise ValueError("expressions/bounded/stages.log: a line that is not a stage's")
+    lines = [
+        "| optimiser | stage | loss evaluations (iterations) | loss, first → last "
+        "| coefficients outside [0, 1] | lowest coefficient |",
+        "|---|---|---:|---|---:|---:|",
+    ]
+    for m in found:
+        optimiser = "torch L-BFGS, range penalty" if m["optimiser"] == "penalty" else "L-BFGS-B"
+        lines.append(
+            f"| {optimiser} | {m['stage']} | {m['calls']} ({m['iterations']}) | {m['first']} → {m['last']} "
+            f"| {m['outside']}% | {m['lowest']} |"
+        )
+    return lines
+
+
+def _bounded_fit_seconds(results: Path) -> str:
+    """``bench.align``'s time to fit ``wild``, before L-BFGS-B and now: "A s → B s"."""
+    before = load(AlignRun, "expressions/bounded/align_before", results).synthetic.seconds.fit_total
+    after = load(AlignRun, "align", results).synthetic.seconds.fit_total
+    return f"{before:.1f} s → {after:.1f} s"
+
+
 class AlignEstimate(AlignFit):
     """An estimate of ``bench.align``'s synthetic section with its image-space errors."""
 
@@ -1898,6 +1987,28 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "service_latency": service_latency,
     "calibration_wild": calibration_wild,
     "calibration_draws": calibration_draws,
+    "expression_range_fits": expression_range_fits,
+    "expression_range_stages": expression_range_stages,
+    "expression_range": face_changes(
+        "mean ± std, 3 seeds (gap: per seed)",
+        ("before", "in range"),
+        "expressions/bounded/{clip}_bounded_paired",
+        "expressions/bounded/eval_{clip}_bounded",
+        (
+            *OPENING_ROWS,
+            *LPIPS_ROWS,
+            ("full PSNR", "eval", "full.psnr"),
+            ("hand PSNR", "eval", "hand.psnr"),
+        ),
+    ),
+    "expression_range_driving": face_changes(
+        "mean ± std, 3 seeds (gap: per seed)",
+        ("before", "in range"),
+        "expressions/bounded/{clip}_bounded_paired",
+        None,
+        OPENING_ROWS,
+        clips=("driving",),
+    ),
     "closeup_densify": closeup_densify,
     "speed_targets": speed_targets,
     "align_measurements": align_measurements,
@@ -1959,6 +2070,7 @@ FIGURES: dict[str, Callable[[Path], str]] = {
     **{f"real_video_hands.eva_vs_3dgs.{r}": _eva_vs_3dgs_hands_gap(r) for r in ("full", "hand", "face")},
     "real_video_hands.eva_vs_3dgs.cut_range": _eva_vs_3dgs_hands_cut_range,
     "paper_regime.official_vs_3dgs": _official_vs_3dgs_ratio,
+    "expression_range.fit_seconds": _bounded_fit_seconds,
 }
 # Figures named ``<family>/<argument>``: one function serves every result file of a kind.
 FIGURE_FAMILIES: dict[str, Callable[[Path, str], str]] = {"eval_gap": eval_gap}
