@@ -438,6 +438,25 @@ def face_changes(
     return section
 
 
+def clips_and_driving(
+    name: str, columns: tuple[str, str], openings: str, evals: str
+) -> dict[str, Callable[[Path], list[str]]]:
+    """The two sections of one paired comparison on the upper-body clips: ``name`` (both clips'
+    openings, LPIPS-VGG and PSNR) and ``<name>_driving`` (the openings of the gesturing avatars
+    driven by the seated clip's fit); arguments as :func:`face_changes`'."""
+    heading = "mean ± std, 3 seeds (gap: per seed)"
+    rows = (
+        *OPENING_ROWS,
+        *LPIPS_ROWS,
+        ("full PSNR", "eval", "full.psnr"),
+        ("hand PSNR", "eval", "hand.psnr"),
+    )
+    return {
+        name: face_changes(heading, columns, openings, evals, rows),
+        f"{name}_driving": face_changes(heading, columns, openings, None, OPENING_ROWS, clips=("driving",)),
+    }
+
+
 def face_variants(
     openings: str,
     evals: str,
@@ -1847,25 +1866,11 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
             ("face LPIPS-Alex ×1000 (trained on)", "eval", "face.lpips_alex"),
         ),
     ),
-    "colour_spread": face_changes(
-        "mean ± std, 3 seeds (gap: per seed)",
+    **clips_and_driving(
+        "colour_spread",
         ("default", "spread 6 mm"),
         "expressions/colour_spread/{clip}_spread_local_paired",
         "expressions/colour_spread/eval_{clip}_spread_local",
-        (
-            *OPENING_ROWS,
-            *LPIPS_ROWS,
-            ("full PSNR", "eval", "full.psnr"),
-            ("hand PSNR", "eval", "hand.psnr"),
-        ),
-    ),
-    "colour_spread_driving": face_changes(
-        "mean ± std, 3 seeds (gap: per seed)",
-        ("default", "spread 6 mm"),
-        "expressions/colour_spread/{clip}_spread_local_paired",
-        None,
-        OPENING_ROWS,
-        clips=("driving",),
     ),
     "smoothing_stages": smoothing_stages,
     "speed_quality": speed_quality,
@@ -1989,25 +1994,11 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "calibration_draws": calibration_draws,
     "expression_range_fits": expression_range_fits,
     "expression_range_stages": expression_range_stages,
-    "expression_range": face_changes(
-        "mean ± std, 3 seeds (gap: per seed)",
+    **clips_and_driving(
+        "expression_range",
         ("before", "in range"),
         "expressions/bounded/{clip}_bounded_paired",
         "expressions/bounded/eval_{clip}_bounded",
-        (
-            *OPENING_ROWS,
-            *LPIPS_ROWS,
-            ("full PSNR", "eval", "full.psnr"),
-            ("hand PSNR", "eval", "hand.psnr"),
-        ),
-    ),
-    "expression_range_driving": face_changes(
-        "mean ± std, 3 seeds (gap: per seed)",
-        ("before", "in range"),
-        "expressions/bounded/{clip}_bounded_paired",
-        None,
-        OPENING_ROWS,
-        clips=("driving",),
     ),
     "closeup_densify": closeup_densify,
     "speed_targets": speed_targets,
