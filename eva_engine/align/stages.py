@@ -187,7 +187,8 @@ class FitConfig:
     """Stages that move the expression keep it inside the body model's range (``BodyModel.
     expression_bounds``) by L-BFGS-B (``align.bounded_lbfgs``) instead of torch's L-BFGS with the
     range penalty (``FitStage.range_weight``) and a clamp at the end. Left free, the face stage
-    put half of a clip's coefficients below 0 and the refine stage started thousands of times
-    above its optimum, where its line search stalled: on the gesturing clip the fitted eye range
-    was 0.57 of the detector's (``docs/alignment.md``, "The expression kept in its range")."""
+    put half of a clip's coefficients below 0 and stopped early, and the refine stage started
+    thousands of times above its optimum and spent its steps pulling them back: on the gesturing
+    clip the fitted eye range was 0.57 of the detector's (``docs/alignment.md``, "The expression
+    kept in its range")."""
     history_size: int = 20
