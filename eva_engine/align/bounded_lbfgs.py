@@ -9,6 +9,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 from scipy.optimize import minimize
+from threadpoolctl import threadpool_limits
 from torch import Tensor
 
 Bounds = tuple[float, float] | None
@@ -56,22 +57,26 @@ def minimize_bounded(
 
     for t in tensors:
         t.requires_grad_(True)
+    # One BLAS thread: L-BFGS-B's vector operations are small, OpenBLAS's idle threads spun
+    # between its calls and took the cores from torch (the fit ran twice as long), and a
+    # reduction order that depends on the thread count would make the fit depend on the machine.
     try:
-        result = minimize(
-            value_and_grad,
-            np.clip(x0, lower, upper),
-            jac=True,
-            method="L-BFGS-B",
-            bounds=list(zip(lower, upper, strict=True)),
-            # As torch's LBFGS with tolerance_change 0: run the iterations; 1.25 calls each at most.
-            options={
-                "maxiter": iterations,
-                "maxfun": max(1, round(1.25 * iterations)),
-                "maxcor": history_size,
-                "ftol": 0.0,
-                "gtol": 0.0,
-            },
-        )
+        with threadpool_limits(limits=1, user_api="blas"):
+            result = minimize(
+                value_and_grad,
+                np.clip(x0, lower, upper),
+                jac=True,
+                method="L-BFGS-B",
+                bounds=list(zip(lower, upper, strict=True)),
+                # As torch's LBFGS with tolerance_change 0: run the iterations; 1.25 calls each at most.
+                options={
+                    "maxiter": iterations,
+                    "maxfun": max(1, round(1.25 * iterations)),
+                    "maxcor": history_size,
+                    "ftol": 0.0,
+                    "gtol": 0.0,
+                },
+            )
         assign(result.x)
     finally:
         for t in tensors:
