@@ -115,10 +115,7 @@ def collect() -> None:
                 "",
                 f"{r['expression_mm']:.2f}",
                 " / ".join(f"{g[k]:.2f}" for k in ("jaw", "lips", "lids", "brows")),
-                # the first row ran before the script recorded MPJPE
-                f"{r['mpjpe_mm']['body_in_view']:.1f} / {r['mpjpe_mm']['hands']:.1f}"
-                if "mpjpe_mm" in r
-                else "",
+                f"{r['mpjpe_mm']['body_in_view']:.1f} / {r['mpjpe_mm']['hands']:.1f}",
             ]
         else:
             cells = [
