@@ -243,51 +243,43 @@ class FitProblem:
             first = float(self.loss(stage))
         if not moving or stage.iterations == 0:
             return first, first
-        if self.config.bounded_expression and "expression" in moving and self.model.expression_bounds:
-            self._run_bounded(stage, moving, progress)
-            with torch.no_grad():
-                return first, float(self.loss(stage))
-        opt = torch.optim.LBFGS(
-            [self.values[g] for g in moving],
-            lr=1.0,
-            max_iter=stage.iterations,
-            history_size=self.config.history_size,
-            line_search_fn="strong_wolfe",
-            tolerance_grad=1e-9,
-            tolerance_change=0.0,  # run the stage's iterations: small losses are not converged ones
-        )
         calls = [0]
 
-        def closure():
-            opt.zero_grad(set_to_none=False)
-            loss = self.loss(stage)
-            loss.backward()
-            calls[0] += 1
-            if progress is not None:
-                progress(ProgressEvent(stage.name, calls[0], stage.iterations, loss=float(loss)))
-            return loss
-
-        opt.step(closure)
-        for g in moving:
-            self.values[g].requires_grad_(False)
-        with torch.no_grad():
-            last = float(self.loss(stage))
-        return first, last
-
-    def _run_bounded(self, stage: FitStage, moving: list[str], progress: Progress | None) -> None:
-        """The stage by L-BFGS-B with the expression inside the model's range (the rest free)."""
-        calls = [0]
-
-        def loss() -> Tensor:
+        def reported_loss() -> Tensor:
             value = self.loss(stage)
             calls[0] += 1
             if progress is not None:
                 progress(ProgressEvent(stage.name, calls[0], stage.iterations, loss=float(value.detach())))
             return value
 
-        bounds = [self.model.expression_bounds if g == "expression" else None for g in moving]
         tensors = [self.values[g] for g in moving]
-        minimize_bounded(tensors, bounds, loss, stage.iterations, self.config.history_size)
+        if self.config.bounded_expression and "expression" in moving and self.model.expression_bounds:
+            # L-BFGS-B keeps the expression inside the model's range; the rest is free.
+            bounds = [self.model.expression_bounds if g == "expression" else None for g in moving]
+            minimize_bounded(tensors, bounds, reported_loss, stage.iterations, self.config.history_size)
+        else:
+            opt = torch.optim.LBFGS(
+                tensors,
+                lr=1.0,
+                max_iter=stage.iterations,
+                history_size=self.config.history_size,
+                line_search_fn="strong_wolfe",
+                tolerance_grad=1e-9,
+                tolerance_change=0.0,  # run the stage's iterations: small losses are not converged ones
+            )
+
+            def closure():
+                opt.zero_grad(set_to_none=False)
+                loss = reported_loss()
+                loss.backward()
+                return loss
+
+            opt.step(closure)
+        for g in moving:
+            self.values[g].requires_grad_(False)
+        with torch.no_grad():
+            last = float(self.loss(stage))
+        return first, last
 
 
 def _silhouette_problem(model: BodyModel, masks: Tensor, count: int):
