@@ -89,3 +89,122 @@ def test_the_products_presets_carry_gaussians_by_the_skin_and_the_papers_methods
     for method in METHODS:
         avatar = with_method(preset("fast"), method).avatar
         assert not avatar.expression_frames and not avatar.expression_colours
+
+
+def test_the_template_face_changes_where_gaussians_are_stored_not_where_a_frame_puts_them(
+    anny_model, tmp_path
+):
+    """An avatar on a template with an expression (``AvatarConfig.template_expression``) stores
+    its Gaussians on that face, and a frame moves them by its expression's difference from it: the
+    same frame poses them where the zero-expression avatar's go. Saved and loaded, the template's
+    expression comes back and the pose is the same."""
+    import dataclasses
+
+    from eva_engine.avatar import Avatar, load_avatar, save_avatar, template_vertices
+    from eva_engine.avatar.config import AvatarConfig
+
+    names = list(anny_model.expression_names)
+    face = torch.zeros(len(names))
+    face[names.index("eyeWideLeft")] = face[names.index("eyeWideRight")] = 0.6
+    face[names.index("jawOpen")] = 0.2
+    cfg = AvatarConfig(sh_degree=0, init_max_gaussians=3000, mlp_width=16, pe_frequencies=2)
+    shape = anny_model.shape_defaults
+    neutral = Avatar.create(anny_model, shape, cfg, seed=1)
+    median_cfg = dataclasses.replace(cfg, template_expression="median")
+    on_face = Avatar.create(anny_model, shape, median_cfg, seed=1, expression=face)
+    torch.testing.assert_close(
+        on_face.gaussians.template_vertices, template_vertices(anny_model, shape, face)
+    )
+    moved = (on_face.gaussians.means - neutral.gaussians.means).detach().norm(dim=-1)
+    assert float(moved.max()) > 1e-3  # the lids and jaw sit elsewhere on the template
+
+    frame = anny_model.params_from_pose({"expression": {"eyeBlinkLeft": 1.0, "jawOpen": 0.5}})
+    with torch.no_grad():
+        expected = neutral.pose(frame).means
+        torch.testing.assert_close(on_face.pose(frame).means, expected, atol=1e-5, rtol=0)
+    save_avatar(on_face, tmp_path / "avatar")
+    loaded = load_avatar(tmp_path / "avatar")
+    torch.testing.assert_close(loaded.template_expression, on_face.template_expression)
+    with torch.no_grad():
+        torch.testing.assert_close(loaded.pose(frame).means, expected, atol=1e-5, rtol=0)
+    try:
+        AvatarConfig(template_expression="mean")
+    except ValueError as err:
+        assert "median" in str(err)
+    else:
+        raise AssertionError("an unknown template expression was accepted")
+
+
+def test_gaussians_seen_through_the_eye_opening_attach_to_the_eyeball(anny_model):
+    """``AvatarConfig.eye_binding``: the iris is painted in front of the coarse eyeball and
+    beside the dense lid margin, so its nearest vertex is mostly a lid vertex and a blink would
+    carry it down the face. Seen through the opening, it attaches to the eyeball and stays where
+    it is when the lid closes; Gaussians on the lid's skin keep their lid vertex."""
+    import dataclasses
+
+    from eva_engine.avatar import Avatar
+    from eva_engine.avatar.config import AvatarConfig
+    from eva_engine.avatar.eye_binding import inside
+    from eva_engine.body.anny_backend import SEGMENT_LABELS
+
+    cfg = AvatarConfig(sh_degree=0, init_max_gaussians=4000, mlp_width=16, pe_frequencies=2)
+    shape = anny_model.shape_defaults
+    plain = Avatar.create(anny_model, shape, cfg, seed=0)
+    bound = Avatar.create(anny_model, shape, dataclasses.replace(cfg, eye_binding=True), seed=0)
+    openings = bound.gaussians.eye_openings
+    assert len(openings) == 2 and not plain.gaussians.eye_openings
+    labels = torch.as_tensor(anny_model.segment_labels)
+    eyeball = {SEGMENT_LABELS.index("eye_front.L"), SEGMENT_LABELS.index("eye_front.R")}
+    lid = SEGMENT_LABELS.index("head")
+
+    # A grid over each opening, 1-4 mm in front of the eyeball's front: the painted iris.
+    iris = []
+    for eye in openings:
+        lo, hi = eye.outline.min(dim=0).values, eye.outline.max(dim=0).values
+        x, y = torch.meshgrid(torch.linspace(0, 1, 9), torch.linspace(0, 1, 5), indexing="ij")
+        xy = lo + (hi - lo) * torch.stack([x.flatten(), y.flatten()], dim=-1)
+        xy = xy[inside(xy, eye.outline)]
+        front = bound.gaussians.template_vertices[eye.eyeball, 2].max()
+        z = front + torch.linspace(-0.003, 0.001, len(xy))
+        iris.append(torch.cat([xy, z[:, None]], dim=-1))
+    iris = torch.cat(iris)
+    # The upper lids' skin: vertices a blink moves, above the openings.
+    template = bound.gaussians.template_vertices
+    names = list(anny_model.expression_names)
+    p = anny_model.default_params(2)
+    p.expression[1, [names.index("eyeBlinkLeft"), names.index("eyeBlinkRight")]] = 1.0
+    with torch.no_grad():
+        shut = anny_model.canonical(p)
+    travel = (shut[1] - shut[0]).norm(dim=-1)
+    top = max(float(e.outline[:, 1].max()) for e in openings)
+    skin = template[(labels == lid) & (travel > 0.5 * travel.max()) & (template[:, 1] > top + 0.001)]
+    assert len(skin) > 4
+    points = torch.cat([iris, skin])
+    attached = {}
+    for name, avatar in (("plain", plain), ("bound", bound)):
+        g = avatar.gaussians
+        with torch.no_grad():
+            g.splats["means"][: len(points)] = points
+        g.refresh_vertex_ids()
+        attached[name] = labels[g.vertex_ids[: len(points)]]
+    on_eyeball = torch.tensor([int(v) in eyeball for v in attached["bound"][: len(iris)]])
+    assert bool(on_eyeball.all())
+    assert sum(int(v) == lid for v in attached["plain"][: len(iris)]) > len(iris) // 4  # what this fixes
+    assert bool((attached["bound"][len(iris) :] == lid).all()) and bool(
+        (attached["plain"][len(iris) :] == lid).all()
+    )
+
+    blink = anny_model.params_from_pose({"expression": {"eyeBlinkLeft": 1.0, "eyeBlinkRight": 1.0}})
+    rest = anny_model.params_from_pose({})
+    with torch.no_grad():
+        moved = (bound.pose(blink).means - bound.pose(rest).means)[: len(points)].norm(dim=-1)
+    assert float(moved[: len(iris)].max()) < 1e-6  # the iris stays with the eyeball
+    assert float(moved[len(iris) :].min()) > 1e-3  # the lid comes down
+
+
+def test_the_eye_opening_test_is_the_even_odd_rule():
+    from eva_engine.avatar.eye_binding import inside
+
+    square = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    points = torch.tensor([[0.5, 0.5], [1.5, 0.5], [0.5, -0.1], [0.99, 0.01], [-0.01, 0.5]])
+    assert inside(points, square).tolist() == [True, False, False, True, False]

@@ -351,3 +351,22 @@ def test_the_trainer_visits_a_blinking_frame_more_often(scene, anny_model):
     assert sorted(run.epoch) == sorted([*range(len(train)), 0, 0, 0, 0])
     plain = TrainingRun(blinking, preset("tiny", iterations=2), anny_model, torch.device("cpu"))
     assert plain.epoch == list(range(len(train)))
+
+
+def test_the_trainer_seats_the_gaussians_on_the_training_frames_median_face(scene, anny_model):
+    """``AvatarConfig.template_expression="median"``: the template is the body with the training
+    frames' median expression (a person whose eyes are wider open than the model's most of the
+    time gets a template with its lids raised); the default keeps the zero expression."""
+    ds, _ = scene
+    train = list(ds.splits["train"])
+    wide = anny_model.expression_names.index("eyeWideLeft")
+    expression = ds.params.expression.clone()
+    expression[train, wide] = torch.linspace(0.2, 0.8, len(train))
+    widened = dataclasses.replace(ds, params=dataclasses.replace(ds.params, expression=expression))
+    tiny = preset("tiny", iterations=2)
+    median = dataclasses.replace(tiny, avatar=dataclasses.replace(tiny.avatar, template_expression="median"))
+    run = TrainingRun(widened, median, anny_model, torch.device("cpu"))
+    face = expression[train].median(dim=0).values
+    torch.testing.assert_close(run.avatar.template_expression, face.to(run.avatar.template_expression))
+    plain = TrainingRun(widened, tiny, anny_model, torch.device("cpu"))
+    assert not bool(plain.avatar.template_expression.any())

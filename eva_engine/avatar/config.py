@@ -11,6 +11,7 @@ REVEALING_ACTIONS = ("eyeBlinkLeft", "eyeBlinkRight", "jawOpen")
 BLINK_ACTIONS = ("eyeBlinkLeft", "eyeBlinkRight")
 
 SKINNING_KINDS = ("mesh", "field")
+TEMPLATE_EXPRESSIONS = ("neutral", "median")
 
 
 @dataclass(frozen=True)
@@ -55,6 +56,16 @@ class AvatarConfig:
         within this distance of a vertex it moves (at rest), such as the eyeball behind a closing
         lid, which the blink covers but does not move, and no longer what it moves far away
         (``expression_colours.action_reach``); 0: everything it moves, nothing else.
+    template_expression: the face the canonical Gaussians sit on. ``"neutral"``: the body model's
+        zero expression. ``"median"``: the training frames' median expression. A person whose eyes
+        are mostly wider open than Anny's neutral eyes has the iris painted where Anny's neutral lid
+        is. On the neutral face, those Gaussians then attach to lid vertices and a blink slides
+        the painted iris down the face. On the median face the lid is already raised, so they
+        attach to the eyeball the lid closes over.
+    eye_binding: Gaussians seen through an eye's opening on the template attach to the eyeball
+        whenever the Gaussians are attached again (``avatar/eye_binding.py``), so a blink's lid
+        closes over the iris instead of carrying it down; a body model without eye pieces has
+        none to attach to.
     weight_mlp_bf16: while training, the weight-offset MLP multiplies in bfloat16 (its output,
         softmax and parameter gradients stay float32; ``networks.relu_mlp``). Rendering a trained
         avatar is float32 either way. Worth it where the CPU has native bfloat16 (AVX512-BF16).
@@ -80,6 +91,8 @@ class AvatarConfig:
     expression_colours: bool = False
     expression_colour_actions: tuple[str, ...] | None = BLINK_ACTIONS
     expression_colour_spread: float = 0.0
+    template_expression: str = "neutral"
+    eye_binding: bool = False
     weight_mlp_bf16: bool = False
 
     def __post_init__(self) -> None:
@@ -102,6 +115,10 @@ class AvatarConfig:
         if not 0.0 <= self.expression_colour_spread < 0.05:
             raise ValueError(
                 f"expression_colour_spread must be in [0, 0.05) m, got {self.expression_colour_spread}"
+            )
+        if self.template_expression not in TEMPLATE_EXPRESSIONS:
+            raise ValueError(
+                f"template_expression must be one of {TEMPLATE_EXPRESSIONS}, got {self.template_expression!r}"
             )
         if not 0.0 < self.init_normal_ratio <= 1.0:
             raise ValueError(f"init_normal_ratio must be in (0, 1], got {self.init_normal_ratio}")

@@ -22,6 +22,7 @@ import math
 import torch
 from torch import Tensor, nn
 
+from eva_engine.avatar.eye_binding import EyeOpening, attach_to_eyeballs
 from eva_engine.body.model import nearest_vertex_index
 from eva_engine.geometry import mean_neighbour_distance, quat_from_z
 from eva_engine.memo import InferenceMemo
@@ -72,6 +73,9 @@ class CanonicalGaussians(nn.Module):
         self.register_buffer("template_vertices", template_vertices.detach().clone())
         self.register_buffer("template_part_ids", template_part_ids.to(torch.int64).clone())
         self._sh_memo = InferenceMemo()
+        # The eyes' openings (``avatar/eye_binding.py``; set by the avatar with
+        # ``AvatarConfig.eye_binding``): Gaussians seen through one attach to its eyeball.
+        self.eye_openings: list[EyeOpening] = []
 
     # -- construction ------------------------------------------------------------------------
     @classmethod
@@ -171,8 +175,12 @@ class CanonicalGaussians(nn.Module):
     # -- template relations ------------------------------------------------------------------
     @torch.no_grad()
     def refresh_vertex_ids(self) -> None:
-        """Re-attach every Gaussian to its nearest template vertex (after the means moved)."""
-        self.vertex_ids = nearest_vertex_index(self.means.detach(), self.template_vertices)
+        """Re-attach every Gaussian to its nearest template vertex (after the means moved), or,
+        seen through an eye's opening (``eye_openings``), to its eyeball."""
+        means, template = self.means.detach(), self.template_vertices
+        self.vertex_ids = nearest_vertex_index(means, template)
+        if self.eye_openings:
+            self.vertex_ids = attach_to_eyeballs(means, self.vertex_ids, template, self.eye_openings)
 
     @torch.no_grad()
     def template_distance(self, same_part: bool = False) -> Tensor:

@@ -6,7 +6,8 @@
 - ``avatar.safetensors``: what the PLY does not hold: the MLP weights, per-Gaussian part ids and
   template vertex ids, the body-model identity (name in the metadata, ``shape`` tensor), and with
   ``AvatarConfig.expression_colours`` the colour offsets per expression action
-  (``splats.sh0_expression [N, A, 3]``, A actions) and their scale (``expression_range [A]``);
+  (``splats.sh0_expression [N, A, 3]``, A actions) and their scale (``expression_range [A]``),
+  and the template's expression where it is not zero (``template_expression [E]``);
 - ``frames.safetensors`` (optional): the training frames (:class:`AvatarFrames`):
   ``params.<name>`` (``BodyParams`` fields, batch F), ``K [F, 3, 3]``, ``viewmat [F, 4, 4]`` and
   ``timestamps [F]``;
@@ -220,6 +221,8 @@ def save_avatar(
             tensors[f"splats.{name}"] = g.splats[name]
     if avatar.config.expression_colours:
         tensors["expression_range"] = avatar.expression_range
+    if bool(avatar.template_expression.any()):
+        tensors["template_expression"] = avatar.template_expression
     for prefix, module in avatar.networks().items():
         tensors.update({f"{prefix}.{k}": v for k, v in module.state_dict().items()})
     tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
@@ -329,10 +332,16 @@ def _load_model(root: Path, meta: AvatarMeta, body: BodyModel | None, device: to
     config = AvatarConfig.from_dict(meta.avatar_config)
     splats = read_ply(root / PLY_NAME)
     splats |= {k: tensors[f"splats.{k}"] for k in OPTIONAL_SPLAT_NAMES if f"splats.{k}" in tensors}
-    template = template_vertices(body, shape)
+    expression = tensors.get("template_expression")  # absent: the zero expression
+    if expression is not None and expression.shape[0] != len(body.expression_names):
+        raise AvatarFileError(
+            f"saved template expression has {expression.shape[0]} values, body model "
+            f"{len(body.expression_names)}"
+        )
+    template = template_vertices(body, shape, expression)
     ids = tensors["part_ids"], tensors["vertex_ids"]
     gaussians = CanonicalGaussians(splats, *ids, template, body.part_ids)
-    avatar = Avatar(body, gaussians, shape, config)
+    avatar = Avatar(body, gaussians, shape, config, expression=expression)
     for prefix, module in avatar.networks().items():
         state = {k[len(prefix) + 1 :]: v for k, v in tensors.items() if k.startswith(prefix + ".")}
         module.load_state_dict(state)

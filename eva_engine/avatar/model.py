@@ -1,7 +1,8 @@
 """``Avatar``: canonical Gaussians + body model + the two MLPs -> posed, rendered images.
 
 The avatar belongs to one subject: its canonical space is the body model's rest pose with the
-subject's ``shape`` and no expression. Posing a frame (``pose``):
+subject's ``shape`` and the template's expression (none, or the training frames' median:
+``AvatarConfig.template_expression``). Posing a frame (``pose``):
 
 1. pose refinement (``PoseRefiner``) of the input joint rotations;
 2. the body model gives the rest -> posed joint transforms for the refined pose, with the
@@ -32,6 +33,7 @@ from eva_engine.avatar.expression_colours import (
     expression_sh0,
     revealing_actions,
 )
+from eva_engine.avatar.eye_binding import eye_openings
 from eva_engine.avatar.gaussians import CanonicalGaussians
 from eva_engine.avatar.networks import LBSWeightOffsets, PoseRefiner, blend_log_skinning_weights
 from eva_engine.avatar.skinning import skin_gaussians, sparse_weights
@@ -69,8 +71,9 @@ class Avatar(nn.Module):
     """A drivable Gaussian avatar (see the module docstring).
 
     body: the body model (its name and the avatar's ``shape [S]`` are its identity);
-    gaussians: canonical Gaussians over ``body.canonical(shape)``; generator: the MLPs' initial
-    weights' random draws (None: a generator seeded 0).
+    gaussians: canonical Gaussians over ``body.canonical(shape)`` with ``expression [E]`` (None:
+    zero; ``AvatarConfig.template_expression``); generator: the MLPs' initial weights' random
+    draws (None: a generator seeded 0).
     """
 
     shape: Tensor
@@ -82,12 +85,19 @@ class Avatar(nn.Module):
         shape: Tensor,
         config: AvatarConfig,
         generator: torch.Generator | None = None,
+        expression: Tensor | None = None,
     ) -> None:
         super().__init__()
         self.config = config
         self.body = body
         self.gaussians = gaussians
         self.register_buffer("shape", shape.detach().to(body.dtype).reshape(-1).clone())
+        # [E] the expression of the face the Gaussians sit on (``gaussians.template_vertices``);
+        # a frame moves them by its expression's difference from it.
+        if expression is None:
+            expression = torch.zeros(len(body.expression_names))
+        expression = expression.detach().to(shape.device, body.dtype).reshape(-1).clone()
+        self.register_buffer("template_expression", expression)
         generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.weight_offsets = (
             LBSWeightOffsets(
@@ -143,6 +153,9 @@ class Avatar(nn.Module):
             self.register_buffer("expression_reach", reach, persistent=False)
             # [K] r_k, set from the training frames (``set_expression_range``) and saved.
             self.register_buffer("expression_range", torch.ones(len(actions), dtype=body.dtype))
+        if config.eye_binding and hasattr(body, "eye_vertices"):
+            skin, eyeballs = body.eye_vertices()
+            gaussians.eye_openings = eye_openings(gaussians.template_vertices, body.faces, skin, eyeballs)
         self.active_sh_degree = gaussians.sh_degree
         self._weights_memo = InferenceMemo()
         self._sparse_weights_memo = InferenceMemo()
@@ -158,12 +171,15 @@ class Avatar(nn.Module):
         config: AvatarConfig | None = None,
         seed: int = 0,
         generator: torch.Generator | None = None,
+        expression: Tensor | None = None,
     ) -> Avatar:
         """A fresh avatar seeded on the surface vertices of ``body.canonical(shape)``: ``seed``
         draws the subset of seed vertices, ``generator`` the MLPs' initial weights (None: a
-        generator seeded ``seed``; pass one to draw further initial weights after them)."""
+        generator seeded ``seed``; pass one to draw further initial weights after them);
+        ``expression [E]``: the template's expression (``AvatarConfig.template_expression``;
+        None: zero)."""
         config = config or AvatarConfig()
-        template = template_vertices(body, shape)
+        template = template_vertices(body, shape, expression)
         normals = None
         if config.init_normal_ratio < 1.0:
             normals = torch.from_numpy(vertex_normals(template.cpu(), body.faces.cpu())).to(template)
@@ -179,7 +195,7 @@ class Avatar(nn.Module):
             normal_ratio=config.init_normal_ratio,
         )
         generator = generator if generator is not None else torch.Generator().manual_seed(seed)
-        return cls(body, gaussians, shape, config, generator)
+        return cls(body, gaussians, shape, config, generator, expression)
 
     def networks(self) -> dict[str, nn.Module]:
         """The learnable parts besides the Gaussians, by name (what ``save_avatar`` stores)."""
@@ -360,9 +376,11 @@ class Avatar(nn.Module):
         return self(params, camera, background).image.clamp(0.0, 1.0)
 
 
-def template_vertices(body: BodyModel, shape: Tensor) -> Tensor:
-    """[V, 3] rest vertices of ``body`` with ``shape [S]`` and zero expression."""
+def template_vertices(body: BodyModel, shape: Tensor, expression: Tensor | None = None) -> Tensor:
+    """[V, 3] rest vertices of ``body`` with ``shape [S]`` and ``expression [E]`` (None: zero)."""
     params = body.default_params(1)
     params.shape = shape.to(params.shape).reshape(1, -1)
+    if expression is not None:
+        params.expression = expression.to(params.expression).reshape(1, -1)
     with torch.no_grad():
         return body.canonical(params)[0]

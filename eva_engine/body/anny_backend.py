@@ -201,6 +201,13 @@ class AnnyBody(BodyModel):
         self.keypoint_names = list(KEYPOINT_NAMES)
 
     # -- BodyModel ---------------------------------------------------------------------------
+    def eye_vertices(self) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """([V] bool the head's skin, [the eyeball-front vertex ids of each eye]): what
+        ``avatar.eye_binding`` finds the eyes' openings from."""
+        labels = torch.as_tensor(self.segment_labels)
+        fronts = [torch.nonzero(labels == SEGMENT_LABELS.index(f"eye_front.{s}")).squeeze(-1) for s in "LR"]
+        return labels == SEGMENT_LABELS.index("head"), fronts
+
     def _blendshape_coeffs(self, params: BodyParams) -> torch.Tensor:
         """[B, C] Anny blendshape coefficients: phenotype weights, then the facial actions.
 

@@ -263,7 +263,10 @@ class TrainingRun:
         # own), never from torch's global state: the initial weights (the avatar's MLPs, then the
         # loss's) and the frame order.
         weights = torch.Generator().manual_seed(config.seed)
-        avatar = Avatar.create(body.to(device), shape, config.avatar, seed=config.seed, generator=weights)
+        face = None  # the template's expression (AvatarConfig.template_expression)
+        if config.avatar.template_expression == "median":
+            face = self.params.expression.median(dim=0).values
+        avatar = Avatar.create(body.to(device), shape, config.avatar, config.seed, weights, face)
         self.avatar = avatar.to(device)
         self.avatar.set_expression_range(self.params.expression)
         self.avatar.active_sh_degree = 0
