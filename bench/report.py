@@ -8,7 +8,8 @@ A doc includes a table between two markers; everything between them is this modu
     <!-- /bench report -->
 
 A figure in a sentence is written the same way, inline, by a function of ``FIGURES`` (or, named
-``<family>/<argument>``, of ``FIGURE_FAMILIES``, e.g. ``eval_gap/<result>/<region>.<metric>``):
+``<family>/<argument>``, of ``FIGURE_FAMILIES``, e.g. ``eval_gap/<result>/<region>.<metric>``, or
+``value/<result>/<key>/...@<digits>``, one number of a result file):
 
     side views by <!-- bench figure: novel_pose.view.full.cut -->22%<!-- /bench figure -->
 
@@ -35,7 +36,7 @@ from bench.stats import compare_paired, fmt, mean_std, zero_crossing
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 DOCS = ("README.md", "docs/*.md")
-FIGURE = re.compile(r"(<!-- bench figure: (?P<name>[\w./-]+) -->)(?P<body>.*?)(<!-- /bench figure -->)")
+FIGURE = re.compile(r"(<!-- bench figure: (?P<name>[\w./@%-]+) -->)(?P<body>.*?)(<!-- /bench figure -->)")
 BLOCK = re.compile(r"(<!-- bench report: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /bench report -->)", re.S)
 
 
@@ -2050,6 +2051,34 @@ def eval_gap(results: Path, name: str) -> str:
     raise KeyError(f"{result}.json has no row {key!r}")
 
 
+VALUE = re.compile(r"(?P<path>.+?)@(?P<digits>\d)(?:x(?P<scale>\d+))?(?P<percent>%?)")
+
+
+def value(results: Path, name: str) -> str:
+    """The figure ``value/<result>/<key>/.../<key>@<digits>[x<scale>][%]``: one number of a result
+    file, by its keys (a list by its index), times ``scale``, with ``digits`` decimals and a true
+    minus sign, e.g. ``value/expressions/bounded/fits/rows/5/expression_mm@2`` -> "2.95". The
+    result is the longest leading part of the path that names a ``.json`` under ``results``."""
+    m = VALUE.fullmatch(name)
+    if m is None:
+        raise KeyError(f"value figure {name!r} is not <result>/<key>/...@<digits>[x<scale>][%]")
+    parts = m["path"].split("/")
+    for cut in range(len(parts) - 1, 0, -1):
+        file = results / ("/".join(parts[:cut]) + ".json")
+        if file.is_file():
+            break
+    else:
+        raise KeyError(f"value figure {name!r} names no result file")
+    node = json.loads(file.read_text())
+    for key in parts[cut:]:
+        try:
+            node = node[int(key)] if isinstance(node, list) else node[key]
+        except (KeyError, IndexError, ValueError) as err:
+            raise KeyError(f"{file.name} has no {'/'.join(parts[cut:])!r}") from err
+    number = float(node) * int(m["scale"] or 1)
+    return f"{number:.{m['digits']}f}".replace("-", "\u2212") + m["percent"]
+
+
 FIGURES: dict[str, Callable[[Path], str]] = {
     **{f"novel_pose.{split}.full": _novel_pose_gap(split, "full") for split in NOVEL_POSE_SPLITS},
     "novel_pose.view.face": _novel_pose_gap("view", "face"),
@@ -2064,7 +2093,7 @@ FIGURES: dict[str, Callable[[Path], str]] = {
     "expression_range.fit_seconds": _bounded_fit_seconds,
 }
 # Figures named ``<family>/<argument>``: one function serves every result file of a kind.
-FIGURE_FAMILIES: dict[str, Callable[[Path, str], str]] = {"eval_gap": eval_gap}
+FIGURE_FAMILIES: dict[str, Callable[[Path, str], str]] = {"eval_gap": eval_gap, "value": value}
 
 
 # ----------------------------------------------------------------------------- the docs

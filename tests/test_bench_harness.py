@@ -136,6 +136,19 @@ def test_a_figure_in_a_sentence_is_rewritten_in_place_and_a_stale_doc_is_flagged
         report.render(gap.replace("full.psnr", "full.nope") + "x<!-- /bench figure -->", results)
 
 
+def test_a_value_figure_reads_one_number_of_a_result_by_its_keys(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "r.json").write_text(json.dumps({"runs": [{"mm": 2.9493}, {"gap": -0.0123}]}))
+    figure = "<!-- bench figure: value/a/r/runs/{} -->x<!-- /bench figure -->"
+    assert report.render(figure.format("0/mm@2"), tmp_path).endswith("-->2.95<!-- /bench figure -->")
+    assert "−1.2%<" in report.render(figure.format("1/gap@1x100%"), tmp_path)  # a true minus sign
+    for bad, reason in (("2/mm@2", "has no"), ("0/mm", "is not"), ("0/nope@1", "has no")):
+        with pytest.raises(KeyError, match=reason):
+            report.render(figure.format(bad), tmp_path)
+    with pytest.raises(KeyError, match="names no result file"):
+        report.render("<!-- bench figure: value/b/r/x@1 -->x<!-- /bench figure -->", tmp_path)
+
+
 def test_a_result_of_another_shape_fails_loudly(tmp_path):
     (tmp_path / "service.json").write_text(json.dumps({"date": "d", "machine": "m", "rows": [{"size": 1}]}))
     with pytest.raises(ValueError):
