@@ -107,6 +107,19 @@ ROWS: dict[str, Row] = {
             'avatar.expression_colour_actions=["eyeBlinkLeft","eyeBlinkRight"]',
         ),
     ),
+    "median_eyes": Row(
+        "the default, its Gaussians on the training frames' median face and those seen through an eye's "
+        "opening attached to the eyeball (issue 39)",
+        (
+            *OFF,
+            "regularizers.lambda_thin=0.05",
+            "regularizers.thin_target=0.002",
+            "avatar.expression_colours=true",
+            'avatar.expression_colour_actions=["eyeBlinkLeft","eyeBlinkRight"]',
+            'avatar.template_expression="median"',
+            "avatar.eye_binding=true",
+        ),
+    ),
     "thin_face_off": Row(
         "thin along the normal except on the face's Gaussians (issue 39)",
         (

@@ -2001,6 +2001,12 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         "expressions/bounded/{clip}_bounded_paired",
         "expressions/bounded/eval_{clip}_bounded",
     ),
+    **clips_and_driving(
+        "eye_binding",
+        ("default", "median face, eyes bound"),
+        "expressions/eye_binding/{clip}_mb_paired",
+        "expressions/eye_binding/eval_{clip}_mb",
+    ),
     "closeup_densify": closeup_densify,
     "speed_targets": speed_targets,
     "align_measurements": align_measurements,
