@@ -52,3 +52,22 @@ def test_orbit_camera_pitch_and_bad_values():
     for kwargs in ({"pitch_deg": 90.0}, {"distance": 0.0}, {"distance": float("nan")}):
         with pytest.raises(ValueError):
             orbit_camera(**kwargs)
+
+
+def test_a_scaled_camera_sees_the_same_point_at_the_same_place_in_more_pixels():
+    from eva_engine.render.camera import Camera
+
+    K = intrinsics(64, 48, 50.0)
+    cam = Camera(K, look_at(torch.tensor([0.0, 0.0, 3.0]), torch.zeros(3)), 64, 48)
+    big = cam.scaled(4)
+    assert (big.width, big.height) == (256, 192) and torch.equal(big.viewmat, cam.viewmat)
+    point = torch.tensor([0.1, -0.2, 0.3, 1.0])
+
+    def pixel(c):
+        x = c.K @ (c.viewmat @ point)[:3]
+        return x[:2] / x[2]
+
+    torch.testing.assert_close(pixel(big), pixel(cam) * 4)
+    assert torch.equal(cam.K, K)  # the original is left alone
+    with pytest.raises(ValueError, match="positive"):
+        cam.scaled(0)

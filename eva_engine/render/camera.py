@@ -39,6 +39,14 @@ class Camera:
     def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> Camera:
         return Camera(self.K.to(device, dtype), self.viewmat.to(device, dtype), self.width, self.height)
 
+    def scaled(self, factor: int) -> Camera:
+        """The same view at ``factor`` times the pixels across (a sharper render of one frame)."""
+        if factor < 1:
+            raise ValueError(f"factor must be a positive integer, got {factor}")
+        K = self.K.clone()
+        K[:2] *= factor
+        return Camera(K, self.viewmat, self.width * factor, self.height * factor)
+
     @property
     def center(self) -> Tensor:
         """[3] camera centre in world coordinates."""

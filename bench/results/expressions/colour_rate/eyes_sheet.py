@@ -30,9 +30,7 @@ def main(dataset: str, out: str, avatars: list[str]) -> None:
     for i in frames:
         f = ds[i]
         h, w = f.image.shape[:2]
-        K = f.K.float().clone()
-        K[:2] *= SCALE
-        cam = Camera(K, f.viewmat.float(), w * SCALE, h * SCALE)
+        cam = Camera(f.K.float(), f.viewmat.float(), w, h).scaled(SCALE)
         xy = stored[i, :468, :2] * SCALE
         (x0, y0), (x1, y1) = xy.min(0).values.int().tolist(), xy.max(0).values.int().tolist()
         y1 = y0 + (y1 - y0) * 3 // 5  # brows to nose

@@ -93,9 +93,7 @@ def main(dataset: str, avatar_dir: str, out: str, n: str = "3") -> None:
     for i in picks:
         f = ds[i]
         h, w = f.image.shape[:2]
-        K = f.K.float().clone()
-        K[:2] *= UP
-        cam = Camera(K, f.viewmat.float(), w * UP, h * UP)
+        cam = Camera(f.K.float(), f.viewmat.float(), w, h).scaled(UP)
         xy = marks[i, EYES, :2] * UP
         lo, hi = xy.min(0).values, xy.max(0).values
         cx, cy = (lo + hi) / 2
