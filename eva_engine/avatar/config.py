@@ -57,15 +57,15 @@ class AvatarConfig:
         lid, which the blink covers but does not move, and no longer what it moves far away
         (``expression_colours.action_reach``); 0: everything it moves, nothing else.
     template_expression: the face the canonical Gaussians sit on. ``"neutral"``: the body model's
-        zero expression. ``"median"``: the training frames' median expression. A person whose eyes
-        are mostly wider open than Anny's neutral eyes has the iris painted where Anny's neutral lid
-        is. On the neutral face, those Gaussians then attach to lid vertices and a blink slides
-        the painted iris down the face. On the median face the lid is already raised, so they
-        attach to the eyeball the lid closes over.
+        zero expression. ``"median"``: the training frames' median expression, the face the video
+        shows most of the time (a talking person's jaw a little open, wide eyes' lids raised), so
+        new Gaussians start, and attach to vertices, where that face has its lips and lids. A
+        frame poses them where the neutral template would (``docs/alignment.md``, "Gaussians seen
+        through the eye's opening").
     eye_binding: Gaussians seen through an eye's opening on the template attach to the eyeball
-        whenever the Gaussians are attached again (``avatar/eye_binding.py``), so a blink's lid
-        closes over the iris instead of carrying it down; a body model without eye pieces has
-        none to attach to.
+        whenever the Gaussians are attached again (``avatar/eye_binding.py``), so the painted iris
+        stays on the eyeball when a blink's lid comes down instead of sliding down with it; a body
+        model without eye pieces has none to attach to.
     weight_mlp_bf16: while training, the weight-offset MLP multiplies in bfloat16 (its output,
         softmax and parameter gradients stay float32; ``networks.relu_mlp``). Rendering a trained
         avatar is float32 either way. Worth it where the CPU has native bfloat16 (AVX512-BF16).
