@@ -120,6 +120,17 @@ ROWS: dict[str, Row] = {
             "avatar.eye_binding=true",
         ),
     ),
+    "median_face": Row(
+        "the default, its Gaussians on the training frames' median face (issue 39)",
+        (
+            *OFF,
+            "regularizers.lambda_thin=0.05",
+            "regularizers.thin_target=0.002",
+            "avatar.expression_colours=true",
+            'avatar.expression_colour_actions=["eyeBlinkLeft","eyeBlinkRight"]',
+            'avatar.template_expression="median"',
+        ),
+    ),
     "thin_face_off": Row(
         "thin along the normal except on the face's Gaussians (issue 39)",
         (

@@ -2063,7 +2063,7 @@ VALUE = re.compile(r"(?P<path>.+?)@(?P<digits>\d)(?:x(?P<scale>\d+))?(?P<percent
 def value(results: Path, name: str) -> str:
     """The figure ``value/<result>/<key>/.../<key>@<digits>[x<scale>][%]``: one number of a result
     file, by its keys (a list by its index), times ``scale``, with ``digits`` decimals and a true
-    minus sign, e.g. ``value/expressions/bounded/fits/rows/5/expression_mm@2`` -> "2.95". The
+    minus sign, e.g. ``value/expressions/bounded/fits/runs/5/expression_mm@2`` -> "2.95". The
     result is the longest leading part of the path that names a ``.json`` under ``results``."""
     m = VALUE.fullmatch(name)
     if m is None:
