@@ -257,7 +257,11 @@ def picks_of(target: dict, n: int = 3) -> list[tuple[str, int]]:
 def fmt_agreement(a: dict) -> str:
     if a["frames"] < 3:
         return "–"
-    return f"{a['r']:.2f} | {a['stage_range'][0]:.3f}–{a['stage_range'][1]:.3f} | {a['range_ratio']:.2f}"
+    full = a.get("full_range_ratio", math.nan)
+    return (
+        f"{a['r']:.2f} | {a['stage_range'][0]:.3f}–{a['stage_range'][1]:.3f} | {a['range_ratio']:.2f} | "
+        f"{full:.2f}"
+    )
 
 
 def seed_groups(labels) -> dict[str, list[str]]:
@@ -272,7 +276,7 @@ def seed_groups(labels) -> dict[str, list[str]]:
 
 def seed_summary(doc: dict) -> list[str]:
     """Markdown lines: per group of seeds (``seed_groups``), measure and stage, mean ± std of r
-    and of the range ratio over the seeds."""
+    and of the range ratios (5-95 and full) over the seeds."""
     groups = seed_groups(doc["cases"])
     if not groups:
         return []
@@ -283,8 +287,8 @@ def seed_summary(doc: dict) -> list[str]:
         "Mean ± std over the cases `<video>_s<seed>` (one avatar per training seed; the detected and "
         "fitted stages do not depend on the seed).",
         "",
-        "| video | seeds | measure | stage | r | range ratio |",
-        "|---|---:|---|---|---:|---:|",
+        "| video | seeds | measure | stage | r | range ratio | full range ratio |",
+        "|---|---:|---|---|---:|---:|---:|",
     ]
     for group, labels in groups.items():
         cases = [doc["cases"][label] for label in labels]
@@ -296,7 +300,8 @@ def seed_summary(doc: dict) -> list[str]:
                     continue
                 r = fmt(mean_std([a["r"] for a in got]))
                 ratio = fmt(mean_std([a["range_ratio"] for a in got]))
-                lines.append(f"| {group} | {len(got)} | {measure} | {stage} | {r} | {ratio} |")
+                full = fmt(mean_std([a.get("full_range_ratio", math.nan) for a in got]))
+                lines.append(f"| {group} | {len(got)} | {measure} | {stage} | {r} | {ratio} | {full} |")
     return lines
 
 
@@ -310,7 +315,8 @@ def markdown(doc: dict) -> str:
         "Mouth: inner-lip gap (landmarks 13-14); eyes: mean lid gap (159-145, 386-374); both over "
         "the outer eye-corner distance (33-263). Target: MediaPipe Holistic's face mesh on each test "
         "frame (single images). Each stage against the target: Pearson r | the stage's 5-95 "
-        "percentile range | that range's width over the target's.",
+        "percentile range | that range's width over the target's | the full range's (max - min) "
+        "width over the target's (a blink's few closed frames are in it, not in the 5-95 one).",
         "",
     ]
     blurs = sorted({e.get("blur_px", 0.0) for e in doc["cases"].values()} - {0.0})
@@ -321,15 +327,16 @@ def markdown(doc: dict) -> str:
             "",
         ]
     lines += [
-        "| case | frames (face found) | measure | target range | stage | r | stage range | range ratio |",
-        "|---|---|---|---|---|---:|---|---:|",
+        "| case | frames (face found) | measure | target range | stage | r | stage range | range ratio "
+        "| full range ratio |",
+        "|---|---|---|---|---|---:|---|---:|---:|",
     ]
     for label, e in doc["cases"].items():
         for measure in ("mouth", "eyes"):
             for stage, s in e["stages"].items():
                 a = s[measure]
                 tr = a["target_range"]
-                cells = fmt_agreement(a).split(" | ") if a["frames"] >= 3 else ["–", "–", "–"]
+                cells = fmt_agreement(a).split(" | ") if a["frames"] >= 3 else ["–"] * 4
                 lines.append(
                     f"| {label} | {e['frames']} ({e['target_found']}) | {measure} | "
                     f"{tr[0]:.3f}–{tr[1]:.3f} | {stage} ({s['found']}) | " + " | ".join(cells) + " |"

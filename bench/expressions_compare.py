@@ -27,6 +27,8 @@ MEASURES = (
     ("mouth_range", "render: mouth range over the target's", True, False),
     ("eyes_r", "render: eyes r", True, False),
     ("eyes_range", "render: eyes range over the target's", True, False),
+    ("mouth_full_range", "render: mouth full range (max - min) over the target's", True, False),
+    ("eyes_full_range", "render: eyes full range (max - min) over the target's", True, False),
     ("psnr", "close-up PSNR", True, True),
     ("lpips_vgg", "close-up LPIPS-VGG ×1000", False, True),
 )
@@ -40,11 +42,30 @@ def values(case: dict) -> dict[str, float]:
         for m in ("mouth", "eyes"):
             out[f"{m}_r"] = render[m]["r"]
             out[f"{m}_range"] = render[m]["range_ratio"]
+            out[f"{m}_full_range"] = full_range_ratio(case, m)
     images = case.get("closeup_images")
     if images is not None:
         out["psnr"] = images["psnr"]
         out["lpips_vgg"] = 1000.0 * images["lpips_vgg"]
     return out
+
+
+def full_range_ratio(case: dict, measure: str) -> float:
+    """The render's full range over the target's (``Agreement.full_range_ratio``), recomputed from
+    the case's per-frame openings for results written before that field."""
+    got = case["stages"]["render"][measure].get("full_range_ratio")
+    if got is not None:
+        return got
+    frames = case["per_frame"]
+    pairs = [
+        (t, s)
+        for t, s in zip(frames["target"][measure], frames["render"][measure], strict=True)
+        if t is not None and s is not None and math.isfinite(t) and math.isfinite(s)
+    ]
+    if len(pairs) < 3:
+        return math.nan
+    t, s = zip(*pairs, strict=True)
+    return (max(s) - min(s)) / (max(t) - min(t)) if max(t) > min(t) else math.nan
 
 
 def by_seed(cases: dict, group: str) -> dict[str, dict[str, float]]:

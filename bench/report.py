@@ -344,6 +344,13 @@ OPENING_ROWS = (
     ("eyes r", "openings", "eyes_r"),
     ("eyes range", "openings", "eyes_range"),
 )
+# The same with the full ranges (max - min, ``Agreement.full_range_ratio``), which a blink's few
+# closed test frames decide; comparisons written before them lack these rows.
+OPENING_ROWS_FULL = (
+    *OPENING_ROWS,
+    ("mouth full range", "openings", "mouth_full_range"),
+    ("eyes full range", "openings", "eyes_full_range"),
+)
 
 
 LPIPS_ROWS = (  # each region's held-out LPIPS-VGG from an ``eva eval`` comparison
@@ -440,21 +447,26 @@ def face_changes(
 
 
 def clips_and_driving(
-    name: str, columns: tuple[str, str], openings: str, evals: str
+    name: str,
+    columns: tuple[str, str],
+    openings: str,
+    evals: str,
+    opening_rows: tuple[tuple[str, str, str], ...] = OPENING_ROWS,
 ) -> dict[str, Callable[[Path], list[str]]]:
     """The two sections of one paired comparison on the upper-body clips: ``name`` (both clips'
     openings, LPIPS-VGG and PSNR) and ``<name>_driving`` (the openings of the gesturing avatars
-    driven by the seated clip's fit); arguments as :func:`face_changes`'."""
+    driven by the seated clip's fit); arguments as :func:`face_changes`', ``opening_rows`` the
+    openings' rows."""
     heading = "mean ± std, 3 seeds (gap: per seed)"
     rows = (
-        *OPENING_ROWS,
+        *opening_rows,
         *LPIPS_ROWS,
         ("full PSNR", "eval", "full.psnr"),
         ("hand PSNR", "eval", "hand.psnr"),
     )
     return {
         name: face_changes(heading, columns, openings, evals, rows),
-        f"{name}_driving": face_changes(heading, columns, openings, None, OPENING_ROWS, clips=("driving",)),
+        f"{name}_driving": face_changes(heading, columns, openings, None, opening_rows, clips=("driving",)),
     }
 
 
@@ -2006,6 +2018,13 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         ("default", "median face, eyes bound"),
         "expressions/eye_binding/{clip}_mb_paired",
         "expressions/eye_binding/eval_{clip}_mb",
+    ),
+    **clips_and_driving(
+        "training_length",
+        ("fast", "default preset"),
+        "expressions/preset/{clip}_dp_paired",
+        "expressions/preset/eval_{clip}_dp",
+        OPENING_ROWS_FULL,
     ),
     "closeup_densify": closeup_densify,
     "speed_targets": speed_targets,

@@ -49,6 +49,18 @@ def test_agreement_of_a_damped_copy():
     assert a.frames == 4  # the NaN of either side is left out
     assert a.r == pytest.approx(1.0)
     assert a.range_ratio == pytest.approx(0.5)
+    assert a.full_range_ratio == pytest.approx(0.5)
+
+
+def test_the_full_range_sees_a_blink_the_spread_leaves_out():
+    # 40 open frames, one closed: the closed frame is under the 5th percentile
+    target = torch.cat([0.1 + 0.01 * torch.linspace(0, 1, 40), torch.tensor([0.0])]).double()
+    kept, missed = target.clone(), target.clone()
+    missed[-1] = 0.1  # the render keeps that eye open
+    a, b = agreement(target, kept), agreement(target, missed)
+    assert a.full_range_ratio == pytest.approx(1.0)
+    assert b.full_range_ratio == pytest.approx(0.01 / 0.11, rel=1e-3)
+    assert a.range_ratio == pytest.approx(b.range_ratio, rel=0.2)  # the spread barely sees it
 
 
 def test_agreement_without_variation_or_frames_is_nan():
@@ -56,6 +68,7 @@ def test_agreement_without_variation_or_frames_is_nan():
     assert math.isnan(flat.r) and flat.range_ratio == 0.0
     few = agreement(torch.tensor([0.1, 0.2]), torch.tensor([0.1, 0.2]))
     assert few.frames == 2 and math.isnan(few.r) and math.isnan(few.range_ratio)
+    assert math.isnan(few.full_range_ratio) and flat.full_range_ratio == 0.0
     with pytest.raises(ValueError):
         agreement(torch.zeros(3), torch.zeros(4))
 

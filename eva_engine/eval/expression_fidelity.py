@@ -64,7 +64,11 @@ class Agreement:
 
     r: Pearson correlation (NaN when either side does not vary); target_range / stage_range:
     (5th, 95th) percentiles; range_ratio: the stage's 5-95 spread over the target's; frames:
-    how many frames entered.
+    how many frames entered. full_range_ratio: the stage's max - min over the target's, the range
+    issue 39's table gave. They differ for a blink: a clip's test frames sample each blink about
+    once, so its closed eyes are a few percent of them and the 5-95 spread leaves them out (it
+    then weighs the half-closed eyes of looking down); the full range rests on the one most closed
+    and most open frame.
     """
 
     r: float
@@ -72,6 +76,7 @@ class Agreement:
     stage_range: tuple[float, float]
     range_ratio: float
     frames: int
+    full_range_ratio: float = float("nan")
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -94,7 +99,7 @@ def agreement(target: Tensor, stage: Tensor) -> Agreement:
     n = int(ok.sum())
     nan = float("nan")
     if n < 3:
-        return Agreement(nan, (nan, nan), (nan, nan), nan, n)
+        return Agreement(nan, (nan, nan), (nan, nan), nan, n, nan)
     t, s = t[ok], s[ok]
     tc, sc = t - t.mean(), s - s.mean()
     denom = float(tc.norm() * sc.norm())
@@ -102,7 +107,9 @@ def agreement(target: Tensor, stage: Tensor) -> Agreement:
     tr, sr = _spread(t), _spread(s)
     width = tr[1] - tr[0]
     ratio = (sr[1] - sr[0]) / width if width > 0 else nan
-    return Agreement(r, tr, sr, ratio, n)
+    full = float(t.max() - t.min())
+    full_ratio = float(s.max() - s.min()) / full if full > 0 else nan
+    return Agreement(r, tr, sr, ratio, n, full_ratio)
 
 
 def fitted_landmarks(model, params, regressor, landmark_ids: Tensor, K: Tensor, viewmat: Tensor) -> Tensor:
