@@ -17,8 +17,11 @@ import json
 import math
 from pathlib import Path
 
+import torch
+
 from bench.machine import header_line, run_header, write_result
 from bench.stats import compare_paired, fmt, mean_std
+from eva_engine.eval.expression_fidelity import agreement
 
 RESULTS = Path(__file__).resolve().parent / "results"
 # (key, label, higher is better, relative gap)
@@ -57,15 +60,8 @@ def full_range_ratio(case: dict, measure: str) -> float:
     if got is not None:
         return got
     frames = case["per_frame"]
-    pairs = [
-        (t, s)
-        for t, s in zip(frames["target"][measure], frames["render"][measure], strict=True)
-        if t is not None and s is not None and math.isfinite(t) and math.isfinite(s)
-    ]
-    if len(pairs) < 3:
-        return math.nan
-    t, s = zip(*pairs, strict=True)
-    return (max(s) - min(s)) / (max(t) - min(t)) if max(t) > min(t) else math.nan
+    target, render = (torch.tensor(frames[k][measure], dtype=torch.float64) for k in ("target", "render"))
+    return agreement(target, render).full_range_ratio
 
 
 def by_seed(cases: dict, group: str) -> dict[str, dict[str, float]]:

@@ -65,10 +65,10 @@ class Agreement:
     r: Pearson correlation (NaN when either side does not vary); target_range / stage_range:
     (5th, 95th) percentiles; range_ratio: the stage's 5-95 spread over the target's; frames:
     how many frames entered. full_range_ratio: the stage's max - min over the target's, the range
-    issue 39's table gave. They differ for a blink: a clip's test frames sample each blink about
-    once, so its closed eyes are a few percent of them and the 5-95 spread leaves them out (it
-    then weighs the half-closed eyes of looking down); the full range rests on the one most closed
-    and most open frame.
+    issue 39's table gave. They differ for a blink: a clip's test frames sample each blink once or
+    twice, so its closed eyes are a few percent of them and the 5-95 spread leaves them out (it
+    weighs half-closed eyes instead); the full range rests on the one most closed and the one
+    most open frame.
     """
 
     r: float
