@@ -131,6 +131,17 @@ ROWS: dict[str, Row] = {
             'avatar.template_expression="median"',
         ),
     ),
+    "blink_events": Row(
+        "the default, each training frame with a fitted blink visited three more times per epoch (issue 39)",
+        (
+            *OFF,
+            "regularizers.lambda_thin=0.05",
+            "regularizers.thin_target=0.002",
+            "avatar.expression_colours=true",
+            'avatar.expression_colour_actions=["eyeBlinkLeft","eyeBlinkRight"]',
+            "expression_events.repeats=3",
+        ),
+    ),
     "thin_face_off": Row(
         "thin along the normal except on the face's Gaussians (issue 39)",
         (

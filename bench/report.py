@@ -1626,15 +1626,21 @@ def novel_pose_goals(results: Path) -> list[str]:
     ]
 
 
-def novel_pose_gaps(results: Path, metric: str = "lpips_vgg") -> dict[tuple[str, str], tuple[str, dict]]:
-    """``thin`` against ``before`` in ``novel_pose.json``, paired by seed: {(split, region):
-    ``stats.compare_paired``'s (verdict, mean_std of the per-seed relative gaps in %)}; region
-    ``debris`` for the debris."""
-    doc = load(NovelPose, "novel_pose", results)
-    by_seed = {name: {r.seed: r for r in doc.methods[name].runs} for name in ("before", "thin")}
-    seeds = sorted(by_seed["before"])
-    if seeds != sorted(by_seed["thin"]):
-        raise ValueError("novel_pose.json: before and thin ran on different seeds")
+def novel_pose_gaps(
+    results: Path,
+    metric: str = "lpips_vgg",
+    result: str = "novel_pose",
+    row: str = "thin",
+    baseline: str = "before",
+) -> dict[tuple[str, str], tuple[str, dict]]:
+    """``row`` against ``baseline`` in ``<result>.json`` (``bench novel_pose``), paired by seed:
+    {(split, region): ``stats.compare_paired``'s (verdict, mean_std of the per-seed relative gaps
+    in %)}; region ``debris`` for the debris."""
+    doc = load(NovelPose, result, results)
+    by_seed = {name: {r.seed: r for r in doc.methods[name].runs} for name in (baseline, row)}
+    seeds = sorted(by_seed[baseline])
+    if seeds != sorted(by_seed[row]):
+        raise ValueError(f"{result}.json: {baseline} and {row} ran on different seeds")
     out = {}
     for split in NOVEL_POSE_SPLITS:
         for region in ("full", "hand", "face", "arm", "debris"):
@@ -1644,8 +1650,20 @@ def novel_pose_gaps(results: Path, metric: str = "lpips_vgg") -> dict[tuple[str,
                 return s.debris if region == "debris" else getattr(s, region)[metric]
 
             values = {name: [value(runs[k]) for k in seeds] for name, runs in by_seed.items()}
-            out[split, region] = compare_paired(values["thin"], values["before"], lower_is_better=True)
+            lower = region == "debris" or "lpips" in metric
+            out[split, region] = compare_paired(values[row], values[baseline], lower_is_better=lower)
     return out
+
+
+def novel_pose_gap(results: Path, name: str) -> str:
+    """The figure ``novel_pose_gap/<result>/<row>/<baseline>/<split>.<region>[.<metric>]``: a
+    ``bench novel_pose`` row's paired gap against another's with its verdict (LPIPS-VGG unless
+    ``metric``), e.g. ``novel_pose_gap/expressions/events/novel_pose_events/blink_events/
+    thin_blink_colours/view.full`` -> "+1.7 ± 0.7%, worse"."""
+    result, row, baseline, key = name.rsplit("/", 3)
+    split, region, *metric = key.split(".")
+    verdict, g = novel_pose_gaps(results, *metric, result=result, row=row, baseline=baseline)[split, region]
+    return f"{_percent_gap(g['mean'], g['std'])}, {verdict}"
 
 
 def _novel_pose_gap(split: str, region: str) -> Callable[[Path], str]:
@@ -2118,7 +2136,11 @@ FIGURES: dict[str, Callable[[Path], str]] = {
     "expression_range.fit_seconds": _bounded_fit_seconds,
 }
 # Figures named ``<family>/<argument>``: one function serves every result file of a kind.
-FIGURE_FAMILIES: dict[str, Callable[[Path, str], str]] = {"eval_gap": eval_gap, "value": value}
+FIGURE_FAMILIES: dict[str, Callable[[Path, str], str]] = {
+    "eval_gap": eval_gap,
+    "value": value,
+    "novel_pose_gap": novel_pose_gap,
+}
 
 
 # ----------------------------------------------------------------------------- the docs

@@ -149,6 +149,40 @@ def test_a_value_figure_reads_one_number_of_a_result_by_its_keys(tmp_path):
         report.render("<!-- bench figure: value/b/r/x@1 -->x<!-- /bench figure -->", tmp_path)
 
 
+def test_a_novel_pose_gap_figure_pairs_two_rows_by_seed(tmp_path):
+    def split(lpips: float, psnr: float) -> dict:
+        region = {"lpips_vgg": lpips, "psnr": psnr}
+        stat = {"mean": 0.0, "std": 0.0, "n": 2}
+        return {
+            "full": region,
+            "hand": region,
+            "face": region,
+            "arm": region,
+            "debris": 0.01,
+            "holes": 0.0,
+        }, {
+            "full": {"lpips_vgg": stat},
+            "hand": {},
+            "face": {},
+            "arm": {},
+            "debris": stat,
+            "holes": stat,
+        }
+
+    def row(*by_seed: tuple[float, float]) -> dict:
+        runs = [{"seed": s, "splits": {k: split(*v)[0] for k in splits}} for s, v in enumerate(by_seed)]
+        return {"seeds": [0, 1], "splits": {k: split(0.1, 20.0)[1] for k in splits}, "runs": runs}
+
+    splits = report.NOVEL_POSE_SPLITS
+
+    doc = {"date": "d", "machine": "m", "methods": {"base": row((0.10, 20.0), (0.20, 22.0))}}
+    doc["methods"]["new"] = row((0.11, 19.8), (0.22, 21.78))  # LPIPS +10% and PSNR -1% on each seed
+    (tmp_path / "np.json").write_text(json.dumps(doc))
+    figure = "<!-- bench figure: novel_pose_gap/np/new/base/view.{} -->x<!-- /bench figure -->"
+    assert "-->+10.0 ± 0.0%, worse<" in report.render(figure.format("full"), tmp_path)
+    assert "-->−1.0 ± 0.0%, worse<" in report.render(figure.format("hand.psnr"), tmp_path)
+
+
 def test_a_result_of_another_shape_fails_loudly(tmp_path):
     (tmp_path / "service.json").write_text(json.dumps({"date": "d", "machine": "m", "rows": [{"size": 1}]}))
     with pytest.raises(ValueError):
