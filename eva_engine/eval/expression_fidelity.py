@@ -76,7 +76,7 @@ class Agreement:
     stage_range: tuple[float, float]
     range_ratio: float
     frames: int
-    full_range_ratio: float = float("nan")
+    full_range_ratio: float
 
     def to_json(self) -> dict:
         return asdict(self)
