@@ -30,13 +30,13 @@ from typing import Generic, NamedTuple, TypeVar
 
 from pydantic import BaseModel, ConfigDict
 
-from bench.seed_results import load_seeds, runs_by_seed
+from bench.seed_results import load_seeds, runs_by_seed, union_of_runs
 from bench.stats import compare_paired, fmt, mean_std, zero_crossing
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 DOCS = ("README.md", "docs/*.md")
-FIGURE = re.compile(r"(<!-- bench figure: (?P<name>[\w./@%-]+) -->)(?P<body>.*?)(<!-- /bench figure -->)")
+FIGURE = re.compile(r"(<!-- bench figure: (?P<name>[\w./@%,+-]+) -->)(?P<body>.*?)(<!-- /bench figure -->)")
 BLOCK = re.compile(r"(<!-- bench report: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /bench report -->)", re.S)
 
 
@@ -2094,17 +2094,113 @@ def eval_gap(results: Path, name: str) -> str:
     raise KeyError(f"{result}.json has no row {key!r}")
 
 
-VALUE = re.compile(r"(?P<path>.+?)@(?P<digits>\d)(?:x(?P<scale>\d+))?(?P<percent>%?)")
+def novel_pose_span(results: Path, name: str) -> str:
+    """The figure ``novel_pose_span/<result>/<row>/<debris|holes>``: the lowest and highest of a
+    ``bench novel_pose`` row's split means, in %, e.g. "29-38%"."""
+    result, row, key = name.rsplit("/", 2)
+    splits = load(NovelPose, result, results).methods[row].splits.values()
+    values = sorted(getattr(s, key).mean * 100 for s in splits)
+    digits = 0 if values[0] >= 10 else 1
+    return f"{values[0]:.{digits}f}-{values[-1]:.{digits}f}%"
+
+
+def novel_pose_ratio(results: Path, name: str) -> str:
+    """The figure ``novel_pose_ratio/<result>/<row>/<baseline>/<region>``: the lowest and highest
+    over the splits of a row's LPIPS-VGG mean over the baseline's, e.g. "1.6-3.7×"."""
+    result, row, baseline, region = name.rsplit("/", 3)
+    methods = load(NovelPose, result, results).methods
+    ratios = sorted(
+        getattr(methods[row].splits[split], region)["lpips_vgg"].mean
+        / getattr(methods[baseline].splits[split], region)["lpips_vgg"].mean
+        for split in NOVEL_POSE_SPLITS
+    )
+    return f"{ratios[0]:.1f}-{ratios[-1]:.1f}×"
+
+
+def _novel_pose_runs(results: Path, result: str, row: str) -> tuple[list[dict], dict]:
+    doc = json.loads((results / f"{result}.json").read_text())
+    return doc["methods"][row]["runs"], doc["config"]
+
+
+def novel_pose_angle(results: Path, name: str) -> str:
+    """The figure ``novel_pose_angle/<result>/<row>/<angle>.<lpips_vgg|debris>``: the view split
+    at one camera angle (``bench.novel_pose.view_breakdown``), LPIPS-VGG ×1000 or debris in %."""
+    from bench.novel_pose import view_breakdown
+
+    result, row, key = name.rsplit("/", 2)
+    angle, metric = key.split(".")
+    v = view_breakdown(_novel_pose_runs(results, result, row)[0])[int(angle)][metric]
+    return f"{v * 1000:.1f}" if metric == "lpips_vgg" else f"{v * 100:.2f}%"
+
+
+def novel_pose_novelty(results: Path, name: str) -> str:
+    """The figure ``novel_pose_novelty/<result>/<row>/<yaw_beyond|pose>/<bin start>.<lpips_vgg|debris>``:
+    one bin of the quality-against-novelty table (``bench.novel_pose.by_novelty``), LPIPS-VGG
+    ×1000 or debris in %."""
+    from bench.novel_pose import by_novelty
+
+    result, row, table, key = name.rsplit("/", 3)
+    start, metric = key.rsplit(".", 1)
+    runs, config = _novel_pose_runs(results, result, row)
+    train_yaw = {int(seed): yaw for seed, yaw in config["train_yaw_deg_by_seed"].items()}
+    for b in by_novelty(runs, train_yaw)[table]:
+        if b["bin"][0] == float(start):
+            v = b[metric]
+            return f"{v * 1000:.1f}" if metric == "lpips_vgg" else f"{v * 100:.1f}%"
+    raise KeyError(f"{result}.json, {row}: no {table} bin starting at {start}")
+
+
+PAPER_GAP = re.compile(
+    r"(?P<a>.+?)@(?P<method_a>[\w+-]+)/(?P<b>.+?)@(?P<method_b>[\w+-]+)/(?P<region>\w+)(?:\.(?P<metric>\w+))?"
+)
+
+
+def _paper_runs(results: Path, name: str) -> dict[str, dict[int, dict]]:
+    """{method: {seed: run}} of a ``bench paper_tables`` result: ``<name>.json``, else the union
+    of its per-seed files ``<name>_seed*.json``."""
+    file = results / f"{name}.json"
+    if file.is_file():
+        return runs_by_seed(json.loads(file.read_text()))
+    docs = [json.loads(f.read_text()) for f in sorted(results.glob(f"{name}_seed*.json"))]
+    if not docs:
+        raise KeyError(f"no result {name}.json or {name}_seed*.json")
+    return union_of_runs(docs)
+
+
+def paper_gap(results: Path, name: str) -> str:
+    """The figure ``paper_gap/<result>@<method>/<base result>@<base method>/<region>[.<metric>]``:
+    one ``bench paper_tables`` method's runs against another's (the same or another file), paired
+    by the seeds both ran, with the verdict (LPIPS-VGG unless ``metric``), e.g.
+    ``paper_gap/novel_views_paper/thin@eva/paper_tables@eva/full`` -> "−14.8 ± 4.3%, better"."""
+    m = PAPER_GAP.fullmatch(name)
+    if m is None:
+        raise KeyError(
+            f"paper_gap figure {name!r} is not <result>@<method>/<result>@<method>/<region>[.<metric>]"
+        )
+    metric = m["metric"] or "lpips_vgg"
+    a = _paper_runs(results, m["a"])[m["method_a"]]
+    b = _paper_runs(results, m["b"])[m["method_b"]]
+    seeds = sorted(a.keys() & b.keys())
+    verdict, g = compare_paired(
+        [a[s][m["region"]][metric] for s in seeds],
+        [b[s][m["region"]][metric] for s in seeds],
+        lower_is_better=metric.startswith("lpips"),
+    )
+    return f"{_percent_gap(g['mean'], g['std'])}, {verdict}"
+
+
+VALUE = re.compile(r"(?P<path>.+?)@(?P<digits>\d)(?P<thousands>,?)(?:x(?P<scale>\d+))?(?P<percent>%?)")
 
 
 def value(results: Path, name: str) -> str:
-    """The figure ``value/<result>/<key>/.../<key>@<digits>[x<scale>][%]``: one number of a result
-    file, by its keys (a list by its index), times ``scale``, with ``digits`` decimals and a true
-    minus sign, e.g. ``value/expressions/bounded/fits/runs/5/expression_mm@2`` -> "2.95". The
-    result is the longest leading part of the path that names a ``.json`` under ``results``."""
+    """The figure ``value/<result>/<key>/.../<key>@<digits>[,][x<scale>][%]``: one number of a
+    result file, by its keys (a list by its index), times ``scale``, with ``digits`` decimals (``,``:
+    thousands separated) and a true minus sign, e.g. ``value/expressions/bounded/fits/runs/5/
+    expression_mm@2`` -> "2.95". The result is the longest leading part of the path that names a
+    ``.json`` under ``results``."""
     m = VALUE.fullmatch(name)
     if m is None:
-        raise KeyError(f"value figure {name!r} is not <result>/<key>/...@<digits>[x<scale>][%]")
+        raise KeyError(f"value figure {name!r} is not <result>/<key>/...@<digits>[,][x<scale>][%]")
     parts = m["path"].split("/")
     for cut in range(len(parts) - 1, 0, -1):
         file = results / ("/".join(parts[:cut]) + ".json")
@@ -2113,13 +2209,24 @@ def value(results: Path, name: str) -> str:
     else:
         raise KeyError(f"value figure {name!r} names no result file")
     node = json.loads(file.read_text())
-    for key in parts[cut:]:
-        try:
-            node = node[int(key)] if isinstance(node, list) else node[key]
-        except (KeyError, IndexError, ValueError) as err:
-            raise KeyError(f"{file.name} has no {'/'.join(parts[cut:])!r}") from err
+    keys = parts[cut:]
+    while keys:
+        # A key may hold a slash (train.json's "<dataset>/<preset>@<label>"): the shortest run of
+        # parts that names one.
+        for take in range(1, len(keys) + 1):
+            key = "/".join(keys[:take])
+            if isinstance(node, list) and take == 1 and key.isdigit() and int(key) < len(node):
+                node = node[int(key)]
+                break
+            if isinstance(node, dict) and key in node:
+                node = node[key]
+                break
+        else:
+            raise KeyError(f"{file.name} has no {'/'.join(parts[cut:])!r}")
+        keys = keys[take:]
     number = float(node) * int(m["scale"] or 1)
-    return f"{number:.{m['digits']}f}".replace("-", "\u2212") + m["percent"]
+    text = f"{number:{m['thousands']}.{m['digits']}f}"
+    return text.replace("-", "\u2212") + m["percent"]
 
 
 FIGURES: dict[str, Callable[[Path], str]] = {
@@ -2140,6 +2247,11 @@ FIGURE_FAMILIES: dict[str, Callable[[Path, str], str]] = {
     "eval_gap": eval_gap,
     "value": value,
     "novel_pose_gap": novel_pose_gap,
+    "novel_pose_span": novel_pose_span,
+    "novel_pose_ratio": novel_pose_ratio,
+    "novel_pose_angle": novel_pose_angle,
+    "novel_pose_novelty": novel_pose_novelty,
+    "paper_gap": paper_gap,
 }
 
 

@@ -147,6 +147,31 @@ def test_a_value_figure_reads_one_number_of_a_result_by_its_keys(tmp_path):
             report.render(figure.format(bad), tmp_path)
     with pytest.raises(KeyError, match="names no result file"):
         report.render("<!-- bench figure: value/b/r/x@1 -->x<!-- /bench figure -->", tmp_path)
+    # A key that holds a slash (train.json's "<dataset>/<preset>@<label>"), thousands separated.
+    (tmp_path / "t.json").write_text(json.dumps({"set-0/fast@thin": {"n": 43498.0}}))
+    assert "-->43,498<" in report.render(
+        "<!-- bench figure: value/t/set-0/fast@thin/n@0, -->x<!-- /bench figure -->", tmp_path
+    )
+
+
+def test_a_paper_gap_figure_pairs_two_methods_of_one_or_two_files_by_seed(tmp_path):
+    def doc(*lpips_by_seed: float) -> dict:
+        runs = [{"seed": s, "full": {"lpips_vgg": v, "psnr": 20.0 + v}} for s, v in enumerate(lpips_by_seed)]
+        return {
+            "date": "d",
+            "machine": "m",
+            "methods": {"eva": {"runs": runs}, "3dgs+body": {"runs": runs[:2]}},
+        }
+
+    (tmp_path / "base.json").write_text(json.dumps(doc(0.10, 0.20, 0.30)))
+    (tmp_path / "thin_seed0.json").write_text(json.dumps(doc(0.09, 0.18)))  # -10% on each seed
+    figure = "<!-- bench figure: paper_gap/{} -->x<!-- /bench figure -->"
+    assert "-->−10.0 ± 0.0%, better<" in report.render(figure.format("thin@eva/base@eva/full"), tmp_path)
+    assert "-->+0.0 ± 0.0%, no difference<" in report.render(
+        figure.format("base@eva/base@3dgs+body/full"), tmp_path
+    )
+    with pytest.raises(KeyError, match="is not"):
+        report.render(figure.format("thin/base@eva/full"), tmp_path)
 
 
 def test_a_novel_pose_gap_figure_pairs_two_rows_by_seed(tmp_path):
@@ -181,6 +206,48 @@ def test_a_novel_pose_gap_figure_pairs_two_rows_by_seed(tmp_path):
     figure = "<!-- bench figure: novel_pose_gap/np/new/base/view.{} -->x<!-- /bench figure -->"
     assert "-->+10.0 ± 0.0%, worse<" in report.render(figure.format("full"), tmp_path)
     assert "-->−1.0 ± 0.0%, worse<" in report.render(figure.format("hand.psnr"), tmp_path)
+    # The spread of a row's split means, and its ratio to another row's.
+    doc = json.loads(json.dumps(doc))  # the rows share their stat dicts
+    for k, name in enumerate(splits):
+        doc["methods"]["new"]["splits"][name]["debris"]["mean"] = 0.001 * (k + 1)
+        for row, lpips in (("base", 0.1), ("new", 0.1 * (k + 2))):
+            doc["methods"][row]["splits"][name]["full"]["lpips_vgg"]["mean"] = lpips
+    (tmp_path / "np.json").write_text(json.dumps(doc))
+    figure = "<!-- bench figure: novel_pose_{} -->x<!-- /bench figure -->"
+    assert "-->0.1-0.4%<" in report.render(figure.format("span/np/new/debris"), tmp_path)
+    assert f"-->2.0-{len(splits) + 1:.1f}×<" in report.render(
+        figure.format("ratio/np/new/base/full"), tmp_path
+    )
+
+
+def test_novel_pose_angle_and_novelty_figures_bin_the_scored_frames(tmp_path):
+    def frame(view_deg: float, yaw_deg: float, pose_deg: float, lpips: float) -> dict:
+        return {
+            "view_deg": view_deg,
+            "yaw_deg": yaw_deg,
+            "pose_deg": pose_deg,
+            "lpips_vgg": lpips,
+            "debris": 0.02,
+            "holes": 0.0,
+        }
+
+    near = {"per_frame": {"0": frame(0, 0, 15, 0.03), "1": frame(0, 5, 25, 0.05)}}
+    view = {"per_frame": {"0": frame(35, 40, 0, 0.06), "1": frame(70, 75, 0, 0.12)}}
+    splits = {"near": near, "far": near, "view": view, "far_view": view}
+    doc = {
+        "config": {"train_yaw_deg_by_seed": {"0": [-29.0, 29.0]}},
+        "methods": {"thin": {"runs": [{"seed": 0, "splits": splits}]}},
+    }
+    (tmp_path / "np.json").write_text(json.dumps(doc))
+    figure = "<!-- bench figure: novel_pose_{} -->x<!-- /bench figure -->"
+    assert "-->60.0<" in report.render(figure.format("angle/np/thin/35.lpips_vgg"), tmp_path)
+    assert "-->2.00%<" in report.render(figure.format("angle/np/thin/70.debris"), tmp_path)
+    assert "-->60.0<" in report.render(
+        figure.format("novelty/np/thin/yaw_beyond/10.lpips_vgg"), tmp_path
+    )  # 11° beyond
+    assert "-->50.0<" in report.render(figure.format("novelty/np/thin/pose/20.lpips_vgg"), tmp_path)
+    with pytest.raises(KeyError, match="no pose bin"):
+        report.render(figure.format("novelty/np/thin/pose/40.lpips_vgg"), tmp_path)
 
 
 def test_a_result_of_another_shape_fails_loudly(tmp_path):
