@@ -2171,7 +2171,7 @@ def paper_gap(results: Path, name: str) -> str:
     """The figure ``paper_gap/<result>@<method>/<base result>@<base method>/<region>[.<metric>]``:
     one ``bench paper_tables`` method's runs against another's (the same or another file), paired
     by the seeds both ran, with the verdict (LPIPS-VGG unless ``metric``), e.g.
-    ``paper_gap/novel_views_paper/thin@eva/paper_tables@eva/full`` -> "−14.8 ± 4.3%, better"."""
+    ``paper_gap/novel_views_paper/thin@eva/paper_tables@eva/full`` -> "−14.8 ± 4.3% (better)"."""
     m = PAPER_GAP.fullmatch(name)
     if m is None:
         raise KeyError(
@@ -2186,21 +2186,23 @@ def paper_gap(results: Path, name: str) -> str:
         [b[s][m["region"]][metric] for s in seeds],
         lower_is_better=metric.startswith("lpips"),
     )
-    return f"{_percent_gap(g['mean'], g['std'])}, {verdict}"
+    return f"{_percent_gap(g['mean'], g['std'])} ({verdict})"
 
 
-VALUE = re.compile(r"(?P<path>.+?)@(?P<digits>\d)(?P<thousands>,?)(?:x(?P<scale>\d+))?(?P<percent>%?)")
+VALUE = re.compile(
+    r"(?P<path>.+?)@(?P<digits>\d)(?P<sign>\+?)(?P<thousands>,?)(?:x(?P<scale>\d+))?(?P<percent>%?)"
+)
 
 
 def value(results: Path, name: str) -> str:
-    """The figure ``value/<result>/<key>/.../<key>@<digits>[,][x<scale>][%]``: one number of a
-    result file, by its keys (a list by its index), times ``scale``, with ``digits`` decimals (``,``:
-    thousands separated) and a true minus sign, e.g. ``value/expressions/bounded/fits/runs/5/
-    expression_mm@2`` -> "2.95". The result is the longest leading part of the path that names a
-    ``.json`` under ``results``."""
+    """The figure ``value/<result>/<key>/.../<key>@<digits>[+][,][x<scale>][%]``: one number of a
+    result file, by its keys (a list by its index), times ``scale``, with ``digits`` decimals
+    (``+``: signed either way; ``,``: thousands separated) and a true minus sign, e.g.
+    ``value/expressions/bounded/fits/runs/5/expression_mm@2`` -> "2.95". The result is the longest
+    leading part of the path that names a ``.json`` under ``results``."""
     m = VALUE.fullmatch(name)
     if m is None:
-        raise KeyError(f"value figure {name!r} is not <result>/<key>/...@<digits>[,][x<scale>][%]")
+        raise KeyError(f"value figure {name!r} is not <result>/<key>/...@<digits>[+][,][x<scale>][%]")
     parts = m["path"].split("/")
     for cut in range(len(parts) - 1, 0, -1):
         file = results / ("/".join(parts[:cut]) + ".json")
@@ -2225,7 +2227,7 @@ def value(results: Path, name: str) -> str:
             raise KeyError(f"{file.name} has no {'/'.join(parts[cut:])!r}")
         keys = keys[take:]
     number = float(node) * int(m["scale"] or 1)
-    text = f"{number:{m['thousands']}.{m['digits']}f}"
+    text = f"{number:{m['sign']}{m['thousands']}.{m['digits']}f}"
     return text.replace("-", "\u2212") + m["percent"]
 
 

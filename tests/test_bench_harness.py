@@ -142,6 +142,7 @@ def test_a_value_figure_reads_one_number_of_a_result_by_its_keys(tmp_path):
     figure = "<!-- bench figure: value/a/r/runs/{} -->x<!-- /bench figure -->"
     assert report.render(figure.format("0/mm@2"), tmp_path).endswith("-->2.95<!-- /bench figure -->")
     assert "−1.2%<" in report.render(figure.format("1/gap@1x100%"), tmp_path)  # a true minus sign
+    assert "-->+295<" in report.render(figure.format("0/mm@0+x100"), tmp_path)
     for bad, reason in (("2/mm@2", "has no"), ("0/mm", "is not"), ("0/nope@1", "has no")):
         with pytest.raises(KeyError, match=reason):
             report.render(figure.format(bad), tmp_path)
@@ -166,8 +167,8 @@ def test_a_paper_gap_figure_pairs_two_methods_of_one_or_two_files_by_seed(tmp_pa
     (tmp_path / "base.json").write_text(json.dumps(doc(0.10, 0.20, 0.30)))
     (tmp_path / "thin_seed0.json").write_text(json.dumps(doc(0.09, 0.18)))  # -10% on each seed
     figure = "<!-- bench figure: paper_gap/{} -->x<!-- /bench figure -->"
-    assert "-->−10.0 ± 0.0%, better<" in report.render(figure.format("thin@eva/base@eva/full"), tmp_path)
-    assert "-->+0.0 ± 0.0%, no difference<" in report.render(
+    assert "-->−10.0 ± 0.0% (better)<" in report.render(figure.format("thin@eva/base@eva/full"), tmp_path)
+    assert "-->+0.0 ± 0.0% (no difference)<" in report.render(
         figure.format("base@eva/base@3dgs+body/full"), tmp_path
     )
     with pytest.raises(KeyError, match="is not"):
