@@ -2186,6 +2186,8 @@ def paper_gap(results: Path, name: str) -> str:
         [b[s][m["region"]][metric] for s in seeds],
         lower_is_better=metric.startswith("lpips"),
     )
+    if verdict == "too few seeds":
+        return f"{_signed(g['mean'])}% (one seed)"
     return f"{_percent_gap(g['mean'], g['std'])} ({verdict})"
 
 
