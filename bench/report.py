@@ -2094,6 +2094,22 @@ def eval_gap(results: Path, name: str) -> str:
     raise KeyError(f"{result}.json has no row {key!r}")
 
 
+def expr_gap(results: Path, name: str) -> str:
+    """The figure ``expr_gap/<result>/<measure>``: that row's paired gap of a ``bench
+    expressions_compare`` file, in % for a relative measure (LPIPS, PSNR) and in the measure's own
+    units for an absolute one (a correlation, a range), e.g. ``expr_gap/expressions/closeups/
+    closeup_seated_paired/lpips_vgg`` -> "−11.1 ± 0.4%"."""
+    result, measure = name.rsplit("/", 1)
+    doc = json.loads((results / f"{result}.json").read_text())
+    for row in doc["rows"]:
+        if row["measure"] == measure:
+            g = row["gap"]
+            if row["gap_unit"] == "absolute":
+                return f"{_signed(g['mean'], 2)} ± {g['std']:.2f}"
+            return _percent_gap(g["mean"], g["std"])
+    raise KeyError(f"{result}.json has no row {measure!r}")
+
+
 def novel_pose_span(results: Path, name: str) -> str:
     """The figure ``novel_pose_span/<result>/<row>/<debris|holes>``: the lowest and highest of a
     ``bench novel_pose`` row's split means, in %, e.g. "29-38%"."""
@@ -2249,6 +2265,7 @@ FIGURES: dict[str, Callable[[Path], str]] = {
 # Figures named ``<family>/<argument>``: one function serves every result file of a kind.
 FIGURE_FAMILIES: dict[str, Callable[[Path, str], str]] = {
     "eval_gap": eval_gap,
+    "expr_gap": expr_gap,
     "value": value,
     "novel_pose_gap": novel_pose_gap,
     "novel_pose_span": novel_pose_span,
