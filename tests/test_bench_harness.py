@@ -350,3 +350,16 @@ def test_hard_inputs_pairs_a_variant_with_its_plain_runs(tmp_path):
     assert lpips["verdict"] == "better" and lpips["seeds"] == 3 and lpips["mean"] < -5
     with pytest.raises(SystemExit, match="no runs of variant"):
         hard_inputs.main(["--work", str(tmp_path / "work"), "--compare-variant", "other", "--out", str(out)])
+
+
+def test_an_expr_gap_figure_reads_a_paired_row_in_its_own_units(tmp_path):
+    rows = [
+        {"measure": "eyes_r", "gap": {"mean": 0.123, "std": 0.04}, "gap_unit": "absolute"},
+        {"measure": "lpips_vgg", "gap": {"mean": -11.14, "std": 0.41}, "gap_unit": "%"},
+    ]
+    (tmp_path / "c.json").write_text(json.dumps({"rows": rows}))
+    figure = "<!-- bench figure: expr_gap/c/{} -->x<!-- /bench figure -->"
+    assert "-->+0.12 ± 0.04<" in report.render(figure.format("eyes_r"), tmp_path)
+    assert "-->−11.1 ± 0.4%<" in report.render(figure.format("lpips_vgg"), tmp_path)
+    with pytest.raises(KeyError, match="has no row"):
+        report.render(figure.format("mouth_r"), tmp_path)
