@@ -1340,6 +1340,38 @@ def _stat(values: list[float], digits: int, scale: float = 1.0) -> str:
     return fmt(mean_std(values), scale, digits)
 
 
+# Issue 39's face goal: each variant's ``eva eval`` against the avatars of the main the issue was
+# filed on (``expressions/calibration/eval/eval-<clip>-base-s*.json``), paired by seed.
+FACE_GOAL_VARIANTS = (
+    ("def", "`fast`, this tree"),
+    ("dp", "default preset"),
+    ("dpc", "default preset, close-ups"),
+)
+
+
+def face_goal(results: Path) -> list[str]:
+    """The face and full-image LPIPS-VGG of the filing's avatars and of this tree's at ``fast``,
+    at the default preset and at the default preset with the face close-ups, each paired by seed
+    against the filing's (``expressions/closeup_preset/eval_<clip>_base_<variant>.json``)."""
+    head = " | ".join(label for _, label in FACE_GOAL_VARIANTS)
+    lines = [
+        f"| LPIPS-VGG ×1000, mean ± std, 3 seeds (gap to the filing's, per seed) "
+        f"| the filing's main, `fast` | {head} |",
+        "|---|---:|" + "---:|" * len(FACE_GOAL_VARIANTS),
+    ]
+    for clip in ("gesturing", "seated"):
+        for region in ("face", "full"):
+            cells, base = [], None
+            for tag, _ in FACE_GOAL_VARIANTS:
+                doc = load(EvalPaired, f"expressions/closeup_preset/eval_{clip}_base_{tag}", results)
+                row = next(r for r in doc.rows if (r.region, r.metric) == (region, "lpips_vgg"))
+                base = base or row.before
+                gap = _percent_gap(row.gap_percent.mean, row.gap_percent.std)
+                cells.append(f"{_mean_std(row.after)} ({gap}, {row.verdict})")
+            lines.append(f"| {clip}, {region} | {_mean_std(base)} | {' | '.join(cells)} |")
+    return lines
+
+
 def closeup_densify(results: Path) -> list[str]:
     """The face close-ups with and without densifying from them, against the frames alone, on
     the two upper-body clips (``expressions/closeup_densify/``, its README)."""
@@ -2045,6 +2077,14 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         OPENING_ROWS_FULL,
     ),
     "closeup_densify": closeup_densify,
+    "face_goal": face_goal,
+    **clips_and_driving(
+        "closeups_default_preset",
+        ("default preset", "with close-ups"),
+        "expressions/closeup_preset/{clip}_dpc_paired",
+        "expressions/closeup_preset/eval_{clip}_dpc",
+        OPENING_ROWS_FULL,
+    ),
     "speed_targets": speed_targets,
     "align_measurements": align_measurements,
     "time_to_quality": time_to_quality,
