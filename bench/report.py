@@ -30,6 +30,7 @@ from typing import Generic, NamedTuple, TypeVar
 
 from pydantic import BaseModel, ConfigDict
 
+from bench.novel_pose_tables import by_novelty, view_breakdown
 from bench.seed_results import load_seeds, runs_by_seed, union_of_runs
 from bench.stats import compare_paired, fmt, mean_std, zero_crossing
 
@@ -1562,7 +1563,7 @@ class NovelPoseNovelty(_Loose):
     methods: dict[str, NovelPoseFramesRow]
 
 
-NOVEL_POSE_SPLITS = {
+NOVEL_POSE_SPLIT_WHAT = {
     "near": "other takes of the training generator",
     "far": "a take raising the arms above the shoulders",
     "view": "training poses from 35° and 70°",
@@ -1579,7 +1580,7 @@ def novel_pose_splits(results: Path) -> list[str]:
         "| camera yaw about the body |",
         "|---|---|---|---|",
     ]
-    for split, what in NOVEL_POSE_SPLITS.items():
+    for split, what in NOVEL_POSE_SPLIT_WHAT.items():
         frames = [f for run in runs for f in run.splits[split].per_frame.values()]
         pose = sorted(f.pose_deg for f in frames)
         yaw = [f.yaw_deg for f in frames]
@@ -2181,8 +2182,6 @@ def _novel_pose_runs(results: Path, result: str, row: str) -> tuple[list[dict], 
 def novel_pose_angle(results: Path, name: str) -> str:
     """The figure ``novel_pose_angle/<result>/<row>/<angle>.<lpips_vgg|debris>``: the view split
     at one camera angle (``bench.novel_pose.view_breakdown``), LPIPS-VGG ×1000 or debris in %."""
-    from bench.novel_pose import view_breakdown
-
     result, row, key = name.rsplit("/", 2)
     angle, metric = key.split(".")
     v = view_breakdown(_novel_pose_runs(results, result, row)[0])[int(angle)][metric]
@@ -2193,8 +2192,6 @@ def novel_pose_novelty(results: Path, name: str) -> str:
     """The figure ``novel_pose_novelty/<result>/<row>/<yaw_beyond|pose>/<bin start>.<lpips_vgg|debris>``:
     one bin of the quality-against-novelty table (``bench.novel_pose.by_novelty``), LPIPS-VGG
     ×1000 or debris in %."""
-    from bench.novel_pose import by_novelty
-
     result, row, table, key = name.rsplit("/", 3)
     start, metric = key.rsplit(".", 1)
     runs, config = _novel_pose_runs(results, result, row)
