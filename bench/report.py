@@ -2268,9 +2268,9 @@ def value(results: Path, name: str) -> str:
     node = json.loads(file.read_text())
     keys = parts[cut:]
     while keys:
-        # A key may hold a slash (train.json's "<dataset>/<preset>@<label>"): the shortest run of
-        # parts that names one.
-        for take in range(1, len(keys) + 1):
+        # A key may hold slashes (train.json's "<dataset>/<preset>[/<method>]@<label>"): the
+        # longest run of parts that names one, as "<dataset>/<preset>" is a key of its own too.
+        for take in range(len(keys), 0, -1):
             key = "/".join(keys[:take])
             if isinstance(node, list) and take == 1 and key.isdigit() and int(key) < len(node):
                 node = node[int(key)]

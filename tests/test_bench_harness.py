@@ -149,10 +149,13 @@ def test_a_value_figure_reads_one_number_of_a_result_by_its_keys(tmp_path):
     with pytest.raises(KeyError, match="names no result file"):
         report.render("<!-- bench figure: value/b/r/x@1 -->x<!-- /bench figure -->", tmp_path)
     # A key that holds a slash (train.json's "<dataset>/<preset>@<label>"), thousands separated.
-    (tmp_path / "t.json").write_text(json.dumps({"set-0/fast@thin": {"n": 43498.0}}))
-    assert "-->43,498<" in report.render(
-        "<!-- bench figure: value/t/set-0/fast@thin/n@0, -->x<!-- /bench figure -->", tmp_path
+    # "<dataset>/<preset>" is a key of its own beside "<dataset>/<preset>/<method>@<label>".
+    (tmp_path / "t.json").write_text(
+        json.dumps({"set-0/fast": {"n": 1.0}, "set-0/fast/eva@thin": {"n": 43498.0}})
     )
+    figure = "<!-- bench figure: value/t/set-0/fast{}/n@0, -->x<!-- /bench figure -->"
+    assert "-->43,498<" in report.render(figure.format("/eva@thin"), tmp_path)
+    assert "-->1<" in report.render(figure.format(""), tmp_path)
 
 
 def test_a_paper_gap_figure_pairs_two_methods_of_one_or_two_files_by_seed(tmp_path):
