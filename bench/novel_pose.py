@@ -78,6 +78,14 @@ OFF = (
     "avatar.expression_colours=false",
 )
 """Every option this benchmark tried, off: main before the work (730d452)."""
+THIN = (*OFF, "regularizers.lambda_thin=0.05", "regularizers.thin_target=0.002")
+"""The thin term on (the default before the blink colours)."""
+DEFAULT = (
+    *THIN,
+    "avatar.expression_colours=true",
+    'avatar.expression_colour_actions=["eyeBlinkLeft","eyeBlinkRight"]',
+)
+"""Today's defaults: the overrides of ``DEFAULT_ROW``."""
 
 ROWS: dict[str, Row] = {
     "before": Row("main before this work (730d452): every option off", OFF),
@@ -87,36 +95,24 @@ ROWS: dict[str, Row] = {
     ),
     "thin": Row(
         "thin along the surface normal (regulariser, 2 mm): the default before the blink colours",
-        (*OFF, "regularizers.lambda_thin=0.05", "regularizers.thin_target=0.002"),
+        THIN,
     ),
     "thin_colours": Row(
         "thin along the normal, and colours that follow the expression (issue 39)",
         (
-            *OFF,
-            "regularizers.lambda_thin=0.05",
-            "regularizers.thin_target=0.002",
+            *THIN,
             "avatar.expression_colours=true",
         ),
     ),
     "thin_blink_colours": Row(
         "thin along the normal, and colours that follow the blinks only (issue 39): the default",
-        (
-            *OFF,
-            "regularizers.lambda_thin=0.05",
-            "regularizers.thin_target=0.002",
-            "avatar.expression_colours=true",
-            'avatar.expression_colour_actions=["eyeBlinkLeft","eyeBlinkRight"]',
-        ),
+        DEFAULT,
     ),
     "median_eyes": Row(
         "the default, its Gaussians on the training frames' median face and those seen through an eye's "
         "opening attached to the eyeball (issue 39)",
         (
-            *OFF,
-            "regularizers.lambda_thin=0.05",
-            "regularizers.thin_target=0.002",
-            "avatar.expression_colours=true",
-            'avatar.expression_colour_actions=["eyeBlinkLeft","eyeBlinkRight"]',
+            *DEFAULT,
             'avatar.template_expression="median"',
             "avatar.eye_binding=true",
         ),
@@ -124,40 +120,28 @@ ROWS: dict[str, Row] = {
     "median_face": Row(
         "the default, its Gaussians on the training frames' median face (issue 39)",
         (
-            *OFF,
-            "regularizers.lambda_thin=0.05",
-            "regularizers.thin_target=0.002",
-            "avatar.expression_colours=true",
-            'avatar.expression_colour_actions=["eyeBlinkLeft","eyeBlinkRight"]',
+            *DEFAULT,
             'avatar.template_expression="median"',
         ),
     ),
     "blink_events": Row(
         "the default, each training frame with a fitted blink visited three more times per epoch (issue 39)",
         (
-            *OFF,
-            "regularizers.lambda_thin=0.05",
-            "regularizers.thin_target=0.002",
-            "avatar.expression_colours=true",
-            'avatar.expression_colour_actions=["eyeBlinkLeft","eyeBlinkRight"]',
+            *DEFAULT,
             "expression_events.repeats=3",
         ),
     ),
     "thin_face_off": Row(
         "thin along the normal except on the face's Gaussians (issue 39)",
         (
-            *OFF,
-            "regularizers.lambda_thin=0.05",
-            "regularizers.thin_target=0.002",
+            *THIN,
             "regularizers.thin_part_weights=[1,1,0]",
         ),
     ),
     "thin_face_1cm": Row(
         "thin along the normal, the face's Gaussians free up to 1 cm instead of 2 mm (issue 39)",
         (
-            *OFF,
-            "regularizers.lambda_thin=0.05",
-            "regularizers.thin_target=0.002",
+            *THIN,
             "regularizers.thin_part_targets=[0.002,0.002,0.01]",
         ),
     ),
@@ -178,9 +162,7 @@ ROWS: dict[str, Row] = {
     "thin_cap": Row(
         "thin along the normal and scales bounded per part (the two that won alone, together)",
         (
-            *OFF,
-            "regularizers.lambda_thin=0.05",
-            "regularizers.thin_target=0.002",
+            *THIN,
             "avatar.max_scale=[0.01,0.005,0.005]",
             "avatar.init_normal_ratio=0.2",
         ),
