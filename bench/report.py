@@ -315,6 +315,11 @@ class OpeningChange(_Loose):
     gap_unit: str
     verdict: str
 
+    @property
+    def relative(self) -> bool:
+        """The gap is in % of before (LPIPS, PSNR), not in the measure's own units."""
+        return self.gap_unit in ("%", "percent")
+
 
 class OpeningsPaired(_Run):
     """``bench.expressions_compare``'s result."""
@@ -384,8 +389,7 @@ def _paired_changes(openings: str, evals: str | None, results: Path) -> dict[str
     evaluated = load(EvalPaired, evals, results).rows if evals else []
     return {
         "openings": {
-            r.measure: PairedChange(r.before, r.after, r.gap, r.verdict, r.gap_unit in ("%", "percent"))
-            for r in opened
+            r.measure: PairedChange(r.before, r.after, r.gap, r.verdict, r.relative) for r in opened
         },
         "eval": {
             f"{r.region}.{r.metric}": PairedChange(
@@ -2141,13 +2145,11 @@ def expr_gap(results: Path, name: str) -> str:
     units for an absolute one (a correlation, a range), e.g. ``expr_gap/expressions/closeups/
     closeup_seated_paired/lpips_vgg`` -> "−11.1 ± 0.4%"."""
     result, measure = name.rsplit("/", 1)
-    doc = json.loads((results / f"{result}.json").read_text())
-    for row in doc["rows"]:
-        if row["measure"] == measure:
-            g = row["gap"]
-            if row["gap_unit"] == "absolute":
-                return f"{_signed(g['mean'], 2)} ± {g['std']:.2f}"
-            return _percent_gap(g["mean"], g["std"])
+    for row in load(OpeningsPaired, result, results).rows:
+        if row.measure == measure:
+            if row.relative:
+                return _percent_gap(row.gap.mean, row.gap.std)
+            return f"{_signed(row.gap.mean, 2)} ± {row.gap.std:.2f}"
     raise KeyError(f"{result}.json has no row {measure!r}")
 
 

@@ -356,11 +356,21 @@ def test_hard_inputs_pairs_a_variant_with_its_plain_runs(tmp_path):
 
 
 def test_an_expr_gap_figure_reads_a_paired_row_in_its_own_units(tmp_path):
-    rows = [
-        {"measure": "eyes_r", "gap": {"mean": 0.123, "std": 0.04}, "gap_unit": "absolute"},
-        {"measure": "lpips_vgg", "gap": {"mean": -11.14, "std": 0.41}, "gap_unit": "%"},
-    ]
-    (tmp_path / "c.json").write_text(json.dumps({"rows": rows}))
+    stat = {"mean": 0.0, "std": 0.0, "n": 3}
+
+    def row(measure: str, mean: float, std: float, unit: str) -> dict:
+        gap = {"mean": mean, "std": std, "n": 3}
+        return {
+            "measure": measure,
+            "before": stat,
+            "after": stat,
+            "gap": gap,
+            "gap_unit": unit,
+            "verdict": "-",
+        }
+
+    rows = [row("eyes_r", 0.123, 0.04, "absolute"), row("lpips_vgg", -11.14, 0.41, "%")]
+    (tmp_path / "c.json").write_text(json.dumps({"date": "d", "rows": rows}))
     figure = "<!-- bench figure: expr_gap/c/{} -->x<!-- /bench figure -->"
     assert "-->+0.12 ± 0.04<" in report.render(figure.format("eyes_r"), tmp_path)
     assert "-->−11.1 ± 0.4%<" in report.render(figure.format("lpips_vgg"), tmp_path)
