@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 import shutil
 import uuid
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -194,34 +194,62 @@ def write_face_crops(
     n, h, w = masks.shape
     boxes = crop_boxes(face_mesh, (h, w), config)
     wanted = boxes[:, 2] > 0
-    root = Path(dataset_root)
-    tmp = root / f".{FOLDER}.partial-{uuid.uuid4().hex[:8]}"
     at = {round(float(t), 6): j for j, t in enumerate(timestamps.tolist())}
-    written, size = np.zeros(n, bool), None
-    try:
-        (tmp / "images").mkdir(parents=True)
-        (tmp / "masks").mkdir()
+    chosen: list[int] = []  # the close-ups' side, decided by the first decoded frame
+
+    def cut() -> Iterator[tuple[int, np.ndarray, np.ndarray] | None]:
         for rgb, t in frames:
             j = at.get(round(float(t), 6))
             if j is None or not bool(wanted[j]):
                 continue
             scale = rgb.shape[1] / w
-            if size is None:  # every decoded frame has the video's size: the first one decides
-                size = close_up_size(scale, boxes[wanted, 2], config.size)
-                if size < 32 or size / float(boxes[wanted, 2].median()) < config.min_gain:
-                    return _remove_crops(root, tmp)
+            if not chosen:  # every decoded frame has the video's size
+                chosen.append(close_up_size(scale, boxes[wanted, 2], config.size))
+                if chosen[0] < 32 or chosen[0] / float(boxes[wanted, 2].median()) < config.min_gain:
+                    yield None
+                    return
             box = boxes[j].double().numpy()
-            _write_png(tmp / "images" / _name(j), cut_crop(rgb, box, size, scale))
             mask = (masks[j].clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
-            _write_png(tmp / "masks" / _name(j), cut_crop(mask, box, size, 1.0))
+            yield j, cut_crop(rgb, box, chosen[0], scale), cut_crop(mask, box, chosen[0], 1.0)
+
+    return store_face_crops(dataset_root, boxes, lambda: chosen[0], cut(), config)
+
+
+def store_face_crops(
+    dataset_root: str | Path,
+    boxes: Tensor,
+    size: int | Callable[[], int],
+    crops: Iterable[tuple[int, np.ndarray, np.ndarray] | None],
+    config: FaceCropConfig,
+) -> FaceCrops | None:
+    """Store close-ups in the dataset at ``dataset_root`` atomically, replacing any it had.
+
+    boxes: [N, 3] (x0, y0, side) in frame pixels; size: the close-ups' side (or a function giving
+    it once ``crops`` has started); crops: (frame, RGB uint8 [S, S, 3], mask uint8 [S, S]) per
+    close-up, or None to give up (the dataset is then left with none). Frames ``crops`` skips
+    keep no box. Returns the stored close-ups, or None."""
+    root = Path(dataset_root)
+    boxes = boxes.clone().float()
+    tmp = root / f".{FOLDER}.partial-{uuid.uuid4().hex[:8]}"
+    written = np.zeros(len(boxes), bool)
+    try:
+        (tmp / "images").mkdir(parents=True)
+        (tmp / "masks").mkdir()
+        for item in crops:
+            if item is None:
+                return _remove_crops(root, tmp)
+            j, rgb, mask = item
+            _write_png(tmp / "images" / _name(j), rgb)
+            _write_png(tmp / "masks" / _name(j), mask)
             written[j] = True
         boxes[~torch.from_numpy(written)] = 0.0
         if not written.any():
             return _remove_crops(root, tmp)
+        side = size() if callable(size) else size
         from safetensors.torch import save_file
 
-        save_file({"boxes": boxes, "size": torch.tensor(size)}, str(tmp / "boxes.safetensors"))
-        (tmp / "config.json").write_text(json.dumps({"size": size, "pad": config.pad}))
+        save_file({"boxes": boxes, "size": torch.tensor(side)}, str(tmp / "boxes.safetensors"))
+        (tmp / "config.json").write_text(json.dumps({"size": side, "pad": config.pad}))
         old = root / FOLDER
         if old.exists():
             aside = root / f".{FOLDER}.old-{uuid.uuid4().hex[:8]}"
@@ -231,7 +259,7 @@ def write_face_crops(
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
-    return load_face_crops(root, n)
+    return load_face_crops(root, len(boxes))
 
 
 def close_up_size(scale: float, sides: Tensor, largest: int) -> int:

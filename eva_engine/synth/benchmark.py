@@ -138,6 +138,8 @@ SIZES: dict[str, Size] = {
     ),
 }
 MOTION_SECONDS = 6.0
+GENERATOR = "eva_engine.synth.benchmark"
+"""``extra["generator"]`` of the datasets this module writes."""
 TRAIN_FACE_ACTIONS = tuple(a for a in FACE_ACTIONS if a not in HELD_OUT_FACE_ACTIONS)
 
 
@@ -374,7 +376,7 @@ def generate(
             gt_params=params,
             gt_keypoints=keypoints,
             extra={
-                "generator": "eva_engine.synth.benchmark",
+                "generator": GENERATOR,
                 "preset": preset,
                 "size": size,
                 "seed": seed,
