@@ -161,14 +161,15 @@ def test_compiled_projection_matches_torch(compiled, dtype):
         )
         g.manual_seed(3)
         loss = sum(
-            (t * torch.randn(t.shape, generator=g, dtype=dtype)).sum() for t in (proj.means2d, proj.conics)
+            (t * torch.randn(t.shape, generator=g, dtype=dtype)).sum()
+            for t in (proj.means2d, proj.conics, proj.compensations)
         )
         (loss + (proj.depths * torch.randn(40, generator=g, dtype=dtype)).sum()).backward()
         results[kernel] = (proj, {k: inputs[k].grad for k in names})
     (pc, gc), (pt, gt) = results["cpp"], results["torch"]
     assert torch.equal(pc.radii, pt.radii) and (pc.radii == 0).any()
     tol = dict(atol=1e-10, rtol=1e-9) if dtype == torch.float64 else dict(atol=1e-4, rtol=1e-4)
-    for name in ("means2d", "conics", "depths"):
+    for name in ("means2d", "conics", "depths", "compensations"):
         torch.testing.assert_close(getattr(pc, name), getattr(pt, name), msg=name, **tol)
     for name in names:
         assert torch.isfinite(gc[name]).all(), name

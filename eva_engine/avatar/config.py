@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
+from eva_engine.render.rasterize import RASTERIZE_MODES
+
 # The expression actions that cover or uncover something: the lids, the jaw (Anny's ARKit names).
 REVEALING_ACTIONS = ("eyeBlinkLeft", "eyeBlinkRight", "jawOpen")
 # The default's share of them: the blinks. The jaw's offsets fit a take's few open-jaw frames
@@ -69,6 +71,13 @@ class AvatarConfig:
     weight_mlp_bf16: while training, the weight-offset MLP multiplies in bfloat16 (its output,
         softmax and parameter gradients stay float32; ``networks.relu_mlp``). Rendering a trained
         avatar is float32 either way. Worth it where the CPU has native bfloat16 (AVX512-BF16).
+    rasterize_mode: ``render.rasterize``'s mode, in training and in every render after it.
+        "classic" (3DGS): a Gaussian narrower than a pixel is widened to eps2d at full opacity.
+        "antialiased" (gsplat's mode, Mip-Splatting's 2D filter): its opacity falls as it widens,
+        so a face trained on close-ups at three times the frame's pixels is not drawn thicker and
+        darker in the frame (``docs/novel-views.md``, "The face close-ups from new views").
+    eps2d: pixels^2 added to every 2D covariance (3DGS: 0.3; Mip-Splatting's 2D filter: 0.1, about
+        the variance of a one-pixel box filter).
     """
 
     sh_degree: int = 3
@@ -94,6 +103,8 @@ class AvatarConfig:
     template_expression: str = "neutral"
     eye_binding: bool = False
     weight_mlp_bf16: bool = False
+    rasterize_mode: str = "classic"
+    eps2d: float = 0.3
 
     def __post_init__(self) -> None:
         if not 0 <= self.sh_degree <= 3:
@@ -120,6 +131,10 @@ class AvatarConfig:
             raise ValueError(
                 f"template_expression must be one of {TEMPLATE_EXPRESSIONS}, got {self.template_expression!r}"
             )
+        if not 0.0 < self.eps2d <= 1.0:
+            raise ValueError(f"eps2d must be in (0, 1] px^2, got {self.eps2d}")
+        if self.rasterize_mode not in RASTERIZE_MODES:
+            raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {self.rasterize_mode!r}")
         if not 0.0 < self.init_normal_ratio <= 1.0:
             raise ValueError(f"init_normal_ratio must be in (0, 1], got {self.init_normal_ratio}")
 

@@ -366,6 +366,8 @@ class Avatar(nn.Module):
             camera.height,
             background=background,
             config=raster,
+            eps2d=self.config.eps2d,
+            rasterize_mode=self.config.rasterize_mode,
         )
 
     @torch.no_grad()

@@ -21,7 +21,7 @@ from eva_engine.render.composite import (
     tiles_to_image,
 )
 from eva_engine.render.projection import Projection, project_gaussians, quat_to_rotmat
-from eva_engine.render.rasterize import RasterConfig, RenderOutput, rasterize
+from eva_engine.render.rasterize import RASTERIZE_MODES, RasterConfig, RasterizeMode, RenderOutput, rasterize
 from eva_engine.render.sh import eval_sh, num_sh_bases, rgb_to_sh, sh_basis, view_dirs
 from eva_engine.render.tiles import TileBins, bin_gaussians
 
@@ -29,7 +29,9 @@ __all__ = [
     "Camera",
     "CompositeConfig",
     "Projection",
+    "RASTERIZE_MODES",
     "RasterConfig",
+    "RasterizeMode",
     "RenderOutput",
     "TileBins",
     "bin_gaussians",

@@ -33,12 +33,15 @@ class Projection:
     conics:  [N, 3] (a, b, c) of the inverse 2D covariance [[a, b], [b, c]].
     depths:  [N] camera-space z (metres along the optical axis).
     radii:   [N, 2] int32 per-axis bounding-box half extents in pixels; 0 = culled.
+    compensations: [N] sqrt(det(cov2d - eps2d I) / det(cov2d)) in [0, 1]: the opacity factor of
+             gsplat's "antialiased" mode, which keeps a Gaussian's 2D mass as eps2d widens it.
     """
 
     means2d: Tensor
     conics: Tensor
     depths: Tensor
     radii: Tensor
+    compensations: Tensor
 
     @property
     def visible(self) -> Tensor:
@@ -104,10 +107,10 @@ def project_gaussians(
         torch.is_tensor(K) and K.requires_grad
     )
     if not camera_grad and RASTER.resolve(kernel, means) == "cpp":
-        means2d, conics, depths, radii = _ProjectCompiled.apply(
+        means2d, conics, depths, compensations, radii = _ProjectCompiled.apply(
             means, quats, scales, viewmat, K, width, height, near_plane, far_plane, eps2d, RASTER.load()
         )
-        return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii)
+        return Projection(means2d, conics, depths, radii, compensations)
     dtype = means.dtype
     viewmat = viewmat.to(device=means.device, dtype=dtype)
     rot_w = viewmat[:3, :3]
@@ -152,6 +155,11 @@ def project_gaussians(
     det_ok = det > 0
     det = torch.where(det_ok, det, torch.ones_like(det))
     conics = torch.stack([c / det, -b / det, a / det], dim=-1)
+    # sqrt(det(A A^T) / det(cov2d)) with gsplat's gradient d sqrt(r) = dr / (2 (sqrt(r) + 1e-6)),
+    # as the compiled kernel has it: finite where a needle or a point makes r = 0.
+    ratio = ((minor01**2 + minor02**2 + minor12**2) / det).clamp_min(0)
+    root = ratio.detach().sqrt()
+    compensations = root + (ratio - ratio.detach()) * (0.5 / (root + 1e-6))
 
     with torch.no_grad():
         rx = torch.ceil(RADIUS_SIGMAS * a.clamp_min(0).sqrt())
@@ -163,7 +171,7 @@ def project_gaussians(
         # Clamp before the int cast: a Gaussian at the near plane can be 1e9 pixels wide.
         radii = torch.stack([rx, ry], dim=-1).clamp_max(2**30).to(torch.int32)
         radii = torch.where(keep[:, None], radii, torch.zeros_like(radii))
-    return Projection(means2d=means2d, conics=conics, depths=p_cam[:, 2], radii=radii)
+    return Projection(means2d, conics, p_cam[:, 2], radii, compensations)
 
 
 class _ProjectCompiled(torch.autograd.Function):
@@ -174,17 +182,17 @@ class _ProjectCompiled(torch.autograd.Function):
         viewmat = torch.as_tensor(viewmat).detach().to("cpu", torch.float64)
         K = torch.as_tensor(K).detach().to("cpu", torch.float64)
         camera = (viewmat, K, width, height, float(near), float(far), float(eps2d))
-        means2d, conics, depths, radii = ops.project_forward(means, quats, scales, *camera)
+        means2d, conics, depths, compensations, radii = ops.project_forward(means, quats, scales, *camera)
         ctx.save_for_backward(means, quats, scales)
         ctx.camera, ctx.ops = camera, ops
         ctx.mark_non_differentiable(radii)
-        return means2d, conics, depths, radii
+        return means2d, conics, depths, compensations, radii
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, grad_means2d, grad_conics, grad_depths, _grad_radii):
+    def backward(ctx, grad_means2d, grad_conics, grad_depths, grad_compensations, _grad_radii):
         means, quats, scales = ctx.saved_tensors
         g_means, g_quats, g_scales = ctx.ops.project_backward(
-            means, quats, scales, *ctx.camera, grad_means2d, grad_conics, grad_depths
+            means, quats, scales, *ctx.camera, grad_means2d, grad_conics, grad_depths, grad_compensations
         )
         return g_means, g_quats, g_scales, *([None] * 8)

@@ -19,6 +19,9 @@ from eva_engine.render.projection import project_gaussians
 from eva_engine.render.sh import eval_sh, view_dirs
 from eva_engine.render.tiles import bin_gaussians
 
+RasterizeMode = Literal["classic", "antialiased"]
+RASTERIZE_MODES: tuple[str, ...] = ("classic", "antialiased")
+
 
 @dataclass(frozen=True)
 class RasterConfig:
@@ -91,6 +94,7 @@ def rasterize(
     eps2d: float = 0.3,
     sh_degree: int | None = None,
     config: RasterConfig | None = None,
+    rasterize_mode: RasterizeMode = "classic",
 ) -> RenderOutput:
     """Render N 3D Gaussians from one camera, differentiably.
 
@@ -106,6 +110,10 @@ def rasterize(
     (x + 0.5, y + 0.5), per-axis radius ceil(3.33 sigma), front-to-back compositing by camera z
     with alpha = min(0.999, o exp(-d^T Sigma^-1 d / 2)), pairs below alpha 1/255 skipped, and each
     pixel stopping before the Gaussian that would take its transmittance to <= 1e-4.
+    ``rasterize_mode="antialiased"`` is gsplat's mode of that name (Mip-Splatting's 2D filter): each
+    opacity times sqrt(det(cov2d - eps2d I) / det(cov2d)), so a Gaussian smaller than a pixel keeps
+    its 2D mass instead of growing to eps2d at full opacity. An avatar trained at one image scale
+    and seen at another (the face close-ups and the frame) then looks the same in both.
 
     Differentiable w.r.t. means, quats, scales, opacities, colors and background. Works on any
     device and float dtype the inputs share (float32 normally, float64 for gradient checks).
@@ -114,6 +122,8 @@ def rasterize(
     """
     cfg = config or RasterConfig()
     _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background, sh_degree)
+    if rasterize_mode not in RASTERIZE_MODES:
+        raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
     means, quats, scales, opacities, colors = _drop_non_finite(means, quats, scales, opacities, colors)
 
     # The autograd reference stays pure torch end to end.
@@ -122,6 +132,8 @@ def rasterize(
         means, quats, scales, viewmat, K, width, height, near_plane, far_plane, eps2d, kernel
     )
     means2d = proj.means2d
+    if rasterize_mode == "antialiased":
+        opacities = opacities * proj.compensations
     if means2d.requires_grad:
         means2d.retain_grad()
     if sh_degree is not None:

@@ -679,8 +679,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles(
 //
 // EWA projection as in projection.py (gsplat "classic"), one Gaussian per iteration, in double
 // whatever the tensors' dtype: the frustum-clamped Jacobian J, A = J W R S, cov2d = A A^T + eps2d I
-// with its determinant via Cauchy-Binet, conic = cov2d^-1, and the same culling. The backward is
-// the chain rule of exactly these steps.
+// with its determinant via Cauchy-Binet, conic = cov2d^-1, the same culling, and the compensation
+// sqrt(det(A A^T) / det(cov2d)) of gsplat's "antialiased" mode. The backward is the chain rule of
+// exactly these steps.
 
 struct CameraArgs {
   double Rw[9], tw[3], fx, fy, cx, cy, near, far, eps2d, ulo, uhi, vlo, vhi;
@@ -726,7 +727,7 @@ inline void rotmat_grad(const double q[4], const double G[9], double dq[4]) {
 // Everything the forward computes for one Gaussian, kept for its backward.
 struct ProjState {
   double p[3], zs, u, v, uc, vc, J[6], qn[4], qnorm, RwRq[9], M[9], A[6], m00, m01, m11, minor01, minor02,
-      minor12, a, b, c, det, D;
+      minor12, a, b, c, det, D, det_raw, comp;
   bool in_range, quat_ok, det_ok;
 };
 
@@ -769,12 +770,14 @@ inline void project_one(const CameraArgs& cam, const double mean[3], const doubl
            e * e;
   st.det_ok = st.det > 0;
   st.D = st.det_ok ? st.det : 1.0;
+  st.det_raw = st.minor01 * st.minor01 + st.minor02 * st.minor02 + st.minor12 * st.minor12;
+  st.comp = std::sqrt(std::max(st.det_raw / st.D, 0.0));
 }
 
 template <typename scalar_t>
 void project_forward_kernel(const CameraArgs& cam, const scalar_t* means, const scalar_t* quats,
                             const scalar_t* scales, int64_t N, scalar_t* means2d, scalar_t* conics, scalar_t* depths,
-                            int32_t* radii) {
+                            scalar_t* compensations, int32_t* radii) {
 #pragma omp parallel for schedule(static) num_threads(num_threads())
   for (int64_t g = 0; g < N; ++g) {
     const double mean[3] = {double(means[3 * g]), double(means[3 * g + 1]), double(means[3 * g + 2])};
@@ -790,6 +793,7 @@ void project_forward_kernel(const CameraArgs& cam, const scalar_t* means, const 
     means2d[2 * g] = mx, means2d[2 * g + 1] = my;
     conics[3 * g] = ca, conics[3 * g + 1] = cb, conics[3 * g + 2] = cc;
     depths[g] = static_cast<scalar_t>(st.p[2]);
+    compensations[g] = static_cast<scalar_t>(st.comp);
     // Radii in the tensors' dtype, as the torch projection computes them.
     const scalar_t sig = static_cast<scalar_t>(3.33);
     const scalar_t rx = std::ceil(sig * std::sqrt(std::max(static_cast<scalar_t>(st.a), scalar_t(0))));
@@ -807,7 +811,8 @@ void project_forward_kernel(const CameraArgs& cam, const scalar_t* means, const 
 template <typename scalar_t>
 void project_backward_kernel(const CameraArgs& cam, const scalar_t* means, const scalar_t* quats,
                              const scalar_t* scales, int64_t N, const scalar_t* g_means2d, const scalar_t* g_conics,
-                             const scalar_t* g_depths, scalar_t* g_means, scalar_t* g_quats, scalar_t* g_scales) {
+                             const scalar_t* g_depths, const scalar_t* g_comps, scalar_t* g_means, scalar_t* g_quats,
+                             scalar_t* g_scales) {
 #pragma omp parallel for schedule(static) num_threads(num_threads())
   for (int64_t g = 0; g < N; ++g) {
     const double mean[3] = {double(means[3 * g]), double(means[3 * g + 1]), double(means[3 * g + 2])};
@@ -821,10 +826,16 @@ void project_backward_kernel(const CameraArgs& cam, const scalar_t* means, const
     // conic = (c, -b, a) / D
     const double D = st.D;
     const double da = gcc / D, db = -gcb / D, dc = gca / D;
-    const double dD = st.det_ok ? -(gca * st.c - gcb * st.b + gcc * st.a) / (D * D) : 0.0;
+    double dD = st.det_ok ? -(gca * st.c - gcb * st.b + gcc * st.a) / (D * D) : 0.0;
+    // comp = sqrt(det_raw / D): d comp = (d det_raw - comp^2 d D) / (2 comp D) (gsplat's 1e-6 keeps
+    // a degenerate Gaussian's gradient finite).
+    const double gcomp = g_comps[g], half = st.det_ok ? 0.5 * gcomp / ((st.comp + 1e-6) * D) : 0.0;
+    const double ddet_raw = half;
+    dD -= half * st.comp * st.comp;
     const double e = cam.eps2d;
     const double dm00 = da + e * dD, dm11 = dc + e * dD, dm01 = db;
-    const double g01 = 2 * st.minor01 * dD, g02 = 2 * st.minor02 * dD, g12 = 2 * st.minor12 * dD;
+    const double g01 = 2 * st.minor01 * (dD + ddet_raw), g02 = 2 * st.minor02 * (dD + ddet_raw),
+                 g12 = 2 * st.minor12 * (dD + ddet_raw);
     const double* A = st.A;
     double dA[6];
     for (int j = 0; j < 3; ++j) {
@@ -881,8 +892,8 @@ void check_gaussians(const at::Tensor& means, const at::Tensor& quats, const at:
               "means, quats and scales must share one dtype");
 }
 
-// Returns means2d [N, 2], conics [N, 3], depths [N], radii [N, 2] (int32, 0 = culled).
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_forward(
+// Returns means2d [N, 2], conics [N, 3], depths [N], compensations [N], radii [N, 2] (int32, 0 = culled).
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_forward(
     const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& viewmat,
     const at::Tensor& K, int64_t width, int64_t height, double near_plane, double far_plane, double eps2d) {
   check_gaussians(means, quats, scales);
@@ -892,36 +903,40 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_forward(
   auto means2d = at::empty({N, 2}, m.options());
   auto conics = at::empty({N, 3}, m.options());
   auto depths = at::empty({N}, m.options());
+  auto compensations = at::empty({N}, m.options());
   auto radii = at::empty({N, 2}, m.options().dtype(at::kInt));
   AT_DISPATCH_FLOATING_TYPES(m.scalar_type(), "eva_raster_project_forward", [&] {
     project_forward_kernel<scalar_t>(cam, m.data_ptr<scalar_t>(), q.data_ptr<scalar_t>(), s.data_ptr<scalar_t>(), N,
                                      means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
-                                     depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>());
+                                     depths.data_ptr<scalar_t>(), compensations.data_ptr<scalar_t>(),
+                                     radii.data_ptr<int32_t>());
   });
-  return {means2d, conics, depths, radii};
+  return {means2d, conics, depths, compensations, radii};
 }
 
 // Returns dL/dmeans [N, 3], dL/dquats [N, 4], dL/dscales [N, 3].
 std::tuple<at::Tensor, at::Tensor, at::Tensor> project_backward(
     const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& viewmat,
     const at::Tensor& K, int64_t width, int64_t height, double near_plane, double far_plane, double eps2d,
-    const at::Tensor& grad_means2d, const at::Tensor& grad_conics, const at::Tensor& grad_depths) {
+    const at::Tensor& grad_means2d, const at::Tensor& grad_conics, const at::Tensor& grad_depths,
+    const at::Tensor& grad_compensations) {
   check_gaussians(means, quats, scales);
   const CameraArgs cam(viewmat, K, width, height, near_plane, far_plane, eps2d);
   const auto m = means.contiguous(), q = quats.contiguous(), s = scales.contiguous();
   const int64_t N = m.size(0);
-  TORCH_CHECK(grad_means2d.numel() == 2 * N && grad_conics.numel() == 3 * N && grad_depths.numel() == N,
-              "gradients must be [N, 2], [N, 3] and [N]");
+  TORCH_CHECK(grad_means2d.numel() == 2 * N && grad_conics.numel() == 3 * N && grad_depths.numel() == N &&
+                  grad_compensations.numel() == N,
+              "gradients must be [N, 2], [N, 3], [N] and [N]");
   const auto dt = m.scalar_type();
   const auto gm = grad_means2d.contiguous().to(dt), gc = grad_conics.contiguous().to(dt);
-  const auto gd = grad_depths.contiguous().to(dt);
+  const auto gd = grad_depths.contiguous().to(dt), gk = grad_compensations.contiguous().to(dt);
   auto g_means = at::empty({N, 3}, m.options());
   auto g_quats = at::empty({N, 4}, m.options());
   auto g_scales = at::empty({N, 3}, m.options());
   AT_DISPATCH_FLOATING_TYPES(dt, "eva_raster_project_backward", [&] {
     project_backward_kernel<scalar_t>(cam, m.data_ptr<scalar_t>(), q.data_ptr<scalar_t>(), s.data_ptr<scalar_t>(),
                                       N, gm.data_ptr<scalar_t>(), gc.data_ptr<scalar_t>(), gd.data_ptr<scalar_t>(),
-                                      g_means.data_ptr<scalar_t>(), g_quats.data_ptr<scalar_t>(),
+                                      gk.data_ptr<scalar_t>(), g_means.data_ptr<scalar_t>(), g_quats.data_ptr<scalar_t>(),
                                       g_scales.data_ptr<scalar_t>());
   });
   return {g_means, g_quats, g_scales};
