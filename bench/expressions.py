@@ -192,12 +192,13 @@ def run_case(
     return entry, images
 
 
-def closeup_scores(renders: list[np.ndarray], targets: list[torch.Tensor]) -> dict:
+def closeup_scores(renders: list[np.ndarray], targets: list[torch.Tensor], lpips=None) -> dict:
     """Mean PSNR and LPIPS-VGG of the close-up renders (uint8 [S, S, 3]) against their targets
-    ([S, S, 3] in [0, 1], over the background)."""
+    ([S, S, 3] in [0, 1], over the background), and each frame's (``per_frame``: {"psnr",
+    "lpips_vgg": [F]}). lpips: a ``metrics.LPIPS("vgg")`` to reuse (made if None)."""
     from eva_engine.metrics import LPIPS, psnr
 
-    lpips = LPIPS("vgg")
+    lpips = lpips or LPIPS("vgg")
     p, lp = [], []
     with torch.no_grad():
         for ren, tgt in zip(renders, targets, strict=True):
@@ -205,7 +206,12 @@ def closeup_scores(renders: list[np.ndarray], targets: list[torch.Tensor]) -> di
             t = tgt.float().clamp(0, 1).permute(2, 0, 1)[None]
             p.append(float(psnr(r, t)))
             lp.append(float(lpips(r, t).mean()))
-    return {"frames": len(renders), "psnr": float(np.mean(p)), "lpips_vgg": float(np.mean(lp))}
+    return {
+        "frames": len(renders),
+        "psnr": float(np.mean(p)),
+        "lpips_vgg": float(np.mean(lp)),
+        "per_frame": {"psnr": p, "lpips_vgg": lp},
+    }
 
 
 def face_box(marks: torch.Tensor, shape: tuple[int, int], pad: float = 0.35) -> tuple[int, int, int]:

@@ -67,6 +67,8 @@ class Row:
     overrides: tuple[str, ...] = ()
     method: str | None = None
     extra: dict = field(default_factory=dict)
+    face_crops: bool = False
+    """Trains on the dataset's face close-ups (``eva_engine.synth.face_crops``, rendered on first use)."""
 
 
 DEFAULT_ROW = "thin_blink_colours"
@@ -145,6 +147,27 @@ ROWS: dict[str, Row] = {
             "regularizers.thin_part_targets=[0.002,0.002,0.01]",
         ),
     ),
+    "face_closeups": Row(
+        "the default, trained on the face close-ups too (256 px, about 3x the frame's pixels across the "
+        "face; issue 39's option)",
+        (*DEFAULT, "face_view.weight=1"),
+        face_crops=True,
+    ),
+    "antialiased": Row(
+        "the default, rasterized in gsplat's antialiased mode (issue 39)",
+        (*DEFAULT, 'avatar.rasterize_mode="antialiased"'),
+    ),
+    "face_closeups_antialiased": Row(
+        "the default, trained on the face close-ups too, rasterized in gsplat's antialiased mode (issue 39)",
+        (*DEFAULT, "face_view.weight=1", 'avatar.rasterize_mode="antialiased"'),
+        face_crops=True,
+    ),
+    "face_closeups_antialiased_eps01": Row(
+        "the default, trained on the face close-ups too, rasterized in gsplat's antialiased mode with "
+        "Mip-Splatting's 2D filter of 0.1 px^2 (issue 39)",
+        (*DEFAULT, "face_view.weight=1", 'avatar.rasterize_mode="antialiased"', "avatar.eps2d=0.1"),
+        face_crops=True,
+    ),
     "final_prune": Row(
         "a final prune: 3-sigma extent beyond 6 cm of the template, and never-seen Gaussians",
         (*OFF, "strategy.prune_extent=0.06", "strategy.prune_never_seen=true"),
@@ -170,15 +193,30 @@ ROWS: dict[str, Row] = {
 }
 
 
-def dataset_for(size: str, seed: int) -> Path:
+def dataset_for(size: str, seed: int, face_crops: bool = False) -> Path:
+    """The cached ``novel`` dataset of ``size`` and ``seed`` (rendered on first use); with
+    ``face_crops``, with its face close-ups rendered too. Close-ups change no row that does not
+    train on them (``face_view.weight`` 0), so one dataset serves every row."""
     from eva_engine.paths import data_dir
     from eva_engine.synth import generate
 
     path = data_dir() / "synthetic" / f"novel-{size}-seed{seed}"
-    if (path / "meta.json").is_file():
-        return path
-    print(f"generating {path} ...", file=sys.stderr, flush=True)
-    generate("novel", size, seed, path, overwrite=True)
+    if not (path / "meta.json").is_file():
+        print(f"generating {path} ...", file=sys.stderr, flush=True)
+        generate("novel", size, seed, path, overwrite=True)
+    if face_crops and not (path / "face_crops").is_dir():
+        from eva_engine.align.face_mesh import load_correspondence
+        from eva_engine.body import load_body_model
+        from eva_engine.data import load_dataset
+        from eva_engine.eval.expression_fidelity import fitted_landmarks
+        from eva_engine.synth.face_crops import render_face_crops
+
+        print(f"rendering the face close-ups of {path} ...", file=sys.stderr, flush=True)
+        model, ds = load_body_model("anny"), load_dataset(path)
+        reg, ids = load_correspondence(model).regressor(model)
+        face_mesh = fitted_landmarks(model, ds.gt_params, reg, ids, ds.K, ds.viewmat)
+        if render_face_crops(path, face_mesh, model=model) is None:
+            raise SystemExit(f"{path}: its faces are too small for close-ups")
     return path
 
 
@@ -234,6 +272,33 @@ def contact_sheet(ds, avatar, frames: list[int], tile: int = 192) -> np.ndarray:
     return np.concatenate(rows, axis=0)
 
 
+def closeup_views(ds, avatar, frames: list[int]) -> tuple[list[np.ndarray], list[torch.Tensor]]:
+    """(renders uint8 [S, S, 3], targets [S, S, 3] over white) through the face close-up cameras
+    of ``frames`` (each must have one): the true pose, the close-up's size."""
+    from eva_engine.avatar import Camera
+    from eva_engine.train.losses import composite_target
+
+    crops, white = ds.face_crops, torch.ones(3)
+    renders, targets = [], []
+    with torch.no_grad():
+        for i in frames:
+            cam = Camera(crops.intrinsics(i, ds.K[i]), ds.viewmat[i].float(), crops.size, crops.size)
+            image = avatar(ds.gt_params[i], cam, white).image.clamp(0, 1)
+            renders.append((image.numpy() * 255.0 + 0.5).astype(np.uint8))
+            targets.append(composite_target(crops.image(i), crops.mask(i), white))
+    return renders, targets
+
+
+def closeup_sheet(ds, avatar, frames: list[int], tile: int = 256) -> np.ndarray:
+    """uint8 [tile * len(frames), 2 * tile, 3]: per frame, the face close-up's target | render."""
+    renders, targets = closeup_views(ds, avatar, frames)
+    rows = [
+        np.concatenate([(t.numpy() * 255.0 + 0.5).astype(np.uint8), r], axis=1)
+        for r, t in zip(renders, targets, strict=True)
+    ]
+    return np.concatenate(rows, axis=0)
+
+
 def run_one(ds, config, metrics, arms, label: str, sheet: Path | None = None) -> dict:
     from eva_engine.eval import evaluate_avatar
     from eva_engine.train import train_avatar
@@ -273,6 +338,14 @@ def run_one(ds, config, metrics, arms, label: str, sheet: Path | None = None) ->
             }
             for i, rows in ev.per_frame.items()
         }
+        ids = [i for i in ds.splits[name][:: EVERY[split]] if ds.face_crops and ds.face_crops.has(i)]
+        if ids:  # the head at about 3x the frame's pixels, from the split's cameras
+            from bench.expressions import closeup_scores
+
+            scores = closeup_scores(*closeup_views(ds, result.avatar, ids), lpips=metrics.lpips_vgg)
+            out["closeup"] = {k: scores[k] for k in ("frames", "psnr", "lpips_vgg")}
+            for i, value in zip(ids, scores["per_frame"]["lpips_vgg"], strict=True):
+                out["per_frame"][str(i)]["closeup_lpips_vgg"] = value
         entry["splits"][split] = out
     entry["eval_seconds"] = time.perf_counter() - t0
     if sheet is not None:
@@ -282,6 +355,11 @@ def run_one(ds, config, metrics, arms, label: str, sheet: Path | None = None) ->
         sheet.parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(contact_sheet(ds, result.avatar, picks)).save(sheet, quality=85, optimize=True)
         entry["contact_sheet"] = {"file": sheet.name, "frames": picks}
+        if ds.face_crops is not None:
+            faces = sheet.with_name(f"{sheet.stem}_face.jpg")
+            picks = [i for i in picks if ds.face_crops.has(i)]
+            Image.fromarray(closeup_sheet(ds, result.avatar, picks)).save(faces, quality=90, optimize=True)
+            entry["closeup_sheet"] = {"file": faces.name, "frames": picks}
     s = entry["splits"]
     print(
         f"  [{label}] {entry['n_gaussians']} GS, {entry['train_seconds']:.0f}s; "
@@ -312,6 +390,8 @@ def aggregate(row: Row, runs: list[dict]) -> dict:
         for region in REGIONS:
             if all(region in p for p in per):
                 agg[region] = {m: mean_std([p[region][m] for p in per]) for m in METRICS}
+        if all("closeup" in p for p in per):
+            agg["closeup"] = {m: mean_std([p["closeup"][m] for p in per]) for m in ("psnr", "lpips_vgg")}
         for key in SILHOUETTE:
             agg[key] = mean_std([p[key] for p in per])
         out["splits"][split] = agg
@@ -326,7 +406,7 @@ def paired(a_runs: list[dict], b_runs: list[dict], split: str) -> tuple[list[int
     b = {r["seed"]: r["splits"][split] for r in b_runs}
     seeds = sorted(a.keys() & b.keys())
     cells = []
-    for region in REGIONS:
+    for region in (*REGIONS, "closeup"):
         if any(region not in a[s] or region not in b[s] for s in seeds):
             continue
         for metric, label in (("lpips_vgg", "LPIPS-VGG"), ("psnr", "PSNR")):
@@ -419,6 +499,7 @@ def markdown(doc: dict) -> str:
             d = b.get(angle)
             cells += [f"{1000 * d['lpips_vgg']:.1f}", f"{100 * d['debris']:.2f}"] if d else ["–", "–"]
         lines.append("| " + " | ".join(cells) + " |")
+    lines += closeup_tables(methods)
     train_yaw = {int(k): v for k, v in cfg.get("train_yaw_deg_by_seed", {}).items()}
     if train_yaw:
         ranges = ", ".join(f"seed {k}: {v[0]:.0f} to {v[1]:.0f}" for k, v in sorted(train_yaw.items()))
@@ -466,6 +547,47 @@ def markdown(doc: dict) -> str:
             lines.append(f"- **{split}** (seeds {seeds}): " + "; ".join(cells))
         lines.append("")
     return "\n".join(lines) + "\n"
+
+
+def closeup_tables(methods: dict) -> list[str]:
+    """Markdown lines: the face close-ups' scores per split, and the view split's face by angle, for
+    the rows scored on close-ups (none: no lines)."""
+    scored = {n: e for n, e in methods.items() if all("closeup" in e["splits"][s] for s in SPLITS)}
+    if not scored:
+        return []
+    lines = [
+        "",
+        "## The face close-ups (256 px, about 3x the frame's pixels across the face)",
+        "",
+        "The head of every scored frame through its close-up's camera (`eva_engine.synth.face_crops`), "
+        "rendered in the true pose against the rendered truth: LPIPS-VGG ×1000 and PSNR. A row that "
+        "trains on the close-ups sees only the training frames' (the front, 0°).",
+        "",
+        "| row | " + " | ".join(f"{s}: LPIPS-VGG | {s}: PSNR" for s in SPLITS) + " |",
+        "|---|" + "---:|---:|" * len(SPLITS),
+    ]
+    for name, e in scored.items():
+        cells = [name]
+        for split in SPLITS:
+            c = e["splits"][split]["closeup"]
+            cells += [fmt(c["lpips_vgg"], 1000, 1), fmt(c["psnr"])]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "The view split's head by camera angle (mean over frames, then seeds; LPIPS-VGG ×1000):",
+        "",
+        "| row | 35°: face | 35°: close-up | 70°: face | 70°: close-up |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for name, e in scored.items():
+        b = view_breakdown(e["runs"], ("face_lpips_vgg", "closeup_lpips_vgg"))
+        cells = [name]
+        for angle in (35, 70):
+            d = b.get(angle)
+            keys = ("face_lpips_vgg", "closeup_lpips_vgg")
+            cells += [f"{1000 * d[k]:.1f}" for k in keys] if d else ["–"] * 2
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
 
 
 def merge(docs: list[dict]) -> dict:
@@ -529,6 +651,12 @@ def main(argv: list[str] | None = None) -> None:
         choices=list(ROWS),
         help="the row the others are paired against (default: `before`; kept in the result file)",
     )
+    ap.add_argument(
+        "--face-crops",
+        action="store_true",
+        help="score every row on the face close-ups too (rendered into the datasets on first use; "
+        "on whenever a row trains on them)",
+    )
     ap.add_argument("--out", type=Path, default=RESULTS, help="results folder")
     args = ap.parse_args(argv)
     path = args.out / f"{args.name}.json"
@@ -556,7 +684,7 @@ def main(argv: list[str] | None = None) -> None:
         from eva_engine.train import train_avatar
 
         for seed in args.seeds:
-            ds = load_dataset(dataset_for(args.size, seed))
+            ds = load_dataset(dataset_for(args.size, seed, any(ROWS[n].face_crops for n in args.rows)))
             for name in args.rows:
                 row = ROWS[name]
                 cfg = preset(args.preset, seed=seed)
@@ -574,8 +702,9 @@ def main(argv: list[str] | None = None) -> None:
     started, previous = time.perf_counter(), doc.get("total_seconds", 0.0)
     metrics = ImageMetrics()
     config: dict = {"size": args.size, "preset": args.preset, "threads": args.threads, "seeds": args.seeds}
+    face_crops = args.face_crops or any(ROWS[n].face_crops for n in args.rows)
     for seed in args.seeds:
-        ds = load_dataset(dataset_for(args.size, seed))
+        ds = load_dataset(dataset_for(args.size, seed, face_crops))
         test_ids = [i for split, name in SPLITS.items() for i in ds.splits[name][:: EVERY[split]]]
         train = torch.tensor(ds.splits["train"])
         gt = ds.gt_params[train]

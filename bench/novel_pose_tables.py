@@ -8,15 +8,18 @@ from __future__ import annotations
 import statistics
 
 
-def view_breakdown(runs: list[dict]) -> dict[int, dict[str, float]]:
-    """The ``view`` split by camera angle: {35 | 70: {"lpips_vgg", "debris", "holes"}}, means over
+def view_breakdown(
+    runs: list[dict], keys: tuple[str, ...] = ("lpips_vgg", "debris", "holes")
+) -> dict[int, dict[str, float]]:
+    """The ``view`` split by camera angle: {35 | 70: {key: mean}} for each of ``keys`` (per-frame
+    scores: the full image's by default, ``face_lpips_vgg``, ``closeup_lpips_vgg``), means over
     the frames and then the seeds."""
     by_angle: dict[int, dict[str, list[float]]] = {}
     for r in runs:
         per: dict[int, dict[str, list[float]]] = {}
         for f in r["splits"]["view"]["per_frame"].values():
             angle = round(f["view_deg"])
-            d = per.setdefault(angle, {"lpips_vgg": [], "debris": [], "holes": []})
+            d = per.setdefault(angle, {k: [] for k in keys})
             for k in d:
                 d[k].append(f[k])
         for angle, d in per.items():

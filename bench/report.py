@@ -113,6 +113,8 @@ class NovelPoseSplit(_Loose, Generic[V]):
     arm: dict[str, V]
     debris: V
     holes: V
+    closeup: dict[str, V] | None = None
+    """The head through the face close-ups' cameras (datasets that have them): psnr, lpips_vgg."""
 
 
 class NovelPoseRun(_Loose):
@@ -1679,8 +1681,10 @@ def novel_pose_gaps(
     if seeds != sorted(by_seed[row]):
         raise ValueError(f"{result}.json: {baseline} and {row} ran on different seeds")
     out = {}
+    runs = [r for by in by_seed.values() for r in by.values()]
+    closeups = all(s.closeup is not None for r in runs for s in r.splits.values())
     for split in NOVEL_POSE_SPLITS:
-        for region in ("full", "hand", "face", "arm", "debris"):
+        for region in ("full", "hand", "face", "arm", "debris", *(("closeup",) if closeups else ())):
 
             def value(run: NovelPoseRun, split: str = split, region: str = region) -> float:
                 s = run.splits[split]
@@ -1690,6 +1694,44 @@ def novel_pose_gaps(
             lower = region == "debris" or "lpips" in metric
             out[split, region] = compare_paired(values[row], values[baseline], lower_is_better=lower)
     return out
+
+
+# The face close-ups on the synthetic novel-pose benchmark (``novel_pose_closeups/``): rows against
+# the default, and the regions the close-ups bear on.
+NOVEL_POSE_CLOSEUP_ROWS = {
+    "face_closeups": "close-ups",
+    "antialiased": "antialiased",
+    "face_closeups_antialiased": "close-ups, antialiased",
+    "face_closeups_antialiased_eps01": "close-ups, antialiased, 0.1 px² filter",
+}
+NOVEL_POSE_CLOSEUP_REGIONS = {"closeup": "head at 256 px", "face": "face in the frame", "full": "full frame"}
+
+
+def novel_pose_closeups(results: Path) -> list[str]:
+    """Each close-up row of ``novel_pose_closeups/novel_pose_closeups.json`` against the default,
+    per split and region: LPIPS-VGG ×1000, mean ± std over the seeds, and the paired gap."""
+    result, baseline = "novel_pose_closeups/novel_pose_closeups", "thin_blink_colours"
+    doc = load(NovelPose, result, results)
+    gaps = {
+        row: novel_pose_gaps(results, result=result, row=row, baseline=baseline)
+        for row in NOVEL_POSE_CLOSEUP_ROWS
+    }
+    seeds = _seeds(doc.methods[baseline].seeds)
+    lines = [
+        f"| LPIPS-VGG ×1000, seeds {seeds} (gap: per seed) | the default | "
+        + " | ".join(NOVEL_POSE_CLOSEUP_ROWS.values())
+        + " |",
+        "|---|---:|" + "---:|" * len(NOVEL_POSE_CLOSEUP_ROWS),
+    ]
+    for split in NOVEL_POSE_SPLITS:
+        for region, label in NOVEL_POSE_CLOSEUP_REGIONS.items():
+            stats = {row: getattr(m.splits[split], region)["lpips_vgg"] for row, m in doc.methods.items()}
+            cells = [_mean_std(stats[baseline])]
+            for row in NOVEL_POSE_CLOSEUP_ROWS:
+                verdict, g = gaps[row][split, region]
+                cells.append(f"{_mean_std(stats[row])} ({_percent_gap(g['mean'], g['std'])}, {verdict})")
+            lines.append(f"| {split}: {label} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def novel_pose_gap(results: Path, name: str) -> str:
@@ -2055,6 +2097,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "novel_pose_candidates": novel_pose_candidates,
     "novel_pose_before_after": novel_pose_before_after,
     "novel_pose_goals": novel_pose_goals,
+    "novel_pose_closeups": novel_pose_closeups,
     "paper_tables": paper_tables,
     "paper_regime": paper_regime,
     "service_latency": service_latency,

@@ -111,6 +111,8 @@ def test_the_mode_is_checked_and_kept_by_the_avatar_config():
         rasterize(**scene, rasterize_mode="mip")
     with pytest.raises(ValueError, match="rasterize_mode"):
         AvatarConfig(rasterize_mode="mip")
-    config = AvatarConfig(rasterize_mode="antialiased")
+    with pytest.raises(ValueError, match="eps2d"):
+        AvatarConfig(eps2d=0.0)
+    config = AvatarConfig(rasterize_mode="antialiased", eps2d=0.1)
     assert AvatarConfig.from_dict(config.to_dict()) == config
     assert AvatarConfig.from_dict({}).rasterize_mode == "classic"  # avatars saved before it
