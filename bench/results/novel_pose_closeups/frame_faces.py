@@ -3,7 +3,8 @@ the face close-ups (classic rasterizer), for the novel-pose sheet's frames of se
 
 The two avatars are trained outside the benchmark (it keeps none), as its rows train them:
 
-    eva train data/synthetic/novel-bench-seed0 --out <tmp>/base-s0 --preset fast --threads 1 --seed 0 --no-quality
+    eva train data/synthetic/novel-bench-seed0 --out <tmp>/base-s0 --preset fast --threads 1 --seed 0 \
+        --no-quality
     eva train data/synthetic/novel-bench-seed0 --out <tmp>/fc-s0 --preset fast --threads 1 --seed 0 \\
         --set face_view.weight=1 --no-quality
     python bench/results/novel_pose_closeups/frame_faces.py <tmp>
