@@ -12,7 +12,16 @@ import math
 
 import pytest
 import torch
-from helpers.render import PARAMS, cast, look_camera, random_scene, render_with_grads, single, stacked
+from helpers.render import (
+    PARAMS,
+    cast,
+    gradcheck_render,
+    look_camera,
+    random_scene,
+    render_with_grads,
+    single,
+    stacked,
+)
 
 from eva_engine.render import (
     CompositeConfig,
@@ -292,25 +301,7 @@ def test_gradcheck_tiled(kernel):
     scene = _smooth_scene()
     scene["width"], scene["height"] = 9, 7
     scene["K"] = look_camera(9, 7, focal=9.0)[1]
-
-    def fn(means, quats, scales, opacities, colors, background):
-        out = rasterize(
-            means,
-            quats,
-            scales,
-            opacities,
-            colors,
-            scene["viewmat"],
-            scene["K"],
-            9,
-            7,
-            background=background,
-            config=RasterConfig(kernel=kernel),
-        )
-        return out.image, out.alpha, out.depth
-
-    inputs = tuple(scene[k].clone().requires_grad_(True) for k in PARAMS)
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
+    assert gradcheck_render(scene, RasterConfig(kernel=kernel))
 
 
 def test_means2d_grad_is_populated():

@@ -9,7 +9,15 @@ import math
 
 import pytest
 import torch
-from helpers.render import PARAMS, cast, look_camera, random_scene, render_with_grads, single
+from helpers.render import (
+    PARAMS,
+    cast,
+    gradcheck_render,
+    look_camera,
+    random_scene,
+    render_with_grads,
+    single,
+)
 
 from eva_engine.avatar import AvatarConfig
 from eva_engine.render import RasterConfig, rasterize
@@ -49,26 +57,7 @@ def test_gradcheck(kernel):
     scene = random_scene(4, 9, 7, seed=2, spread=0.15, size=(0.01, 0.3))
     scene["K"] = look_camera(9, 7, focal=9.0)[1]
     scene["opacities"] = torch.tensor([0.35, 0.5, 0.6, 0.45], dtype=torch.float64)
-
-    def fn(means, quats, scales, opacities, colors, background):
-        out = rasterize(
-            means,
-            quats,
-            scales,
-            opacities,
-            colors,
-            scene["viewmat"],
-            scene["K"],
-            9,
-            7,
-            background=background,
-            config=RasterConfig(kernel=kernel),
-            rasterize_mode="antialiased",
-        )
-        return out.image, out.alpha, out.depth
-
-    inputs = tuple(scene[k].clone().requires_grad_(True) for k in PARAMS)
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
+    assert gradcheck_render({**scene, "rasterize_mode": "antialiased"}, RasterConfig(kernel=kernel))
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])

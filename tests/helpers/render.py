@@ -103,3 +103,16 @@ def render_with_grads(scene: dict, config: RasterConfig | None = None, seed: int
     )
     loss.backward()
     return out, {k: inputs[k].grad for k in PARAMS}
+
+
+def gradcheck_render(scene: dict, config: RasterConfig | None = None) -> bool:
+    """``torch.autograd.gradcheck`` of ``rasterize``'s image, alpha and depth with respect to
+    every Gaussian parameter and the background (the scene's other entries held fixed)."""
+    fixed = {k: v for k, v in scene.items() if k not in PARAMS}
+
+    def fn(*params):
+        out = rasterize(**dict(zip(PARAMS, params, strict=True)), **fixed, config=config)
+        return out.image, out.alpha, out.depth
+
+    inputs = tuple(scene[k].clone().requires_grad_(True) for k in PARAMS)
+    return torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
