@@ -579,12 +579,12 @@ def closeup_tables(methods: dict) -> list[str]:
         "| row | 35°: face | 35°: close-up | 70°: face | 70°: close-up |",
         "|---|---:|---:|---:|---:|",
     ]
+    keys = ("face_lpips_vgg", "closeup_lpips_vgg")
     for name, e in scored.items():
-        b = view_breakdown(e["runs"], ("face_lpips_vgg", "closeup_lpips_vgg"))
+        b = view_breakdown(e["runs"], keys)
         cells = [name]
         for angle in (35, 70):
             d = b.get(angle)
-            keys = ("face_lpips_vgg", "closeup_lpips_vgg")
             cells += [f"{1000 * d[k]:.1f}" for k in keys] if d else ["–"] * 2
         lines.append("| " + " | ".join(cells) + " |")
     return lines
@@ -678,13 +678,14 @@ def main(argv: list[str] | None = None) -> None:
     from eva_engine.train import preset, with_method, with_overrides
 
     torch.set_num_threads(args.threads)
+    face_crops = args.face_crops or any(ROWS[n].face_crops for n in args.rows)
     if args.sheets_only:
         from PIL import Image
 
         from eva_engine.train import train_avatar
 
         for seed in args.seeds:
-            ds = load_dataset(dataset_for(args.size, seed, any(ROWS[n].face_crops for n in args.rows)))
+            ds = load_dataset(dataset_for(args.size, seed, face_crops))
             for name in args.rows:
                 row = ROWS[name]
                 cfg = preset(args.preset, seed=seed)
@@ -702,7 +703,6 @@ def main(argv: list[str] | None = None) -> None:
     started, previous = time.perf_counter(), doc.get("total_seconds", 0.0)
     metrics = ImageMetrics()
     config: dict = {"size": args.size, "preset": args.preset, "threads": args.threads, "seeds": args.seeds}
-    face_crops = args.face_crops or any(ROWS[n].face_crops for n in args.rows)
     for seed in args.seeds:
         ds = load_dataset(dataset_for(args.size, seed, face_crops))
         test_ids = [i for split, name in SPLITS.items() for i in ds.splits[name][:: EVERY[split]]]
