@@ -1,7 +1,8 @@
 """What the web page's forms offer, as JSON (``GET /page/options``), built from what the API checks
 so the two cannot disagree: the preset and method choices from the engine's registry
-(``eva_engine.recipes``), the animation's camera views from ``CAMERA_PRESETS``, and each number
-field's bounds and default from the form's schema (``AvatarForm``, ``AnimationForm``).
+(``eva_engine.recipes``), the animation's camera views from ``CAMERA_PRESETS``, each number
+field's bounds and default from the form's schema (``AvatarForm``, ``AnimationForm``), and each
+field's tooltip from its description there.
 
 The page (``service/static/options.js``) turns a bound into the input's ``min`` / ``max``; an
 exclusive bound becomes the first step inside it there, since the step is the page's choice."""
@@ -47,6 +48,9 @@ class FormOptions(BaseModel):
 
     selects: dict[str, SelectField] = Field(default_factory=dict)
     numbers: dict[str, NumberField] = Field(default_factory=dict)
+    hints: dict[str, str] = Field(
+        default_factory=dict, description="Each field's description in the API's schema, the page's tooltip."
+    )
 
 
 class PageOptions(BaseModel):
@@ -85,6 +89,11 @@ def number_fields(schema: type[BaseModel]) -> dict[str, NumberField]:
     return out
 
 
+def field_hints(schema: type[BaseModel]) -> dict[str, str]:
+    """Every field of ``schema`` that has a description, by name."""
+    return {name: field.description for name, field in schema.model_fields.items() if field.description}
+
+
 def page_options() -> PageOptions:
     presets = [Choice(value=name, label=f"{name} ({p.summary})") for name, p in PRESETS.items()]
     methods = [Choice(value=name, label=f"{name} ({m.summary})") for name, m in METHODS.items()]
@@ -99,10 +108,12 @@ def page_options() -> PageOptions:
                     "method": SelectField(choices=methods),
                 },
                 numbers=number_fields(AvatarForm),
+                hints=field_hints(AvatarForm),
             ),
             "animate-form": FormOptions(
                 selects={"camera": SelectField(choices=cameras, default=camera_default)},
                 numbers=number_fields(AnimationForm),
+                hints=field_hints(AnimationForm),
             ),
         }
     )

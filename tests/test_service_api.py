@@ -80,6 +80,17 @@ def test_the_page_offers_the_registered_presets_and_methods(client):
     assert "/page/options" in client.get("/openapi.json").json()["paths"]
 
 
+def test_the_page_s_tooltips_are_the_api_s_field_descriptions(client):
+    """One text per option: the page shows the schema's own description, and the HTML types none."""
+    forms = client.get("/page/options").json()["forms"]
+    for form_id, schema in (("upload-form", AvatarForm), ("animate-form", AnimationForm)):
+        hints = forms[form_id]["hints"]
+        described = {n: f.description for n, f in schema.model_fields.items() if f.description}
+        assert hints == described and hints, form_id
+    assert "antialiased" in forms["upload-form"]["hints"]["face_closeups"]
+    assert "title=" not in _form_html(client, "upload-form")
+
+
 def test_the_page_bounds_its_fields_as_the_api_does(client):
     """Every number field's bounds are where the API starts to refuse (an inclusive bound is
     accepted and a hair past it is not; an exclusive one is refused and a hair inside accepted);

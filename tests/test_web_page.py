@@ -20,6 +20,7 @@ from helpers import service as svc
 from helpers.service import EVA, free_port, log_tail, start_process, start_worker, stop, wait_for
 from PIL import Image
 
+from jobs.options import JobOptions
 from service import headless_browser
 
 signer_video = svc.signer_video  # fixtures
@@ -124,6 +125,8 @@ def avatar(site, signer_video):
     # Close-ups asked for on a video no larger than its frames: none are cut, the avatar is made.
     closeups = d.find_element(*_by("#face-closeups"))
     assert not closeups.is_selected()  # JobOptions' default
+    tooltip = d.execute_script("return arguments[0].closest('label').title", closeups)
+    assert tooltip == JobOptions.model_fields["face_closeups"].description
     closeups.click()
     d.find_element(*_by("#upload-button")).click()
     stages = set()

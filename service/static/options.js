@@ -21,7 +21,8 @@ function optionEntries(select) {
 }
 
 // Fill every form of ``options.forms`` in ``doc``: options appended to each select (after any the
-// HTML has, such as "the preset's"), bounds and placeholder on each number input.
+// HTML has, such as "the preset's"), bounds and placeholder on each number input, and each
+// field's description as the tooltip of its label (of the field itself when it has none).
 function applyPageOptions(doc, options) {
   for (const [formId, form] of Object.entries(options.forms)) {
     const element = doc.getElementById(formId);
@@ -38,6 +39,11 @@ function applyPageOptions(doc, options) {
       if (!input) continue;
       const bounds = htmlBounds(field, Number(input.getAttribute("step") || 1));
       for (const [attr, value] of Object.entries(bounds)) input.setAttribute(attr, String(value));
+    }
+    for (const [name, hint] of Object.entries(form.hints || {})) {
+      const field = element.querySelector(`[name="${name}"]`);
+      if (!field) continue;
+      (field.closest("label") || field).setAttribute("title", hint);
     }
   }
 }

@@ -24,10 +24,11 @@ test("the default choice is the selected one", () => {
   assert.deepEqual(optionEntries({ choices: [{ value: "eva", label: "eva" }], default: null }), [["eva", "eva", false]]);
 });
 
-function fakeElement(attrs = {}) {
+function fakeElement(attrs = {}, label = null) {
   return {
     attrs: { ...attrs },
     children: [],
+    closest(selector) { return selector === "label" ? label : null; },
     getAttribute(name) { return name in this.attrs ? this.attrs[name] : null; },
     setAttribute(name, value) { this.attrs[name] = value; },
     append(child) { this.children.push(child); },
@@ -38,11 +39,17 @@ test("the options fill the named form's selects and number inputs", () => {
   globalThis.Option = function Option(text, value, defaultSelected, selected) {
     Object.assign(this, { text, value, defaultSelected, selected });
   };
-  const preset = fakeElement();
+  const presetLabel = fakeElement();
+  const preset = fakeElement({}, presetLabel);
   const scale = fakeElement({ step: "0.01", placeholder: "preset" });
   const form = {
     querySelector(selector) {
-      return { 'select[name="preset"]': preset, 'input[type="number"][name="image_scale"]': scale }[selector] || null;
+      return {
+        'select[name="preset"]': preset,
+        '[name="preset"]': preset,
+        'input[type="number"][name="image_scale"]': scale,
+        '[name="image_scale"]': scale,
+      }[selector] || null;
     },
   };
   const doc = { getElementById: (id) => (id === "upload-form" ? form : null) };
@@ -51,11 +58,15 @@ test("the options fill the named form's selects and number inputs", () => {
       "upload-form": {
         selects: { preset: { choices: [{ value: "fast", label: "fast (f)" }], default: "fast" }, absent: { choices: [] } },
         numbers: { image_scale: { exclusive_minimum: 0, maximum: 2, default: null }, absent: { minimum: 1 } },
+        hints: { preset: "Training preset.", image_scale: "Overrides the preset's.", absent: "none" },
       },
       "no-such-form": { selects: {}, numbers: {} },
     },
   });
   assert.equal(preset.children.length, 1);
   assert.deepEqual({ ...preset.children[0] }, { text: "fast (f)", value: "fast", defaultSelected: true, selected: true });
-  assert.deepEqual(scale.attrs, { step: "0.01", placeholder: "preset", min: "0.01", max: "2" });
+  assert.deepEqual(scale.attrs, { step: "0.01", placeholder: "preset", min: "0.01", max: "2", title: "Overrides the preset's." });
+  // The tooltip goes on the label that holds the field, where the pointer rests on its text too.
+  assert.deepEqual(presetLabel.attrs, { title: "Training preset." });
+  assert.deepEqual(preset.attrs, {});
 });
