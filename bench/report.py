@@ -37,7 +37,7 @@ from bench.stats import compare_paired, fmt, mean_std, zero_crossing
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 DOCS = ("README.md", "docs/*.md")
-FIGURE = re.compile(r"(<!-- bench figure: (?P<name>[\w./@%,+-]+) -->)(?P<body>.*?)(<!-- /bench figure -->)")
+FIGURE = re.compile(r"(<!-- bench figure: (?P<name>[\w./@%,+*-]+) -->)(?P<body>.*?)(<!-- /bench figure -->)")
 BLOCK = re.compile(r"(<!-- bench report: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /bench report -->)", re.S)
 
 
@@ -2294,41 +2294,57 @@ VALUE = re.compile(
 )
 
 
+def _leaves(node, keys: list[str], where: str) -> list:
+    """The values at ``keys`` under ``node``: a list by its index, ``*`` every item of a list or
+    value of a dict; ``_`` stands for a key's spaces (``steps_seconds/pip_install``). A key may
+    hold slashes (train.json's "<dataset>/<preset>[/<method>]@<label>"): the longest run of parts
+    that names one wins, as "<dataset>/<preset>" is a key of its own too."""
+    if not keys:
+        return [node]
+    if keys[0] == "*":
+        items = node if isinstance(node, list) else list(node.values()) if isinstance(node, dict) else None
+        if not items:
+            raise KeyError(f"{where}: nothing under '*'")
+        return [leaf for item in items for leaf in _leaves(item, keys[1:], where)]
+    for take in range(len(keys), 0, -1):
+        key = "/".join(keys[:take])
+        if isinstance(node, list) and take == 1 and key.isdigit() and int(key) < len(node):
+            return _leaves(node[int(key)], keys[take:], where)
+        if isinstance(node, dict):
+            named = {k.replace(" ", "_"): k for k in node} | {k: k for k in node}
+            if key in named:
+                return _leaves(node[named[key]], keys[take:], where)
+    raise KeyError(f"{where} has no {'/'.join(keys)!r}")
+
+
 def value(results: Path, name: str) -> str:
     """The figure ``value/<result>/<key>/.../<key>@<digits>[+][,][x<scale>][%]``: one number of a
     result file, by its keys (a list by its index), times ``scale``, with ``digits`` decimals
     (``+``: signed either way; ``,``: thousands separated) and a true minus sign, e.g.
     ``value/expressions/bounded/fits/runs/5/expression_mm@2`` -> "2.95". The result is the longest
-    leading part of the path that names a ``.json`` under ``results``."""
+    leading part of the path that names a ``.json`` under ``results``. A ``*`` in it (``run*``: the
+    runs of a set) or as a key (every item of a list or dict there) takes them all, and the figure
+    is their range as printed: "9.0–9.8" ("−0.9 to +2.5" when signed), one number when they print
+    the same."""
     m = VALUE.fullmatch(name)
     if m is None:
         raise KeyError(f"value figure {name!r} is not <result>/<key>/...@<digits>[+][,][x<scale>][%]")
     parts = m["path"].split("/")
     for cut in range(len(parts) - 1, 0, -1):
-        file = results / ("/".join(parts[:cut]) + ".json")
-        if file.is_file():
+        files = sorted(f for f in results.glob("/".join(parts[:cut]) + ".json") if f.is_file())
+        if files:
             break
     else:
         raise KeyError(f"value figure {name!r} names no result file")
-    node = json.loads(file.read_text())
-    keys = parts[cut:]
-    while keys:
-        # A key may hold slashes (train.json's "<dataset>/<preset>[/<method>]@<label>"): the
-        # longest run of parts that names one, as "<dataset>/<preset>" is a key of its own too.
-        for take in range(len(keys), 0, -1):
-            key = "/".join(keys[:take])
-            if isinstance(node, list) and take == 1 and key.isdigit() and int(key) < len(node):
-                node = node[int(key)]
-                break
-            if isinstance(node, dict) and key in node:
-                node = node[key]
-                break
-        else:
-            raise KeyError(f"{file.name} has no {'/'.join(parts[cut:])!r}")
-        keys = keys[take:]
-    number = float(node) * int(m["scale"] or 1)
-    text = f"{number:{m['sign']}{m['thousands']}.{m['digits']}f}"
-    return text.replace("-", "\u2212") + m["percent"]
+    leaves = [leaf for f in files for leaf in _leaves(json.loads(f.read_text()), parts[cut:], f.name)]
+    numbers = sorted(float(leaf) * int(m["scale"] or 1) for leaf in leaves)
+
+    def text(number: float) -> str:
+        return f"{number:{m['sign']}{m['thousands']}.{m['digits']}f}".replace("-", "\u2212")
+
+    low, high = text(numbers[0]), text(numbers[-1])
+    span = low if low == high else f"{low} to {high}" if m["sign"] else f"{low}\u2013{high}"
+    return span + m["percent"]
 
 
 FIGURES: dict[str, Callable[[Path], str]] = {

@@ -158,6 +158,26 @@ def test_a_value_figure_reads_one_number_of_a_result_by_its_keys(tmp_path):
     assert "-->1<" in report.render(figure.format(""), tmp_path)
 
 
+def test_a_value_figure_with_a_star_is_the_range_of_every_item_there(tmp_path):
+    runs = {"runs": [{"s": 9.81, "gap": 2.5}, {"s": 9.02, "gap": -0.9}, {"s": 9.4, "gap": 0.1}]}
+    (tmp_path / "r.json").write_text(json.dumps(runs | {"by": {"a": {"s": 3.0}, "b": {"s": 3.04}}}))
+    figure = "<!-- bench figure: value/r/{} -->x<!-- /bench figure -->"
+    assert "-->9.0–9.8<" in report.render(figure.format("runs/*/s@1"), tmp_path)
+    assert "-->−0.9 to +2.5<" in report.render(figure.format("runs/*/gap@1+"), tmp_path)  # signed
+    assert "-->3.0<" in report.render(figure.format("by/*/s@1"), tmp_path)  # one as printed
+    (tmp_path / "k.json").write_text(json.dumps({"steps": {"pip install": 34.04}}))
+    spaced = "<!-- bench figure: value/k/steps/pip_install@1 -->x<!-- /bench figure -->"
+    assert "-->34.0<" in report.render(spaced, tmp_path)  # "_" for a key's space
+    (tmp_path / "set").mkdir()
+    for run, p50 in enumerate((27.8, 27.4, 28.04)):
+        (tmp_path / "set" / f"run{run + 1}.json").write_text(json.dumps({"rows": [{"p50": p50}]}))
+    runs = "<!-- bench figure: value/set/run*/rows/0/p50@1 -->x<!-- /bench figure -->"
+    assert "-->27.4–28.0<" in report.render(runs, tmp_path)  # over files
+    for bad, reason in (("runs/*/nope@1", "has no"), ("runs/0/s/*@1", "nothing under")):
+        with pytest.raises(KeyError, match=reason):
+            report.render(figure.format(bad), tmp_path)
+
+
 def test_a_paper_gap_figure_pairs_two_methods_of_one_or_two_files_by_seed(tmp_path):
     def doc(*lpips_by_seed: float) -> dict:
         runs = [{"seed": s, "full": {"lpips_vgg": v, "psnr": 20.0 + v}} for s, v in enumerate(lpips_by_seed)]
