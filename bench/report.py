@@ -37,7 +37,9 @@ from bench.stats import compare_paired, fmt, mean_std, zero_crossing
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 DOCS = ("README.md", "docs/*.md")
-FIGURE = re.compile(r"(<!-- bench figure: (?P<name>[\w./@%,+*-]+) -->)(?P<body>.*?)(<!-- /bench figure -->)")
+FIGURE = re.compile(
+    r"(<!-- bench figure: (?P<name>[\w./@%,+*~'-]+) -->)(?P<body>.*?)(<!-- /bench figure -->)"
+)
 BLOCK = re.compile(r"(<!-- bench report: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /bench report -->)", re.S)
 
 
@@ -2292,13 +2294,21 @@ def paper_gap(results: Path, name: str) -> str:
 VALUE = re.compile(
     r"(?P<path>.+?)@(?P<digits>\d)(?P<sign>\+?)(?P<thousands>,?)(?:x(?P<scale>\d+))?(?P<percent>%?)"
 )
+# A list of numbers summed up by a last key of this name (``fit_iou/mean``).
+SUMMARIES: dict[str, Callable[[list[float]], float]] = {
+    "mean": statistics.fmean,
+    "median": statistics.median,
+    "min": min,
+    "max": max,
+}
 
 
 def _leaves(node, keys: list[str], where: str) -> list:
     """The values at ``keys`` under ``node``: a list by its index, ``*`` every item of a list or
-    value of a dict; ``_`` stands for a key's spaces (``steps_seconds/pip_install``). A key may
-    hold slashes (train.json's "<dataset>/<preset>[/<method>]@<label>"): the longest run of parts
-    that names one wins, as "<dataset>/<preset>" is a key of its own too."""
+    value of a dict; ``_`` stands for a key's spaces (``steps_seconds/pip_install``); a last key
+    of ``SUMMARIES`` sums a list of numbers up. A key may hold slashes (train.json's
+    "<dataset>/<preset>[/<method>]@<label>"): the longest run of parts that names one wins, as
+    "<dataset>/<preset>" is a key of its own too."""
     if not keys:
         return [node]
     if keys[0] == "*":
@@ -2306,6 +2316,8 @@ def _leaves(node, keys: list[str], where: str) -> list:
         if not items:
             raise KeyError(f"{where}: nothing under '*'")
         return [leaf for item in items for leaf in _leaves(item, keys[1:], where)]
+    if len(keys) == 1 and keys[0] in SUMMARIES and isinstance(node, list) and node:
+        return [SUMMARIES[keys[0]]([float(x) for x in node])]
     for take in range(len(keys), 0, -1):
         key = "/".join(keys[:take])
         if isinstance(node, list) and take == 1 and key.isdigit() and int(key) < len(node):
@@ -2317,34 +2329,80 @@ def _leaves(node, keys: list[str], where: str) -> list:
     raise KeyError(f"{where} has no {'/'.join(keys)!r}")
 
 
-def value(results: Path, name: str) -> str:
-    """The figure ``value/<result>/<key>/.../<key>@<digits>[+][,][x<scale>][%]``: one number of a
-    result file, by its keys (a list by its index), times ``scale``, with ``digits`` decimals
-    (``+``: signed either way; ``,``: thousands separated) and a true minus sign, e.g.
-    ``value/expressions/bounded/fits/runs/5/expression_mm@2`` -> "2.95". The result is the longest
-    leading part of the path that names a ``.json`` under ``results``. A ``*`` in it (``run*``: the
-    runs of a set) or as a key (every item of a list or dict there) takes them all, and the figure
-    is their range as printed: "9.0–9.8" ("−0.9 to +2.5" when signed), one number when they print
-    the same."""
-    m = VALUE.fullmatch(name)
-    if m is None:
-        raise KeyError(f"value figure {name!r} is not <result>/<key>/...@<digits>[+][,][x<scale>][%]")
-    parts = m["path"].split("/")
+def _numbers(results: Path, path: str) -> list[float]:
+    """Every number ``<result>/<key>/...`` names (see ``value``). The result is the longest leading
+    part of the path that names a ``.json`` under ``results``; a ``*`` in it takes every file."""
+    parts = path.split("/")
     for cut in range(len(parts) - 1, 0, -1):
         files = sorted(f for f in results.glob("/".join(parts[:cut]) + ".json") if f.is_file())
         if files:
             break
     else:
-        raise KeyError(f"value figure {name!r} names no result file")
-    leaves = [leaf for f in files for leaf in _leaves(json.loads(f.read_text()), parts[cut:], f.name)]
-    numbers = sorted(float(leaf) * int(m["scale"] or 1) for leaf in leaves)
+        raise KeyError(f"figure path {path!r} names no result file")
+    return [float(x) for f in files for x in _leaves(json.loads(f.read_text()), parts[cut:], f.name)]
 
-    def text(number: float) -> str:
-        return f"{number:{m['sign']}{m['thousands']}.{m['digits']}f}".replace("-", "\u2212")
 
-    low, high = text(numbers[0]), text(numbers[-1])
+def _one(results: Path, path: str) -> float:
+    numbers = _numbers(results, path)
+    if len(numbers) != 1:
+        raise KeyError(f"figure path {path!r} names {len(numbers)} numbers, not one")
+    return numbers[0]
+
+
+def _text(number: float, spec: str) -> str:
+    return format(number, spec).replace("-", "\u2212")
+
+
+def value(results: Path, name: str) -> str:
+    """The figure ``value/<result>/<key>/.../<key>@<digits>[+][,][x<scale>][%]``: one number of a
+    result file, by its keys (a list by its index), times ``scale``, with ``digits`` decimals
+    (``+``: signed either way; ``,``: thousands separated) and a true minus sign, e.g.
+    ``value/expressions/bounded/fits/runs/5/expression_mm@2`` -> "2.95"; a last key ``mean``,
+    ``median``, ``min`` or ``max`` sums up a list there. A ``*`` in the result's name (``run*``:
+    the runs of a set) or as a key (every item of a list or dict there) takes them all, and the
+    figure is their range as printed: "9.0–9.8" ("−0.9 to +2.5" when signed), one number when they
+    print the same."""
+    m = VALUE.fullmatch(name)
+    if m is None:
+        raise KeyError(f"value figure {name!r} is not <result>/<key>/...@<digits>[+][,][x<scale>][%]")
+    numbers = sorted(x * int(m["scale"] or 1) for x in _numbers(results, m["path"]))
+    spec = f"{m['sign']}{m['thousands']}.{m['digits']}f"
+    low, high = _text(numbers[0], spec), _text(numbers[-1], spec)
     span = low if low == high else f"{low} to {high}" if m["sign"] else f"{low}\u2013{high}"
     return span + m["percent"]
+
+
+TWO_VALUES = re.compile(r"(?P<a>.+?)~(?P<b>.+?)@(?P<digits>\d)(?:x(?P<scale>\d+))?")
+
+
+def change(results: Path, name: str) -> str:
+    """The figure ``change/<path a>~<path b>@<digits>``: a against b in percent, signed, e.g.
+    ``change/closeup_levers/runs/3/truth/lpips_vgg~closeup_levers/runs/0/truth/lpips_vgg@1`` ->
+    "+2.7%" (each path as ``value``'s, naming one number)."""
+    m = TWO_VALUES.fullmatch(name)
+    if m is None:
+        raise KeyError(f"change figure {name!r} is not <path a>~<path b>@<digits>")
+    gap = 100.0 * (_one(results, m["a"]) / _one(results, m["b"]) - 1.0)
+    return _text(gap, f"+.{m['digits']}f") + "%"
+
+
+def difference(results: Path, name: str) -> str:
+    """The figure ``difference/<path a>~<path b>@<digits>[x<scale>]``: a minus b, times ``scale``,
+    signed, e.g. "+5.9" (each path as ``value``'s, naming one number)."""
+    m = TWO_VALUES.fullmatch(name)
+    if m is None:
+        raise KeyError(f"difference figure {name!r} is not <path a>~<path b>@<digits>[x<scale>]")
+    gap = (_one(results, m["a"]) - _one(results, m["b"])) * int(m["scale"] or 1)
+    return _text(gap, f"+.{m['digits']}f")
+
+
+def ratio(results: Path, name: str) -> str:
+    """The figure ``ratio/<path a>~<path b>@<digits>``: a over b, e.g. "1.4" (each path as
+    ``value``'s, naming one number)."""
+    m = TWO_VALUES.fullmatch(name)
+    if m is None:
+        raise KeyError(f"ratio figure {name!r} is not <path a>~<path b>@<digits>")
+    return _text(_one(results, m["a"]) / _one(results, m["b"]), f".{m['digits']}f")
 
 
 FIGURES: dict[str, Callable[[Path], str]] = {
@@ -2365,6 +2423,9 @@ FIGURE_FAMILIES: dict[str, Callable[[Path, str], str]] = {
     "eval_gap": eval_gap,
     "expr_gap": expr_gap,
     "value": value,
+    "change": change,
+    "difference": difference,
+    "ratio": ratio,
     "novel_pose_gap": novel_pose_gap,
     "novel_pose_span": novel_pose_span,
     "novel_pose_ratio": novel_pose_ratio,

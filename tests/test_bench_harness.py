@@ -178,6 +178,26 @@ def test_a_value_figure_with_a_star_is_the_range_of_every_item_there(tmp_path):
             report.render(figure.format(bad), tmp_path)
 
 
+def test_change_and_ratio_figures_compare_two_numbers_of_the_results(tmp_path):
+    runs = [{"lpips": 0.1647, "iou": [0.8, 0.9], "s": 683.0}, {"lpips": 0.1691, "iou": [0.84], "s": 921.0}]
+    (tmp_path / "levers.json").write_text(json.dumps({"runs": runs}))
+    (tmp_path / "other.json").write_text(json.dumps({"lpips": 0.1573}))
+
+    def figure(name: str) -> str:
+        return report.render(f"<!-- bench figure: {name} -->x<!-- /bench figure -->", tmp_path)
+
+    assert "-->+2.7%<" in figure("change/levers/runs/1/lpips~levers/runs/0/lpips@1")
+    assert "-->−4.5%<" in figure("change/other/lpips~levers/runs/0/lpips@1")  # across files
+    assert "-->1.35<" in figure("ratio/levers/runs/1/s~levers/runs/0/s@2")
+    assert "-->+4.4<" in figure("difference/levers/runs/1/lpips~levers/runs/0/lpips@1x1000")
+    assert "-->0.850<" in figure("value/levers/runs/0/iou/mean@3")  # a list summed up
+    assert "-->0.80–0.84<" in figure("value/levers/runs/*/iou/min@2")
+    with pytest.raises(KeyError, match="2 numbers, not one"):
+        figure("change/levers/runs/*/lpips~other/lpips@1")
+    with pytest.raises(KeyError, match="is not"):
+        figure("ratio/levers/runs/1/s@2")
+
+
 def test_a_paper_gap_figure_pairs_two_methods_of_one_or_two_files_by_seed(tmp_path):
     def doc(*lpips_by_seed: float) -> dict:
         runs = [{"seed": s, "full": {"lpips_vgg": v, "psnr": 20.0 + v}} for s, v in enumerate(lpips_by_seed)]
