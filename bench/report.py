@@ -21,6 +21,7 @@ wrong number in the docs.
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import re
 import statistics
@@ -2305,16 +2306,19 @@ SUMMARIES: dict[str, Callable[[list[float]], float]] = {
 
 def _leaves(node, keys: list[str], where: str) -> list:
     """The values at ``keys`` under ``node``: a list by its index, ``*`` every item of a list or
-    value of a dict; ``_`` stands for a key's spaces (``steps_seconds/pip_install``); a last key
-    of ``SUMMARIES`` sums a list of numbers up. A key may hold slashes (train.json's
-    "<dataset>/<preset>[/<method>]@<label>"): the longest run of parts that names one wins, as
-    "<dataset>/<preset>" is a key of its own too."""
+    value of a dict (``base_s*``: of the keys it matches); ``_`` stands for a key's spaces
+    (``steps_seconds/pip_install``); a last key of ``SUMMARIES`` sums a list of numbers up. A key
+    may hold slashes (train.json's "<dataset>/<preset>[/<method>]@<label>"): the longest run of
+    parts that names one wins, as "<dataset>/<preset>" is a key of its own too."""
     if not keys:
         return [node]
-    if keys[0] == "*":
-        items = node if isinstance(node, list) else list(node.values()) if isinstance(node, dict) else None
+    if "*" in keys[0]:
+        if isinstance(node, dict):
+            items = [v for k, v in node.items() if fnmatch.fnmatchcase(k.replace(" ", "_"), keys[0])]
+        else:
+            items = node if isinstance(node, list) and keys[0] == "*" else []
         if not items:
-            raise KeyError(f"{where}: nothing under '*'")
+            raise KeyError(f"{where}: nothing under {keys[0]!r}")
         return [leaf for item in items for leaf in _leaves(item, keys[1:], where)]
     if len(keys) == 1 and keys[0] in SUMMARIES and isinstance(node, list) and node:
         return [SUMMARIES[keys[0]]([float(x) for x in node])]
@@ -2372,6 +2376,20 @@ def value(results: Path, name: str) -> str:
     return span + m["percent"]
 
 
+def stat(results: Path, name: str) -> str:
+    """The figure ``stat/<result>/<key>/...@<digits>[x<scale>]``: the mean ± sample standard
+    deviation of every number the path names (``*`` over seeds or runs, as ``value``'s), e.g.
+    ``stat/expressions/expressions_sampling/cases/base_s*/stages/render/eyes/range_ratio@2`` ->
+    "0.51 ± 0.12"."""
+    m = VALUE.fullmatch(name)
+    if m is None or m["sign"] or m["thousands"] or m["percent"]:
+        raise KeyError(f"stat figure {name!r} is not <result>/<key>/...@<digits>[x<scale>]")
+    numbers = _numbers(results, m["path"])
+    if len(numbers) < 2:
+        raise KeyError(f"stat figure {name!r} names {len(numbers)} number, not a spread")
+    return fmt(mean_std(numbers), scale=int(m["scale"] or 1), digits=int(m["digits"]))
+
+
 TWO_VALUES = re.compile(r"(?P<a>.+?)~(?P<b>.+?)@(?P<digits>\d)(?:x(?P<scale>\d+))?")
 
 
@@ -2424,6 +2442,7 @@ FIGURE_FAMILIES: dict[str, Callable[[Path, str], str]] = {
     "expr_gap": expr_gap,
     "value": value,
     "change": change,
+    "stat": stat,
     "difference": difference,
     "ratio": ratio,
     "novel_pose_gap": novel_pose_gap,

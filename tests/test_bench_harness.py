@@ -165,6 +165,7 @@ def test_a_value_figure_with_a_star_is_the_range_of_every_item_there(tmp_path):
     assert "-->9.0–9.8<" in report.render(figure.format("runs/*/s@1"), tmp_path)
     assert "-->−0.9 to +2.5<" in report.render(figure.format("runs/*/gap@1+"), tmp_path)  # signed
     assert "-->3.0<" in report.render(figure.format("by/*/s@1"), tmp_path)  # one as printed
+    assert "-->3.0<" in report.render(figure.format("by/a*/s@1"), tmp_path)  # the keys it matches
     (tmp_path / "k.json").write_text(json.dumps({"steps": {"pip install": 34.04}}))
     spaced = "<!-- bench figure: value/k/steps/pip_install@1 -->x<!-- /bench figure -->"
     assert "-->34.0<" in report.render(spaced, tmp_path)  # "_" for a key's space
@@ -191,6 +192,9 @@ def test_change_and_ratio_figures_compare_two_numbers_of_the_results(tmp_path):
     assert "-->1.35<" in figure("ratio/levers/runs/1/s~levers/runs/0/s@2")
     assert "-->+4.4<" in figure("difference/levers/runs/1/lpips~levers/runs/0/lpips@1x1000")
     assert "-->0.850<" in figure("value/levers/runs/0/iou/mean@3")  # a list summed up
+    assert "-->166.9 ± 3.1<" in figure("stat/levers/runs/*/lpips@1x1000")  # mean ± std over runs
+    with pytest.raises(KeyError, match="not a spread"):
+        figure("stat/levers/runs/0/lpips@1")
     assert "-->0.80–0.84<" in figure("value/levers/runs/*/iou/min@2")
     with pytest.raises(KeyError, match="2 numbers, not one"):
         figure("change/levers/runs/*/lpips~other/lpips@1")
