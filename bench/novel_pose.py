@@ -157,6 +157,15 @@ ROWS: dict[str, Row] = {
         "the default, rasterized in gsplat's antialiased mode (issue 39)",
         (*DEFAULT, 'avatar.rasterize_mode="antialiased"'),
     ),
+    "antialiased_eps01": Row(
+        "the default, rasterized in gsplat's antialiased mode with Mip-Splatting's 2D filter of 0.1 px^2 "
+        "(issue 39)",
+        (*DEFAULT, 'avatar.rasterize_mode="antialiased"', "avatar.eps2d=0.1"),
+    ),
+    "classic_eps01": Row(
+        "the default, its classic rasterization's 2D dilation 0.1 px^2 instead of 3DGS's 0.3 (issue 39)",
+        (*DEFAULT, "avatar.eps2d=0.1"),
+    ),
     "face_closeups_antialiased": Row(
         "the default, trained on the face close-ups too, rasterized in gsplat's antialiased mode (issue 39)",
         (*DEFAULT, "face_view.weight=1", 'avatar.rasterize_mode="antialiased"'),

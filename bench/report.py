@@ -152,10 +152,10 @@ def load_each(model: type[BaseModel], pattern: str, results: Path) -> list[tuple
 # ----------------------------------------------------------------------------- sections
 
 
-def _mean_std(stat: Stat, scale: float = 1e3) -> str:
+def _mean_std(stat: Stat, scale: float = 1e3, digits: int = 1) -> str:
     if stat.n < 2:
-        return f"{stat.mean * scale:.1f}"
-    return f"{stat.mean * scale:.1f} ± {stat.std * scale:.1f}"
+        return f"{stat.mean * scale:.{digits}f}"
+    return f"{stat.mean * scale:.{digits}f} ± {stat.std * scale:.{digits}f}"
 
 
 def _seeds(seeds: list[int]) -> str:
@@ -1677,7 +1677,7 @@ def novel_pose_gaps(
 ) -> dict[tuple[str, str], tuple[str, dict]]:
     """``row`` against ``baseline`` in ``<result>.json`` (``bench novel_pose``), paired by seed:
     {(split, region): ``stats.compare_paired``'s (verdict, mean_std of the per-seed relative gaps
-    in %)}; region ``debris`` for the debris."""
+    in %)}; regions ``debris`` and ``holes`` for the debris and the holes."""
     doc = load(NovelPose, result, results)
     by_seed = {name: {r.seed: r for r in doc.methods[name].runs} for name in (baseline, row)}
     seeds = sorted(by_seed[baseline])
@@ -1687,54 +1687,81 @@ def novel_pose_gaps(
     runs = [r for by in by_seed.values() for r in by.values()]
     closeups = all(s.closeup is not None for r in runs for s in r.splits.values())
     for split in NOVEL_POSE_SPLITS:
-        for region in ("full", "hand", "face", "arm", "debris", *(("closeup",) if closeups else ())):
+        for region in ("full", "hand", "face", "arm", "debris", "holes", *(("closeup",) if closeups else ())):
 
             def value(run: NovelPoseRun, split: str = split, region: str = region) -> float:
                 s = run.splits[split]
-                return s.debris if region == "debris" else getattr(s, region)[metric]
+                return getattr(s, region) if region in ("debris", "holes") else getattr(s, region)[metric]
 
             values = {name: [value(runs[k]) for k in seeds] for name, runs in by_seed.items()}
-            lower = region == "debris" or "lpips" in metric
+            lower = region in ("debris", "holes") or "lpips" in metric
             out[split, region] = compare_paired(values[row], values[baseline], lower_is_better=lower)
     return out
 
 
-# The face close-ups on the synthetic novel-pose benchmark (``novel_pose_closeups/``): rows against
-# the default, and the regions the close-ups bear on.
-NOVEL_POSE_CLOSEUP_ROWS = {
-    "face_closeups": "close-ups",
-    "antialiased": "antialiased",
-    "face_closeups_antialiased": "close-ups, antialiased",
-    "face_closeups_antialiased_eps01": "close-ups, antialiased, 0.1 px² filter",
-}
-NOVEL_POSE_CLOSEUP_REGIONS = {"closeup": "head at 256 px", "face": "face in the frame", "full": "full frame"}
+def novel_pose_rows(
+    rows: dict[str, str], regions: dict[str, str], result: str, baseline: str
+) -> Callable[[Path], list[str]]:
+    """A section: each of ``rows`` of ``<result>.json`` (``bench novel_pose``) against
+    ``baseline``, per split and region (LPIPS-VGG ×1000; ``holes`` in %), mean ± std over the
+    seeds, and the gap paired by seed with its verdict."""
+
+    def section(results: Path) -> list[str]:
+        doc = load(NovelPose, result, results)
+        gaps = {row: novel_pose_gaps(results, result=result, row=row, baseline=baseline) for row in rows}
+        seeds = _seeds(doc.methods[baseline].seeds)
+        lines = [
+            f"| LPIPS-VGG ×1000, seeds {seeds} (gap: per seed) | the default | "
+            + " | ".join(rows.values())
+            + " |",
+            "|---|---:|" + "---:|" * len(rows),
+        ]
+        for split in NOVEL_POSE_SPLITS:
+            for region, label in regions.items():
+
+                def stat(m, split: str = split, region: str = region) -> Stat:
+                    s = m.splits[split]
+                    return (
+                        _scaled(s.holes, 1e2)
+                        if region == "holes"
+                        else _scaled(getattr(s, region)["lpips_vgg"], 1e3)
+                    )
+
+                digits = 2 if region == "holes" else 1
+                cells = [_mean_std(stat(doc.methods[baseline]), 1.0, digits)]
+                for row in rows:
+                    verdict, g = gaps[row][split, region]
+                    gap = _percent_gap(g["mean"], g["std"])
+                    cells.append(f"{_mean_std(stat(doc.methods[row]), 1.0, digits)} ({gap}, {verdict})")
+                lines.append(f"| {split}: {label} | " + " | ".join(cells) + " |")
+        return lines
+
+    return section
 
 
-def novel_pose_closeups(results: Path) -> list[str]:
-    """Each close-up row of ``novel_pose_closeups/novel_pose_closeups.json`` against the default,
-    per split and region: LPIPS-VGG ×1000, mean ± std over the seeds, and the paired gap."""
-    result, baseline = "novel_pose_closeups/novel_pose_closeups", "thin_blink_colours"
-    doc = load(NovelPose, result, results)
-    gaps = {
-        row: novel_pose_gaps(results, result=result, row=row, baseline=baseline)
-        for row in NOVEL_POSE_CLOSEUP_ROWS
-    }
-    seeds = _seeds(doc.methods[baseline].seeds)
-    lines = [
-        f"| LPIPS-VGG ×1000, seeds {seeds} (gap: per seed) | the default | "
-        + " | ".join(NOVEL_POSE_CLOSEUP_ROWS.values())
-        + " |",
-        "|---|---:|" + "---:|" * len(NOVEL_POSE_CLOSEUP_ROWS),
-    ]
-    for split in NOVEL_POSE_SPLITS:
-        for region, label in NOVEL_POSE_CLOSEUP_REGIONS.items():
-            stats = {row: getattr(m.splits[split], region)["lpips_vgg"] for row, m in doc.methods.items()}
-            cells = [_mean_std(stats[baseline])]
-            for row in NOVEL_POSE_CLOSEUP_ROWS:
-                verdict, g = gaps[row][split, region]
-                cells.append(f"{_mean_std(stats[row])} ({_percent_gap(g['mean'], g['std'])}, {verdict})")
-            lines.append(f"| {split}: {label} | " + " | ".join(cells) + " |")
-    return lines
+# The face close-ups and the 2D filter on the synthetic novel-pose benchmark
+# (``novel_pose_closeups/``): rows against the default, and the regions they bear on.
+novel_pose_closeups = novel_pose_rows(
+    {
+        "face_closeups": "close-ups",
+        "antialiased": "antialiased",
+        "face_closeups_antialiased": "close-ups, antialiased",
+        "face_closeups_antialiased_eps01": "close-ups, antialiased, 0.1 px² filter",
+    },
+    {"closeup": "head at 256 px", "face": "face in the frame", "full": "full frame"},
+    result="novel_pose_closeups/novel_pose_closeups",
+    baseline="thin_blink_colours",
+)
+novel_pose_filters = novel_pose_rows(
+    {
+        "antialiased": "antialiased, 0.3 px²",
+        "antialiased_eps01": "antialiased, 0.1 px²",
+        "classic_eps01": "classic, 0.1 px²",
+    },
+    {"full": "full frame", "face": "face", "hand": "hand", "closeup": "head at 256 px", "holes": "holes, %"},
+    result="novel_pose_closeups/novel_pose_closeups",
+    baseline="thin_blink_colours",
+)
 
 
 def novel_pose_gap(results: Path, name: str) -> str:
@@ -2101,6 +2128,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "novel_pose_before_after": novel_pose_before_after,
     "novel_pose_goals": novel_pose_goals,
     "novel_pose_closeups": novel_pose_closeups,
+    "novel_pose_filters": novel_pose_filters,
     "paper_tables": paper_tables,
     "paper_regime": paper_regime,
     "service_latency": service_latency,
