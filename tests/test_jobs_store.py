@@ -214,14 +214,15 @@ def test_a_job_keeps_frames_out_for_its_quality_report():
 
 
 def test_face_closeups_are_one_job_option():
-    """Off by default: no close-ups cut, none trained on, the classic rasterizer. On: both, and
-    the avatar rasterized antialiased with Mip-Splatting's 2D filter."""
+    """Off by default: no close-ups cut, none trained on, the preset's classic rasterizer (its
+    0.1 px² dilation). On: both, and the avatar rasterized antialiased with Mip-Splatting's 2D
+    filter."""
     off = JobOptions(preset="tiny")
     assert off.preprocess_config(60).face_crops is None
     assert off.train_config(5000).face_view.weight == 0
     assert (off.train_config(5000).avatar.rasterize_mode, off.train_config(5000).avatar.eps2d) == (
         "classic",
-        0.3,
+        0.1,
     )
     on = JobOptions(preset="tiny", face_closeups=True)
     assert on.preprocess_config(60).face_crops is not None

@@ -76,8 +76,9 @@ class AvatarConfig:
         "antialiased" (gsplat's mode, Mip-Splatting's 2D filter): its opacity falls as it widens,
         so a face trained on close-ups at three times the frame's pixels is not drawn thicker and
         darker in the frame (``docs/novel-views.md``, "The face close-ups from new views").
-    eps2d: pixels^2 added to every 2D covariance (3DGS: 0.3; Mip-Splatting's 2D filter: 0.1, about
-        the variance of a one-pixel box filter).
+    eps2d: pixels^2 added to every 2D covariance (3DGS: 0.3, this default, what avatars saved
+        without it were trained with; Mip-Splatting's 2D filter: 0.1, about the variance of a
+        one-pixel box filter, which every preset sets: ``docs/novel-views.md``).
     """
 
     sh_degree: int = 3

@@ -151,6 +151,8 @@ def with_method(config: TrainConfig, method: str) -> TrainConfig:
         init_opacity=0.99 if field else AvatarConfig.init_opacity,
         expression_frames=False,
         expression_colours=False,
+        rasterize_mode="classic",
+        eps2d=AvatarConfig.eps2d,  # 3DGS's rasterizer, as the paper's
     )
     regularizers = GART_REGULARIZERS if switches.objective == "gart" else PAPER_REGULARIZERS
     config = dataclasses.replace(
