@@ -8,8 +8,10 @@ A doc includes a table between two markers; everything between them is this modu
     <!-- /bench report -->
 
 A figure in a sentence is written the same way, inline, by a function of ``FIGURES`` (or, named
-``<family>/<argument>``, of ``FIGURE_FAMILIES``, e.g. ``eval_gap/<result>/<region>.<metric>``, or
-``value/<result>/<key>/...@<digits>``, one number of a result file):
+``<family>/<argument>``, of ``FIGURE_FAMILIES``, e.g. ``eval_gap/<result>/<region>.<metric>``;
+``value/<result>/<key>/...@<digits>``, one number of a result file, or with ``*`` the range of
+several; ``stat/...``, their mean ± std; ``change/<a>~<b>@<digits>``, ``difference/...`` and
+``ratio/...``, two numbers compared):
 
     side views by <!-- bench figure: novel_pose.view.full.cut -->22%<!-- /bench figure -->
 
