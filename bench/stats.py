@@ -14,7 +14,12 @@ def mean_std(values: list[float]) -> dict[str, float]:
     """{"mean", "std", "n"}: the sample standard deviation (0 for one value)."""
     if not values:
         raise ValueError("no values")
-    std = statistics.stdev(values) if len(values) > 1 else 0.0
+    if len(values) < 2:
+        std = 0.0
+    elif all(math.isfinite(v) for v in values):
+        std = statistics.stdev(values)
+    else:  # a gap against a zero: no spread to speak of, and no verdict either
+        std = math.inf
     return {"mean": statistics.fmean(values), "std": std, "n": len(values)}
 
 
@@ -40,7 +45,9 @@ def compare_paired(a: list[float], b: list[float], lower_is_better: bool) -> tup
     same order. Better/worse only when |mean gap| > std of the gaps, with at least 2 seeds."""
     if len(a) != len(b) or not a:
         raise ValueError("paired values need the same, non-zero number of seeds")
-    gaps = mean_std([100.0 * (x - y) / abs(y) if y else math.inf for x, y in zip(a, b, strict=True)])
+    gaps = mean_std(
+        [0.0 if x == y else 100.0 * (x - y) / abs(y) if y else math.inf for x, y in zip(a, b, strict=True)]
+    )
     if len(a) < 2:
         return "too few seeds", gaps
     if abs(gaps["mean"]) <= gaps["std"]:

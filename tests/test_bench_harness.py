@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from bench import cli, report
+from bench import cli, report, stats
 from bench.machine import (
     SCHEMA_VERSION,
     command_line,
@@ -200,6 +200,15 @@ def test_change_and_ratio_figures_compare_two_numbers_of_the_results(tmp_path):
         figure("change/levers/runs/*/lpips~other/lpips@1")
     with pytest.raises(KeyError, match="is not"):
         figure("ratio/levers/runs/1/s@2")
+
+
+def test_a_paired_gap_against_zero_has_no_verdict_and_equal_zeros_no_gap():
+    """A share that is zero in the baseline (holes, debris) gives no relative gap to judge; two
+    zeros are no change. Neither raises."""
+    verdict, gaps = stats.compare_paired([0.1, 0.2], [0.0, 0.0], lower_is_better=True)
+    assert verdict == "no difference" and gaps["std"] == float("inf")
+    verdict, gaps = stats.compare_paired([0.0, 0.0], [0.0, 0.0], lower_is_better=True)
+    assert verdict == "no difference" and (gaps["mean"], gaps["std"]) == (0.0, 0.0)
 
 
 def test_a_paper_gap_figure_pairs_two_methods_of_one_or_two_files_by_seed(tmp_path):
