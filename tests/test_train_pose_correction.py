@@ -4,6 +4,8 @@ its gradients stay finite."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 from helpers.scenes import front_camera, teacher_scene
 
@@ -45,10 +47,11 @@ def test_frozen_avatar_recovers_a_perturbed_pose(anny_model):
 
 
 def test_training_corrects_a_misfitted_frame(anny_model):
-    ds, _ = teacher_scene(anny_model, n_frames=8, size=96, amplitude=0.3)
+    ds, teacher = teacher_scene(anny_model, n_frames=8, size=96, amplitude=0.3)
     truth = ds.params.map(lambda t: t.clone())
     k = ds.splits["train"][1]
     ds.params = perturbed(anny_model, ds.params, k)
+    tiny = preset("tiny")
     cfg = preset(
         "tiny",
         iterations=150,
@@ -57,6 +60,8 @@ def test_training_corrects_a_misfitted_frame(anny_model):
         # The teacher is made of round blobs, the shape the thin-along-the-normal prior is there
         # to prevent: with it, the student cannot match the teacher and bends the pose instead.
         regularizers=RegularizerConfig(lambda_thin=0.0),
+        # Nor could it match blobs drawn with another 2D dilation than its own.
+        avatar=dataclasses.replace(tiny.avatar, eps2d=teacher.config.eps2d),
     )
     result = train_avatar(ds, cfg, body=anny_model)
     row = result.train_indices.index(k)
