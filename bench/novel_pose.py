@@ -181,6 +181,12 @@ ROWS: dict[str, Row] = {
         (*DEFAULT, "face_view.weight=1", 'avatar.rasterize_mode="antialiased"', "avatar.eps2d=0.1"),
         face_crops=True,
     ),
+    "face_closeups_eps01": Row(
+        "the default, trained on the face close-ups too, its classic rasterization's 2D dilation 0.1 px^2 "
+        "(issue 39: the close-ups with every preset's dilation)",
+        (*DEFAULT, "face_view.weight=1", "avatar.eps2d=0.1"),
+        face_crops=True,
+    ),
     "final_prune": Row(
         "a final prune: 3-sigma extent beyond 6 cm of the template, and never-seen Gaussians",
         (*OFF, "strategy.prune_extent=0.06", "strategy.prune_never_seen=true"),

@@ -1749,6 +1749,7 @@ novel_pose_closeups = novel_pose_rows(
         "antialiased": "antialiased",
         "face_closeups_antialiased": "close-ups, antialiased",
         "face_closeups_antialiased_eps01": "close-ups, antialiased, 0.1 px² filter",
+        "face_closeups_eps01": "close-ups, classic, 0.1 px²",
     },
     {"closeup": "head at 256 px", "face": "face in the frame", "full": "full frame"},
     result="novel_pose_closeups/novel_pose_closeups",
