@@ -15,7 +15,7 @@ from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
 from jobs.config import ENV_PREFIX, JobsConfig
-from service.settings import ServiceSettings
+from service.settings import ServiceSettings, env_name
 
 BOUNDS = {
     annotated_types.Ge: ("ge", ">="),
@@ -38,10 +38,6 @@ def type_name(annotation) -> str:
         inner = ", ".join("..." if a is Ellipsis else type_name(a) for a in args)
         return f"{origin.__name__}[{inner}]"
     return getattr(annotation, "__name__", str(annotation))
-
-
-def env_name(name: str, field: FieldInfo, prefix: str = ENV_PREFIX) -> str:
-    return field.validation_alias if isinstance(field.validation_alias, str) else prefix + name.upper()
 
 
 def default_text(field: FieldInfo) -> str:

@@ -13,6 +13,7 @@ import urllib.request
 from pathlib import Path
 
 from jobs.worker import HEALTH_EVERY_S
+from service.settings import ServiceSettings, env_name
 
 MAX_AGE_S = 3 * HEALTH_EVERY_S
 
@@ -50,7 +51,8 @@ def main(argv: list[str] | None = None) -> int:
     if role == "worker":
         problem = check_worker(Path(os.environ.get("EVA_WORKER_HEALTH_FILE", "/tmp/eva-worker.alive")))
     else:
-        problem = check_api(int(os.environ.get("EVA_PORT", "8000")))
+        port = ServiceSettings.model_fields["port"]
+        problem = check_api(int(os.environ.get(env_name("port", port), port.default)))
     if problem:
         print(f"unhealthy ({role}): {problem}", file=sys.stderr)
         return 1

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 from pydantic import Field, field_validator, model_validator
+from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from jobs.config import ENV_PREFIX, JobsConfig
@@ -14,6 +15,11 @@ from service.accounts import MIN_KEY_LENGTH, Account, read_accounts
 from service.connections import ConnectionLimits
 
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1", "[::1]")
+
+
+def env_name(name: str, field: FieldInfo, prefix: str = ENV_PREFIX) -> str:
+    """The environment variable of a settings field: its alias, else the prefix and its name."""
+    return field.validation_alias if isinstance(field.validation_alias, str) else prefix + name.upper()
 
 
 def is_loopback(host: str) -> bool:

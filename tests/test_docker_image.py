@@ -183,6 +183,19 @@ def test_the_health_check_knows_the_worker_role(tmp_path):
     assert "ago" in healthcheck.check_worker(alive)
 
 
+def test_the_api_health_check_reads_the_port_where_the_settings_do(monkeypatch):
+    from service.settings import ServiceSettings
+
+    asked = []
+    monkeypatch.setattr(healthcheck, "check_api", asked.append)
+    monkeypatch.setenv("EVA_PORT", "8123")
+    assert healthcheck.main(["--role", "api"]) == 0  # check_api's stand-in reports no problem
+    assert asked == [8123] == [ServiceSettings.from_env().port]
+    monkeypatch.delenv("EVA_PORT")
+    assert healthcheck.main(["--role", "api"]) == 0
+    assert asked[-1] == 8000 == ServiceSettings.from_env().port
+
+
 @pytest.mark.slow
 def test_a_worker_keeps_its_health_file_fresh(tmp_path):
     from helpers.service import EVA, start_process, stop, wait_for
