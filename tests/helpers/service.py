@@ -262,21 +262,24 @@ def freeze_in_stage(client, job_id: str, stage: str, others: tuple[int, ...] = (
     record says it is running ``stage``, and return the stopped pids. The record is read again
     once they are stopped: a stopped job cannot leave its stage, so what the test does next
     happens in that stage however short it is (if it moved on in between, they are let go and
-    the next moment is tried)."""
+    the next moment is tried). A process stopped inside a write to the job store holds the
+    SQLite lock, and the record cannot be read (the API answers 503): let go too, and tried again."""
 
-    def status() -> dict:
-        return client.get(f"/jobs/{job_id}").json()
+    def status() -> dict | None:
+        answer = client.get(f"/jobs/{job_id}")
+        return answer.json() if answer.status_code == 200 else None
 
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         pids = [*others, *job_processes(job_id)]
         job = status()
-        if len(pids) > len(others) and job["state"] == "running" and job["stage"] == stage:
+        if len(pids) > len(others) and job and job["state"] == "running" and job["stage"] == stage:
             for pid in pids:
                 os.kill(pid, signal.SIGSTOP)
             job = status()
             if (
-                job["state"] == "running"
+                job is not None
+                and job["state"] == "running"
                 and job["stage"] == stage
                 and set(pids) <= {*others, *job_processes(job_id)}
             ):
