@@ -2424,34 +2424,34 @@ def stat(results: Path, name: str) -> str:
 TWO_VALUES = re.compile(r"(?P<a>.+?)~(?P<b>.+?)@(?P<digits>\d)(?:x(?P<scale>\d+))?")
 
 
+def _two_numbers(results: Path, name: str, family: str) -> tuple[float, float, int, int]:
+    """``<path a>~<path b>@<digits>[x<scale>]`` -> (a, b, digits, scale), each path as
+    ``value``'s, naming one number."""
+    m = TWO_VALUES.fullmatch(name)
+    if m is None:
+        raise KeyError(f"{family} figure {name!r} is not <path a>~<path b>@<digits>[x<scale>]")
+    return _one(results, m["a"]), _one(results, m["b"]), int(m["digits"]), int(m["scale"] or 1)
+
+
 def change(results: Path, name: str) -> str:
     """The figure ``change/<path a>~<path b>@<digits>``: a against b in percent, signed, e.g.
     ``change/closeup_levers/runs/3/truth/lpips_vgg~closeup_levers/runs/0/truth/lpips_vgg@1`` ->
-    "+2.7%" (each path as ``value``'s, naming one number)."""
-    m = TWO_VALUES.fullmatch(name)
-    if m is None:
-        raise KeyError(f"change figure {name!r} is not <path a>~<path b>@<digits>")
-    gap = 100.0 * (_one(results, m["a"]) / _one(results, m["b"]) - 1.0)
-    return _text(gap, f"+.{m['digits']}f") + "%"
+    "+2.7%"."""
+    a, b, digits, _ = _two_numbers(results, name, "change")
+    return _text(100.0 * (a / b - 1.0), f"+.{digits}f") + "%"
 
 
 def difference(results: Path, name: str) -> str:
     """The figure ``difference/<path a>~<path b>@<digits>[x<scale>]``: a minus b, times ``scale``,
-    signed, e.g. "+5.9" (each path as ``value``'s, naming one number)."""
-    m = TWO_VALUES.fullmatch(name)
-    if m is None:
-        raise KeyError(f"difference figure {name!r} is not <path a>~<path b>@<digits>[x<scale>]")
-    gap = (_one(results, m["a"]) - _one(results, m["b"])) * int(m["scale"] or 1)
-    return _text(gap, f"+.{m['digits']}f")
+    signed, e.g. "+5.9"."""
+    a, b, digits, scale = _two_numbers(results, name, "difference")
+    return _text((a - b) * scale, f"+.{digits}f")
 
 
 def ratio(results: Path, name: str) -> str:
-    """The figure ``ratio/<path a>~<path b>@<digits>``: a over b, e.g. "1.4" (each path as
-    ``value``'s, naming one number)."""
-    m = TWO_VALUES.fullmatch(name)
-    if m is None:
-        raise KeyError(f"ratio figure {name!r} is not <path a>~<path b>@<digits>")
-    return _text(_one(results, m["a"]) / _one(results, m["b"]), f".{m['digits']}f")
+    """The figure ``ratio/<path a>~<path b>@<digits>``: a over b, e.g. "1.4"."""
+    a, b, digits, _ = _two_numbers(results, name, "ratio")
+    return _text(a / b, f".{digits}f")
 
 
 FIGURES: dict[str, Callable[[Path], str]] = {
