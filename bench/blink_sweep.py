@@ -4,10 +4,12 @@ it, as MediaPipe reads it on renders, and on a trained avatar.
     .venv/bin/python -m bench blink_sweep --dataset $V/dataset --avatar $V/avatar-product-s0 \
         --name blink_sweep --out bench/results/expressions/blink
 
-Both lids' ``eyeBlinkLeft`` and ``eyeBlinkRight`` are set to each value of ``--blinks``, every
-other coefficient kept. The gap is signed: the lower lid's landmark minus the upper one's
-(159-145, 386-374), across the eye-corner line (33-263), over the corner distance; it is
-negative once the upper landmark has passed the lower one. Three sources:
+Both lids' ``eyeBlinkLeft`` and ``eyeBlinkRight`` (or the ``--actions`` given, e.g.
+``eyeWideLeft,eyeWideRight``; ``all``: every coefficient, so ``--blinks 0`` is the rest face)
+are set to each value of ``--blinks``, every other coefficient kept. The gap is signed: the
+lower lid's landmark minus the upper one's (159-145, 386-374), across the eye-corner line
+(33-263), over the corner distance; it is negative once the upper landmark has passed the
+lower one. Three sources:
 
 - ``anny``: the painted neutral Anny face rendered head-on (``align.face_mesh.render_face``):
   MediaPipe on each render against the correspondence points the fit matches (``model``);
@@ -54,20 +56,20 @@ def signed_lid_gap(marks: torch.Tensor | np.ndarray | None) -> float:
     return float(sum(((xy[b] - xy[a]) @ normal) for a, b in LIDS) / (len(LIDS) * scale))
 
 
-def with_blink(params, names: list[str], value: float):
+def with_blink(params, names: list[str], value: float, actions: tuple[str, ...] = BLINKS):
     e = params.expression.clone()
-    for n in BLINKS:
+    for n in actions:
         e[..., names.index(n)] = value
     return dataclasses.replace(params, expression=e)
 
 
-def anny_sweep(model, reg, ids, values: list[float]) -> dict:
+def anny_sweep(model, reg, ids, values: list[float], actions: tuple[str, ...] = BLINKS) -> dict:
     from eva_engine.align.face_mesh import detect_face_mesh, render_face
     from eva_engine.eval.expression_fidelity import fitted_landmarks
 
     out = {"mediapipe": [], "model": []}
     for v in values:
-        ex = {n: v for n in BLINKS}
+        ex = {n: v for n in actions}
         r = render_face(model, ((0.0, 0.0),), expression=ex)[0]
         out["mediapipe"].append(signed_lid_gap(detect_face_mesh(r["rgb"])))
         p = model.params_from_pose({"expression": ex})
@@ -81,7 +83,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--dataset", type=Path)
     ap.add_argument("--avatar", type=Path)
     ap.add_argument("--frame", type=int, help="default: the frame whose detected eyes are most closed")
-    ap.add_argument("--blinks", default="0,0.25,0.5,0.75,1")
+    ap.add_argument("--blinks", default="0,0.25,0.5,0.75,1", help="the values the actions are set to")
+    ap.add_argument(
+        "--actions", default=",".join(BLINKS), help="the expression actions swept together, or all"
+    )
     ap.add_argument("--name", default="blink_sweep")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
@@ -92,14 +97,21 @@ def main(argv: list[str] | None = None) -> None:
     from eva_engine.eval.expression_fidelity import fitted_landmarks
 
     values = [float(v) for v in args.blinks.split(",")]
+    actions = tuple(args.actions.split(","))
     model = load_body_model("anny")
     corr = load_correspondence(model)
     reg, ids = corr.regressor(model)
     names = list(model.expression_names)
+    swept = list(actions)  # as asked: ["all"] stays one word in the files
+    if actions == ("all",):
+        actions = tuple(names)
+    if unknown := [a for a in actions if a not in names]:
+        raise SystemExit(f"--actions: {', '.join(unknown)} not among the body model's expression names")
     doc: dict = {
         **run_header(),
+        "actions": swept,
         "blinks": values,
-        "anny": anny_sweep(model, reg, ids, values),
+        "anny": anny_sweep(model, reg, ids, values, actions),
     }
     sheet = None
     if args.dataset is not None:
@@ -121,9 +133,9 @@ def main(argv: list[str] | None = None) -> None:
             "dataset": str(args.dataset),
             "frame": i,
             "detected": detected[i],
-            "fitted_blinks": [round(float(p.expression[0, names.index(n)]), 3) for n in BLINKS],
+            "fitted_blinks": [round(float(p.expression[0, names.index(n)]), 3) for n in actions],
             "fitted": model_gap(p),
-            "model": [model_gap(with_blink(p, names, v)) for v in values],
+            "model": [model_gap(with_blink(p, names, v, actions)) for v in values],
         }
         if args.avatar is not None:
             from eva_engine.avatar import Camera, load_saved_avatar
@@ -140,10 +152,10 @@ def main(argv: list[str] | None = None) -> None:
                 return (img.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
 
             target = (f.image.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
-            images = [render(p)] + [render(with_blink(p, names, v)) for v in values]
+            images = [render(p)] + [render(with_blink(p, names, v, actions)) for v in values]
             gaps = [signed_lid_gap(detect_face_mesh(im)) for im in images]
             # The Gaussians whose vertex the blink moves, hidden: what is left of the eye.
-            rest = [av.body(with_blink(p, names, v)).rest[0] for v in (0.0, 1.0)]
+            rest = [av.body(with_blink(p, names, v, actions)).rest[0] for v in (0.0, 1.0)]
             moved = ((rest[1] - rest[0]).norm(dim=-1) > 1e-4)[av.gaussians.vertex_ids]
             opacities = av.gaussians.splats["opacities"].data
             kept = opacities.clone()
@@ -180,15 +192,18 @@ def markdown(doc: dict) -> str:
         return f"| {label} | {cells} | {closes if closes is not None else '–'} |"
 
     head = " | ".join(f"{v:g}" for v in doc["blinks"])
+    actions = doc.get("actions", list(BLINKS))  # files before --actions swept the blinks
+    every = actions == ["all"]
+    swept = "every expression coefficient" if every else ", ".join(actions)
     lines = [
-        "# Lid gap along the blink action",
+        f"# Lid gap along {swept}",
         "",
         header_line(doc),
         f"- machine: {doc['machine']}",
         "",
         "Signed lid gap (lower minus upper landmark, 159-145 and 386-374) over the eye-corner",
-        "distance, with both eyeBlink coefficients set to each value; negative: the upper landmark",
-        "has passed the lower one. Last column: the blink where the gap first reaches zero.",
+        f"distance, with {swept} set to each value; negative: the upper landmark has passed the",
+        "lower one. Last column: the value where the gap first reaches zero.",
         "",
         f"| source | {head} | closes at |",
         "|---|" + "---:|" * (len(doc["blinks"]) + 1),
@@ -205,21 +220,25 @@ def markdown(doc: dict) -> str:
         lines += [
             "",
             f"Frame {fitted['frame']} of `{fitted['dataset']}`: detected gap {fitted['detected']:+.3f}; "
-            f"fitted eyeBlinkLeft / Right {fitted['fitted_blinks'][0]} / {fitted['fitted_blinks'][1]}, "
-            f"whose correspondence gap is {fitted['fitted']:+.3f}.",
+            + ("the coefficients as fitted (the JSON)" if every else _pairs(actions, fitted["fitted_blinks"]))
+            + f", whose correspondence gap is {fitted['fitted']:+.3f}.",
         ]
     if avatar:
         lines += [
             f"MediaPipe on the target frame: {avatar['target_mediapipe']:+.3f}; on the avatar's render "
-            f"with the fitted blink: {avatar['fitted']:+.3f} (`{avatar['avatar']}`).",
+            f"as fitted: {avatar['fitted']:+.3f} (`{avatar['avatar']}`).",
             "",
-            f"The blink moves the vertices of {avatar['gaussians_moved_by_blink']} of the avatar's "
+            f"The actions move the vertices of {avatar['gaussians_moved_by_blink']} of the avatar's "
             f"{avatar['gaussians']} Gaussians.",
             "",
-            "Sheet: target | render, fitted blink | render at each blink value above | render, fitted "
-            "blink, without the Gaussians the blink moves.",
+            "Sheet: target | render, as fitted | render at each value above | render, as fitted, "
+            "without the Gaussians the actions move.",
         ]
     return "\n".join(lines) + "\n"
+
+
+def _pairs(names: list[str], values: list[float]) -> str:
+    return "fitted " + ", ".join(f"{n} {v}" for n, v in zip(names, values, strict=True))
 
 
 if __name__ == "__main__":
