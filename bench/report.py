@@ -844,11 +844,36 @@ def blink_sweep(results: Path) -> list[str]:
         "default avatar (`avatar-product-s0`), MediaPipe on its render": product.avatar["mediapipe"],
         "paper's EVA (`avatar-eva-…_s0`), MediaPipe on its render": eva.avatar["mediapipe"],
     }
-    head = " | ".join(f"blink {v:g}" if i == 0 else f"{v:g}" for i, v in enumerate(product.blinks))
-    lines = [f"| source | {head} | gap reaches 0 at |", "|---|" + "---:|" * (len(product.blinks) + 1)]
+    return _sweep_table("blink", product.blinks, rows, closes=True)
+
+
+def wide_sweep(results: Path) -> list[str]:
+    """The gesturing clip's widest-open held-out frame with both eyeWide coefficients swept: the
+    fitted face's points and the renders of the `fast` avatar and of the one with the lids'
+    six actions' colours (``expressions/lid_colours/wide_sweep_{ce01,lid6}``; docs/alignment.md,
+    "The lids' other actions' colours")."""
+    blinks = load(BlinkSweep, "expressions/lid_colours/wide_sweep_ce01", results)
+    lids = load(BlinkSweep, "expressions/lid_colours/wide_sweep_lid6", results)
+    frame = blinks.fitted["frame"]
+    rows = {
+        f"frame {frame}'s fitted face, correspondence points": blinks.fitted["model"],
+        "`fast` (the blinks' colours), MediaPipe on its render": blinks.avatar["mediapipe"],
+        "the lids' six actions' colours, MediaPipe on its render": lids.avatar["mediapipe"],
+    }
+    return _sweep_table("eyeWide", blinks.blinks, rows, closes=False)
+
+
+def _sweep_table(action: str, values: list[float], rows: dict[str, list[float]], closes: bool) -> list[str]:
+    """One row of signed lid gaps per source over an action's swept ``values``; with ``closes``
+    a last column, the value where the gap first reaches zero."""
+    head = " | ".join(f"{action} {v:g}" if i == 0 else f"{v:g}" for i, v in enumerate(values))
+    last = " gap reaches 0 at |" if closes else ""
+    lines = [f"| source | {head} |{last}", "|---|" + "---:|" * (len(values) + closes)]
     for label, gaps in rows.items():
-        closes = zero_crossing(product.blinks, gaps)
-        cells = [_signed(g, 3) for g in gaps] + ["never" if closes is None else f"{closes:.2f}"]
+        cells = [_signed(g, 3) for g in gaps]
+        if closes:
+            at = zero_crossing(values, gaps)
+            cells.append("never" if at is None else f"{at:.2f}")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines
 
@@ -1974,6 +1999,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "baselines": baselines,
     "baselines_real": baselines_real,
     "blink_sweep": blink_sweep,
+    "wide_sweep": wide_sweep,
     "per_frame_hands": per_frame_hands,
     "region_sensitivity": region_sensitivity,
     "real_videos_expr": real_videos_change("real_videos_expr"),
@@ -2150,6 +2176,12 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
         ("default", "median face, eyes bound"),
         "expressions/eye_binding/{clip}_mb_paired",
         "expressions/eye_binding/eval_{clip}_mb",
+    ),
+    "lid_colours": face_variants(
+        "expressions/lid_colours/{clip}_{variant}_paired",
+        "expressions/lid_colours/eval_{clip}_{variant}",
+        {"lid4": "+ eyeWide", "lid6": "+ eyeWide, eyeSquint", "lid6h": "the same, half the rate"},
+        (*OPENING_ROWS_FULL, *LPIPS_ROWS),
     ),
     **clips_and_driving(
         "training_length",
