@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> None:
             target = (f.image.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
             images = [render(p)] + [render(with_blink(p, names, v, actions)) for v in values]
             gaps = [signed_lid_gap(detect_face_mesh(im)) for im in images]
-            # The Gaussians whose vertex the blink moves, hidden: what is left of the eye.
+            # The Gaussians whose vertex the actions move, hidden: what is left of the eye.
             rest = [av.body(with_blink(p, names, v, actions)).rest[0] for v in (0.0, 1.0)]
             moved = ((rest[1] - rest[0]).norm(dim=-1) > 1e-4)[av.gaussians.vertex_ids]
             opacities = av.gaussians.splats["opacities"].data

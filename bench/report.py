@@ -852,15 +852,15 @@ def wide_sweep(results: Path) -> list[str]:
     fitted face's points and the renders of the `fast` avatar and of the one with the lids'
     six actions' colours (``expressions/lid_colours/wide_sweep_{ce01,lid6}``; docs/alignment.md,
     "The lids' other actions' colours")."""
-    blinks = load(BlinkSweep, "expressions/lid_colours/wide_sweep_ce01", results)
+    fast = load(BlinkSweep, "expressions/lid_colours/wide_sweep_ce01", results)
     lids = load(BlinkSweep, "expressions/lid_colours/wide_sweep_lid6", results)
-    frame = blinks.fitted["frame"]
+    frame = fast.fitted["frame"]
     rows = {
-        f"frame {frame}'s fitted face, correspondence points": blinks.fitted["model"],
-        "`fast` (the blinks' colours), MediaPipe on its render": blinks.avatar["mediapipe"],
+        f"frame {frame}'s fitted face, correspondence points": fast.fitted["model"],
+        "`fast` (the blinks' colours), MediaPipe on its render": fast.avatar["mediapipe"],
         "the lids' six actions' colours, MediaPipe on its render": lids.avatar["mediapipe"],
     }
-    return _sweep_table("eyeWide", blinks.blinks, rows, closes=False)
+    return _sweep_table("eyeWide", fast.blinks, rows, closes=False)
 
 
 def _sweep_table(action: str, values: list[float], rows: dict[str, list[float]], closes: bool) -> list[str]:
