@@ -56,14 +56,15 @@ def signed_lid_gap(marks: torch.Tensor | np.ndarray | None) -> float:
     return float(sum(((xy[b] - xy[a]) @ normal) for a, b in LIDS) / (len(LIDS) * scale))
 
 
-def with_blink(params, names: list[str], value: float, actions: tuple[str, ...] = BLINKS):
+def with_actions(params, names: list[str], actions: tuple[str, ...], value: float):
+    """``params`` with each of ``actions`` (expression names) set to ``value``."""
     e = params.expression.clone()
     for n in actions:
         e[..., names.index(n)] = value
     return dataclasses.replace(params, expression=e)
 
 
-def anny_sweep(model, reg, ids, values: list[float], actions: tuple[str, ...] = BLINKS) -> dict:
+def anny_sweep(model, reg, ids, values: list[float], actions: tuple[str, ...]) -> dict:
     from eva_engine.align.face_mesh import detect_face_mesh, render_face
     from eva_engine.eval.expression_fidelity import fitted_landmarks
 
@@ -135,7 +136,7 @@ def main(argv: list[str] | None = None) -> None:
             "detected": detected[i],
             "fitted_blinks": [round(float(p.expression[0, names.index(n)]), 3) for n in actions],
             "fitted": model_gap(p),
-            "model": [model_gap(with_blink(p, names, v, actions)) for v in values],
+            "model": [model_gap(with_actions(p, names, actions, v)) for v in values],
         }
         if args.avatar is not None:
             from eva_engine.avatar import Camera, load_saved_avatar
@@ -152,10 +153,10 @@ def main(argv: list[str] | None = None) -> None:
                 return (img.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
 
             target = (f.image.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
-            images = [render(p)] + [render(with_blink(p, names, v, actions)) for v in values]
+            images = [render(p)] + [render(with_actions(p, names, actions, v)) for v in values]
             gaps = [signed_lid_gap(detect_face_mesh(im)) for im in images]
             # The Gaussians whose vertex the actions move, hidden: what is left of the eye.
-            rest = [av.body(with_blink(p, names, v, actions)).rest[0] for v in (0.0, 1.0)]
+            rest = [av.body(with_actions(p, names, actions, v)).rest[0] for v in (0.0, 1.0)]
             moved = ((rest[1] - rest[0]).norm(dim=-1) > 1e-4)[av.gaussians.vertex_ids]
             opacities = av.gaussians.splats["opacities"].data
             kept = opacities.clone()
@@ -220,7 +221,7 @@ def markdown(doc: dict) -> str:
         lines += [
             "",
             f"Frame {fitted['frame']} of `{fitted['dataset']}`: detected gap {fitted['detected']:+.3f}; "
-            + ("the coefficients as fitted (the JSON)" if every else _pairs(actions, fitted["fitted_blinks"]))
+            + ("the coefficients as fitted (the JSON)" if every else _fitted(actions, fitted))
             + f", whose correspondence gap is {fitted['fitted']:+.3f}.",
         ]
     if avatar:
@@ -237,8 +238,9 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _pairs(names: list[str], values: list[float]) -> str:
-    return "fitted " + ", ".join(f"{n} {v}" for n, v in zip(names, values, strict=True))
+def _fitted(names: list[str], fitted: dict) -> str:
+    """The swept actions' fitted coefficients, in words."""
+    return "fitted " + ", ".join(f"{n} {v}" for n, v in zip(names, fitted["fitted_blinks"], strict=True))
 
 
 if __name__ == "__main__":
