@@ -170,6 +170,21 @@ ROWS: dict[str, Row] = {
         "every preset's since)",
         (*DEFAULT, "avatar.eps2d=0.1"),
     ),
+    "blink_colours_ridge": Row(
+        "every preset's 0.1 px^2 dilation, and the blinks' colours under a ridge of 1e-3 (issue 39)",
+        (*DEFAULT, "avatar.eps2d=0.1", "regularizers.lambda_colour_offsets=0.001"),
+    ),
+    "lid_colours_ridge": Row(
+        "every preset's 0.1 px^2 dilation, and colours that follow all six lid actions (blinks, squints, "
+        "wides) under a ridge of 1e-3 (issue 39)",
+        (
+            *DEFAULT,
+            "avatar.eps2d=0.1",
+            'avatar.expression_colour_actions=["eyeBlinkLeft","eyeBlinkRight","eyeWideLeft","eyeWideRight",'
+            '"eyeSquintLeft","eyeSquintRight"]',
+            "regularizers.lambda_colour_offsets=0.001",
+        ),
+    ),
     "face_closeups_antialiased": Row(
         "the default, trained on the face close-ups too, rasterized in gsplat's antialiased mode (issue 39)",
         (*DEFAULT, "face_view.weight=1", 'avatar.rasterize_mode="antialiased"'),

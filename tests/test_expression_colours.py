@@ -20,7 +20,9 @@ from eva_engine.avatar.expression_colours import (
     revealing_actions,
 )
 from eva_engine.avatar.io import load_avatar, save_avatar
+from eva_engine.render.sh import SH_C0
 from eva_engine.train import preset, train_avatar
+from eva_engine.train.regularizers import RegularizerConfig, colour_offsets, regularization
 from eva_engine.train.strategy.ops import duplicate, remove
 
 
@@ -173,6 +175,25 @@ def test_offsets_stay_bounded_and_their_gradients_finite_at_extreme_coefficients
     sh = avatar.pose(params).sh
     sh.sum().backward()
     assert torch.isfinite(sh).all() and torch.isfinite(offsets.grad).all()
+
+
+def test_the_ridge_costs_the_recoloured_pairs_colour_change_and_nothing_else(anny_model):
+    avatar = with_expression_colours(dark_eyes_avatar(anny_model, footprint=0.5))
+    g = avatar.gaussians
+    reach = avatar.expression_reach[g.vertex_ids]  # [N, K]
+    offsets = g.splats["sh0_expression"]
+    with torch.no_grad():
+        offsets.fill_(2.0)
+        offsets[~reach] = 1e3  # never rendered: must not count
+    cost = colour_offsets(avatar)
+    assert float(cost.detach()) == pytest.approx(3 * (2.0 * SH_C0) ** 2, rel=1e-6)
+    cost.backward()
+    assert torch.isfinite(offsets.grad).all() and not bool(offsets.grad[~reach].any())
+    plain = dark_eyes_avatar(anny_model, footprint=0.5)  # no offsets
+    assert float(colour_offsets(plain)) == 0.0
+    on = RegularizerConfig(lambda_thin=0.0, lambda_colour_offsets=0.5)
+    assert on.active
+    assert float(regularization(avatar, on).detach()) == pytest.approx(0.5 * float(cost.detach()))
 
 
 def test_an_eye_painted_on_the_lid_learns_to_close(anny_model):

@@ -4,7 +4,7 @@ first five below) are 0 by default (EVA, GauHuman and 3DGS use none); ``gart+bod
 PeopleSnapshot values (``profiles/people/people_1m.yaml``). The last two keep an avatar sound in
 poses and views the video never showed (``docs/novel-views.md``): ``thin`` is on by default (the
 product's training), off in the paper's methods (``train/methods.py``: none of them has it);
-``skinning`` is off (no difference on the novel-pose benchmark).
+``skinning`` is off (no difference on the novel-pose benchmark). ``colour_offsets`` is off.
 
 - ``knn_std``: for each Gaussian and its K nearest neighbours (canonical centres, itself
   included), the std of each attribute over the K, averaged: quaternion (raw), scales and opacity
@@ -23,6 +23,12 @@ product's training), off in the paper's methods (``train/methods.py``: none of t
   model's at its template vertex, summed over joints and averaged (HUGS's and 3DGS-Avatar's
   prior): the weight-offset network may bend a weight, but a raised arm must not leave
   Gaussians behind that learnt to follow the spine. Mesh skinning only.
+- ``colour_offsets``: ridge on the expression colours' offsets (``AvatarConfig.
+  expression_colours``): the squared colour change each offset makes at its action's largest
+  training coefficient, ``||SH_C0 delta_k||^2``, averaged over the (Gaussian, action) pairs the
+  action recolours. Actions that move the same lid together (a blink and a squint) can learn
+  large offsets that cancel on the training frames and not elsewhere; the ridge keeps the
+  smallest offsets that explain the frames.
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ from eva_engine.avatar import Avatar
 from eva_engine.avatar.model import PosedGaussians
 from eva_engine.geometry import knn_indices
 from eva_engine.render import quat_to_rotmat
+from eva_engine.render.sh import SH_C0
 
 
 @dataclass(frozen=True)
@@ -56,6 +63,7 @@ class RegularizerConfig:
     thin_part_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
     thin_part_targets: tuple[float, float, float] | None = None
     lambda_skinning: float = 0.0
+    lambda_colour_offsets: float = 0.0
 
     def __post_init__(self) -> None:
         if len(self.thin_part_weights) != 3 or min(self.thin_part_weights) < 0:
@@ -122,6 +130,21 @@ def skinning_prior(avatar: Avatar, weights: Tensor) -> Tensor:
     return ((weights[:, : body.shape[1]] - body) ** 2).sum(dim=-1).mean()
 
 
+def colour_offsets(avatar: Avatar) -> Tensor:
+    """Mean over the (Gaussian, action) pairs an action recolours of ``||SH_C0 delta||^2``, the
+    squared colour change of the offset ``delta`` (``splats.sh0_expression [N, K, 3]``); 0 for an
+    avatar without expression colours."""
+    g = avatar.gaussians
+    offsets = g.splats.get("sh0_expression")
+    if offsets is None or offsets.shape[1] == 0:
+        return g.means.new_zeros(())
+    reach = avatar.expression_reach[g.vertex_ids]  # [N, K]
+    if not bool(reach.any()):
+        return g.means.new_zeros(())
+    change = (SH_C0 * offsets).square().sum(dim=-1)  # [N, K]
+    return change[reach].mean()
+
+
 def regularization(avatar: Avatar, config: RegularizerConfig, posed: PosedGaussians | None = None) -> Tensor:
     """The weighted sum of the active regularisers (a scalar; 0 when none is active); ``posed``:
     this step's posed Gaussians (their skinning weights, for ``lambda_skinning``)."""
@@ -136,6 +159,8 @@ def regularization(avatar: Avatar, config: RegularizerConfig, posed: PosedGaussi
             posed.weights if posed is not None and posed.weights is not None else avatar.skinning_weights()
         )
         total = total + config.lambda_skinning * skinning_prior(avatar, weights)
+    if config.lambda_colour_offsets > 0:
+        total = total + config.lambda_colour_offsets * colour_offsets(avatar)
     if config.lambda_knn_std > 0:
         total = total + config.lambda_knn_std * knn_std(avatar, config.knn)
     if config.lambda_small_scale > 0:
