@@ -1780,6 +1780,13 @@ novel_pose_closeups = novel_pose_rows(
     result="novel_pose_closeups/novel_pose_closeups",
     baseline="thin_blink_colours",
 )
+# The ridge on the expression colours' offsets (``expressions/lid_colours/``).
+novel_pose_lid_ridge = novel_pose_rows(
+    {"blink_colours_ridge": "blinks, ridge 1e-3", "lid_colours_ridge": "six lid actions, ridge 1e-3"},
+    {"face": "face in the frame", "closeup": "head at 256 px", "full": "full frame"},
+    result="expressions/lid_colours/novel_pose_lid_ridge",
+    baseline="classic_eps01",
+)
 novel_pose_filters = novel_pose_rows(
     {
         "antialiased": "antialiased, 0.3 px²",
@@ -2158,6 +2165,7 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "novel_pose_goals": novel_pose_goals,
     "novel_pose_closeups": novel_pose_closeups,
     "novel_pose_filters": novel_pose_filters,
+    "novel_pose_lid_ridge": novel_pose_lid_ridge,
     "paper_tables": paper_tables,
     "paper_regime": paper_regime,
     "service_latency": service_latency,
@@ -2180,7 +2188,12 @@ SECTIONS: dict[str, Callable[[Path], list[str]]] = {
     "lid_colours": face_variants(
         "expressions/lid_colours/{clip}_{variant}_paired",
         "expressions/lid_colours/eval_{clip}_{variant}",
-        {"lid4": "+ eyeWide", "lid6": "+ eyeWide, eyeSquint", "lid6h": "the same, half the rate"},
+        {
+            "lid4": "+ eyeWide",
+            "lid6": "+ eyeWide, eyeSquint",
+            "lid6h": "the same, half the rate",
+            "lid6r": "the same, ridge 1e-3",
+        },
         (*OPENING_ROWS_FULL, *LPIPS_ROWS),
     ),
     **clips_and_driving(
