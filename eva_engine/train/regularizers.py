@@ -1,10 +1,11 @@
 """Regularisers of the avatar itself (not of the image): ``RegularizerConfig`` and
 ``regularization(avatar, config, posed)``, added to the training loss each step. GART's (the
 first five below) are 0 by default (EVA, GauHuman and 3DGS use none); ``gart+body`` sets GART's
-PeopleSnapshot values (``profiles/people/people_1m.yaml``). The last two keep an avatar sound in
-poses and views the video never showed (``docs/novel-views.md``): ``thin`` is on by default (the
-product's training), off in the paper's methods (``train/methods.py``: none of them has it);
-``skinning`` is off (no difference on the novel-pose benchmark). ``colour_offsets`` is off.
+PeopleSnapshot values (``profiles/people/people_1m.yaml``). ``thin`` and ``skinning`` keep an
+avatar sound in poses and views the video never showed (``docs/novel-views.md``): ``thin`` is on by
+default (the product's training), off in the paper's methods (``train/methods.py``: none of them has
+it); ``skinning`` is off (no difference on the novel-pose benchmark). ``colour_offsets`` is off
+(``docs/alignment.md``, "A ridge on the offsets": it removes the lids' specks but not their cost).
 
 - ``knn_std``: for each Gaussian and its K nearest neighbours (canonical centres, itself
   included), the std of each attribute over the K, averaged: quaternion (raw), scales and opacity
