@@ -1,7 +1,8 @@
 """``python -m service.healthcheck``: the container's health, for either role of the image (the
 Dockerfile's HEALTHCHECK). The role is read from the container's main process (PID 1): a worker
-is healthy when it touched ``EVA_WORKER_HEALTH_FILE`` within ``MAX_AGE_S`` seconds; the API when
-``/healthz`` answers 200 on ``EVA_PORT``. Exit status 0: healthy, 1: not (with the reason)."""
+is healthy when it touched the file ``EVA_WORKER_HEALTH_FILE`` names within ``MAX_AGE_S`` seconds;
+the API when ``/healthz`` answers 200 on ``EVA_PORT``. Exit status 0: healthy, 1: not (with the
+reason)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,9 @@ from jobs.worker import HEALTH_EVERY_S
 from service.settings import ServiceSettings, env_name
 
 MAX_AGE_S = 3 * HEALTH_EVERY_S
+HEALTH_FILE_ENV = "EVA_WORKER_HEALTH_FILE"
+"""The worker's health file (``eva worker --health-file``'s variable): no default, since a worker
+started without it writes none."""
 
 
 def container_role(cmdline: Path = Path("/proc/1/cmdline")) -> str:
@@ -49,7 +53,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     role = container_role() if args.role == "auto" else args.role
     if role == "worker":
-        problem = check_worker(Path(os.environ.get("EVA_WORKER_HEALTH_FILE", "/tmp/eva-worker.alive")))
+        path = os.environ.get(HEALTH_FILE_ENV)
+        problem = (
+            check_worker(Path(path))
+            if path
+            else f"{HEALTH_FILE_ENV} is not set, so the worker writes no health file to check"
+        )
     else:
         port = ServiceSettings.model_fields["port"]
         problem = check_api(int(os.environ.get(env_name("port", port), port.default)))

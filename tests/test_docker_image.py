@@ -183,6 +183,12 @@ def test_the_health_check_knows_the_worker_role(tmp_path):
     assert "ago" in healthcheck.check_worker(alive)
 
 
+def test_a_worker_health_check_without_its_file_says_why(monkeypatch, capsys):
+    monkeypatch.delenv(healthcheck.HEALTH_FILE_ENV, raising=False)
+    assert healthcheck.main(["--role", "worker"]) == 1
+    assert f"{healthcheck.HEALTH_FILE_ENV} is not set" in capsys.readouterr().err
+
+
 def test_the_api_health_check_reads_the_port_where_the_settings_do(monkeypatch):
     from service.settings import ServiceSettings
 
@@ -207,7 +213,7 @@ def test_a_worker_keeps_its_health_file_fresh(tmp_path):
     )
     try:
         wait_for(alive.exists, 60, "the health file")
-        assert healthcheck.main(["--role", "worker"]) == 1  # the default path is not this one
+        assert healthcheck.main(["--role", "worker"]) == 1  # no variable: no file to check
         import os
 
         os.environ["EVA_WORKER_HEALTH_FILE"] = str(alive)
