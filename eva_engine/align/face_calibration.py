@@ -135,6 +135,36 @@ def build_calibration(
     """The calibration of MediaPipe on ``model``'s painted face (module docstring). Needs the mesh
     renderer (EGL) and MediaPipe; about half a minute on two cores. ``renderer``: an open 512-pixel
     ``painted_face_renderer`` (else one is opened)."""
+    x, y = calibration_readings(model, corr, samples, views, seed, renderer)
+    names = list(model.expression_names)
+    landmarks = corr.regressor(model)[1]
+    if len(x) < 2 * len(names):
+        raise RuntimeError(f"the face mesh found only {len(x)} of the calibration's renders")
+    w = np.linalg.solve(x.T @ x + RIDGE * np.eye(x.shape[1]), x.T @ y)  # [1 + E, L * 2]
+    fit = np.sqrt(((y - x @ w) ** 2).mean())
+    logger.info(
+        "face-mesh calibration: %d renders, residual %.4f -> %.4f eye-corner units",
+        len(x),
+        np.sqrt((y**2).mean()),
+        fit,
+    )
+    w = torch.from_numpy(w).float().reshape(1 + len(names), len(landmarks), 2)
+    kept = torch.tensor([int(k) not in EYE_CONTOURS for k in landmarks], dtype=torch.float32)[None, :, None]
+    w = w * kept
+    return DetectorCalibration(landmarks, w[0], w[1:])
+
+
+def calibration_readings(
+    model: BodyModel,
+    corr: FaceMeshCorrespondence,
+    samples: int = SAMPLES,
+    views: tuple[tuple[float, float], ...] = VIEWS_DEG,
+    seed: int = 0,
+    renderer: MeshRenderer | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """What :func:`build_calibration` regresses: ``x [S, 1 + E]`` (a constant, then each render's
+    facial actions) and ``y [S, L * 2]`` (what the face mesh reads beyond the projected
+    correspondence points, in the face's frame), over the renders where a face was found."""
     from mediapipe.python.solutions import face_mesh as mp_face_mesh
 
     reg, landmarks = corr.regressor(model)
@@ -163,22 +193,8 @@ def build_calibration(
                 uv = project_points(to_camera(points[None], view[None].double()), K[None].double())[0]
                 features.append(expression)
                 targets.append(in_face_frame(detected[lm] - uv.numpy(), detected))
-    if len(features) < 2 * len(names):
-        raise RuntimeError(f"the face mesh found only {len(features)} of the calibration's renders")
-    x = np.concatenate([np.ones((len(features), 1)), np.array(features)], axis=1)  # [S, 1 + E]
-    y = np.array(targets).reshape(len(features), -1)  # [S, L * 2]
-    w = np.linalg.solve(x.T @ x + RIDGE * np.eye(x.shape[1]), x.T @ y)  # [1 + E, L * 2]
-    fit = np.sqrt(((y - x @ w) ** 2).mean())
-    logger.info(
-        "face-mesh calibration: %d renders, residual %.4f -> %.4f eye-corner units",
-        len(features),
-        np.sqrt((y**2).mean()),
-        fit,
-    )
-    w = torch.from_numpy(w).float().reshape(1 + len(names), len(lm), 2)
-    kept = torch.tensor([int(k) not in EYE_CONTOURS for k in lm], dtype=torch.float32)[None, :, None]
-    w = w * kept
-    return DetectorCalibration(landmarks, w[0], w[1:])
+    x = np.concatenate([np.ones((len(features), 1)), np.array(features).reshape(-1, len(names))], axis=1)
+    return x, np.array(targets).reshape(len(features), 2 * len(lm))
 
 
 def in_face_frame(offsets: np.ndarray, detected: np.ndarray) -> np.ndarray:
