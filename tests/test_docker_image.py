@@ -127,7 +127,7 @@ def test_the_image_runs_unprivileged_from_a_multi_stage_build():
     health = next(line for line in final if line.startswith("HEALTHCHECK"))
     assert "service.healthcheck" in health  # role-aware: a worker is not sent to /healthz
     env = " ".join(line for line in final if line.startswith("ENV "))
-    assert "EVA_HOST=0.0.0.0" in env and "EVA_WORKER_HEALTH_FILE=" in env
+    assert "EVA_HOST=0.0.0.0" in env and f"{healthcheck.HEALTH_FILE_ENV}=" in env
 
 
 def test_compose_caps_memory_and_needs_a_key():
@@ -203,7 +203,7 @@ def test_the_api_health_check_reads_the_port_where_the_settings_do(monkeypatch):
 
 
 @pytest.mark.slow
-def test_a_worker_keeps_its_health_file_fresh(tmp_path):
+def test_a_worker_keeps_its_health_file_fresh(tmp_path, monkeypatch):
     from helpers.service import EVA, start_process, stop, wait_for
 
     alive = tmp_path / "alive"
@@ -213,14 +213,10 @@ def test_a_worker_keeps_its_health_file_fresh(tmp_path):
     )
     try:
         wait_for(alive.exists, 60, "the health file")
+        monkeypatch.delenv(healthcheck.HEALTH_FILE_ENV, raising=False)
         assert healthcheck.main(["--role", "worker"]) == 1  # no variable: no file to check
-        import os
-
-        os.environ["EVA_WORKER_HEALTH_FILE"] = str(alive)
-        try:
-            assert healthcheck.main(["--role", "worker"]) == 0
-        finally:
-            del os.environ["EVA_WORKER_HEALTH_FILE"]
+        monkeypatch.setenv(healthcheck.HEALTH_FILE_ENV, str(alive))
+        assert healthcheck.main(["--role", "worker"]) == 0
     finally:
         stop(worker)
     assert not alive.exists()  # removed on a clean stop
